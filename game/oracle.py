@@ -1,0 +1,128 @@
+"""A NumPy float64 implementation of the same equations: the test oracle.
+
+Readable rather than fast, and independent of the native core (it shares no code with
+it, only the scene). Every force of a substep comes from the state at the substep's start.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .cloth import corners_of, rest_positions
+from .scene import Scene
+
+STRUCTURAL_DIRS = ((0, -1), (0, 1), (-1, 0), (1, 0))
+SHEAR_DIRS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
+BEND_DIRS = ((0, -2), (0, 2), (-2, 0), (2, 0))
+CORNERS = ((0, 0), (0, -1), (-1, -1), (-1, 0))
+
+
+def spring(pi: np.ndarray, pj: np.ndarray, k: float, rest: float, compress: float) -> np.ndarray:
+    """Force on i from a spring to j (eq. 2); compress=0 makes it tension-only."""
+    d = pj - pi
+    length = np.linalg.norm(d, axis=-1, keepdims=True)
+    ext = length - rest
+    ext = np.where(ext > 0, ext, ext * compress)
+    scale = np.where(length > 1e-12, k * ext / np.where(length > 1e-12, length, 1.0), 0.0)
+    return d * scale
+
+
+def add_springs(f: np.ndarray, pos: np.ndarray, dirs, k: float, rest: float, compress: float):
+    """Add to f the force on each node from its neighbour at offset (di, dj), where it exists."""
+    n = pos.shape[0]
+    for di, dj in dirs:
+        rows = slice(max(0, -di), n - max(0, di))
+        cols = slice(max(0, -dj), n - max(0, dj))
+        nrows = slice(max(0, -di) + di, n - max(0, di) + di)
+        ncols = slice(max(0, -dj) + dj, n - max(0, dj) + dj)
+        f[rows, cols] += spring(pos[rows, cols], pos[nrows, ncols], k, rest, compress)
+
+
+def ball_contact(pos: np.ndarray, centre: np.ndarray, radius: float, k: float) -> np.ndarray:
+    """Eq. (4) on every node inside the ball; a node at the very centre is pushed down."""
+    d = pos - centre
+    r = np.linalg.norm(d, axis=-1, keepdims=True)
+    inside = r < radius
+    safe_r = np.where(r > 1e-12, r, 1.0)
+    f = np.where(inside & (r > 1e-12), d * (k * (radius - r) / safe_r), 0.0)
+    at_centre = (inside & (r <= 1e-12))[..., 0]
+    f[at_centre] = (0.0, -k * radius, 0.0)
+    return f
+
+
+def grid_normals(pos: np.ndarray) -> np.ndarray:
+    """Unit normals from the cross product of the grid tangents (central differences)."""
+    tv = np.gradient(pos, axis=0)  # along i (+z at rest)
+    tu = np.gradient(pos, axis=1)  # along j (+x at rest)
+    nrm = np.cross(tv, tu)
+    length = np.linalg.norm(nrm, axis=-1, keepdims=True)
+    up = np.broadcast_to(np.array([0.0, 1.0, 0.0]), nrm.shape)
+    return np.where(length > 0, nrm / np.where(length > 0, length, 1.0), up)
+
+
+class ReferenceCloth:
+    """The oracle: same scene, same equations, float64 NumPy, one step at a time."""
+
+    def __init__(self, scene: Scene) -> None:
+        self.scene = scene
+        self.fx = scene.effects
+        self.pos = rest_positions(scene)
+        self.vel = np.zeros_like(self.pos)
+        self.hips = corners_of(self.pos)
+        ball = scene["ball"]
+        self.ball_pos = np.array(ball["position"], dtype=np.float64)
+        self.ball_vel = np.array(ball["velocity"], dtype=np.float64)
+
+    def forces(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Force on every node (eq. 1) and the summed contact force on the ball."""
+        s, fx = self.scene, self.fx
+        cloth, L = s["cloth"], s.rest_length
+        f = np.zeros_like(pos)
+        if "structural" in fx:
+            compress = 1.0 if cloth["structural_two_sided"] else 0.0
+            add_springs(f, pos, STRUCTURAL_DIRS, cloth["k_structural"], L, compress)
+        if "shear" in fx:
+            add_springs(f, pos, SHEAR_DIRS, cloth["k_shear"], L * np.sqrt(2.0), 1.0)
+        if "bend" in fx:
+            add_springs(f, pos, BEND_DIRS, cloth["k_bend"], 2.0 * L, 1.0)
+        if "gravity" in fx:
+            f += s.node_mass * np.array(s["sim"]["gravity"])
+        if "damping" in fx:
+            f -= cloth["damping"] * vel
+        contact_sum = np.zeros(3)
+        if "ball" in fx:
+            ball = s["ball"]
+            contact = ball_contact(pos, self.ball_pos, ball["radius"], ball["stiffness"])
+            f += contact
+            contact_sum = contact.sum(axis=(0, 1))
+        if "coupling" in fx:
+            K = s["coupling"]["stiffness"]
+            for c, (i, j) in enumerate(CORNERS):
+                f[i, j] += K * (self.hips[c] - pos[i, j])
+        return f, contact_sum
+
+    def substep(self, dt: float) -> None:
+        """Semi-implicit Euler (eq. 3) for nodes and ball (eqs. 5, 6)."""
+        f, contact_sum = self.forces(self.pos, self.vel)
+        if "ball" in self.fx:
+            ball = self.scene["ball"]
+            fb = -contact_sum - ball["damping"] * self.ball_vel
+            if "gravity" in self.fx:
+                fb = fb + ball["mass"] * np.array(self.scene["sim"]["gravity"])
+            self.ball_vel = self.ball_vel + fb / ball["mass"] * dt
+            self.ball_pos = self.ball_pos + self.ball_vel * dt
+        self.vel = self.vel + f / self.scene.node_mass * dt
+        self.pos = self.pos + self.vel * dt
+
+    def step(self, frames: int, substeps: int) -> None:
+        dt = self.scene["sim"]["frame_dt"] / substeps
+        for _ in range(frames * substeps):
+            self.substep(dt)
+
+    def normals(self) -> np.ndarray:
+        return grid_normals(self.pos)
+
+    def corner_forces(self) -> np.ndarray:
+        if "coupling" not in self.fx:
+            return np.zeros((4, 3))
+        return -self.scene["coupling"]["stiffness"] * (self.hips - corners_of(self.pos))

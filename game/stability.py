@@ -1,0 +1,75 @@
+"""Stable substeps: the largest dt the integrator in use takes without blowing up.
+
+The derivation is in ``docs/stability.md``. In short, linearise each node's equation of
+motion to m x'' = -k_eff x - c x'. Semi-implicit Euler is then stable when
+``omega^2 dt^2 + 2 gamma dt < 4`` with omega^2 = k_eff / m and gamma = c / m, i.e.
+``dt < (sqrt(gamma^2 + 4 omega^2) - gamma) / omega^2``. Gershgorin's theorem bounds the
+largest k_eff of the coupled system by each node's row sum: twice the stiffness of every
+spring at the node (structural, shear, bending, ball contact) plus the coupling spring to
+the fixed hand. The ball is bounded the same way from the contacts it can have at once,
+and must not move more than ``BALL_TRAVEL`` of its radius per substep (no tunnelling).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .scene import Scene
+
+SAFETY = 0.9  # stay this fraction inside the bound
+BALL_TRAVEL = 0.2  # most of its radius the ball may move in one substep
+
+
+def euler_dt_bound(omega2: float, gamma: float) -> float:
+    """Largest stable semi-implicit Euler dt for m x'' = -k x - c x' (omega^2 = k/m, gamma = c/m)."""
+    if omega2 <= 0.0:
+        return 2.0 / gamma if gamma > 0.0 else math.inf
+    return (math.sqrt(gamma * gamma + 4.0 * omega2) - gamma) / omega2
+
+
+def node_stiffness(scene: Scene) -> float:
+    """Gershgorin bound on the stiffness (N/m) acting on the stiffest node."""
+    cloth, fx = scene["cloth"], scene.effects
+    k = 0.0
+    if "structural" in fx:
+        k += 2 * 4 * cloth["k_structural"]
+    if "shear" in fx:
+        k += 2 * 4 * cloth["k_shear"]
+    if "bend" in fx:
+        k += 2 * 4 * cloth["k_bend"]
+    if "ball" in fx:
+        k += 2 * scene["ball"]["stiffness"]
+    if "coupling" in fx:
+        k += scene["coupling"]["stiffness"]
+    return k
+
+
+def max_ball_contacts(scene: Scene) -> float:
+    """Most nodes that can be inside the ball at once: the grid points of its cross-section."""
+    r = scene["ball"]["radius"] / scene.rest_length
+    return min(float(scene.n * scene.n), math.pi * (r + 1.0) ** 2)
+
+
+def stable_dt(scene: Scene, ball_speed: float = 0.0) -> float:
+    """Largest substep dt, inside the stability bound with the SAFETY margin."""
+    m = scene.node_mass
+    gamma = scene["cloth"]["damping"] / m if "damping" in scene.effects else 0.0
+    dt = euler_dt_bound(node_stiffness(scene) / m, gamma)
+    if "ball" in scene.effects:
+        ball = scene["ball"]
+        kb = 2.0 * max_ball_contacts(scene) * ball["stiffness"]
+        dt = min(dt, euler_dt_bound(kb / ball["mass"], ball["damping"] / ball["mass"]))
+        frame = scene["sim"]["frame_dt"]
+        g = math.hypot(*scene["sim"]["gravity"]) if "gravity" in scene.effects else 0.0
+        speed = ball_speed + g * frame
+        if speed > 0.0:
+            dt = min(dt, BALL_TRAVEL * ball["radius"] / speed / SAFETY)
+    return SAFETY * dt
+
+
+def auto_substeps(scene: Scene, ball_speed: float = 0.0) -> int:
+    """Smallest substep count per frame whose dt lies within the stability bound."""
+    frame = scene["sim"]["frame_dt"]
+    return max(1, math.ceil(frame / stable_dt(scene, ball_speed) - 1e-9))

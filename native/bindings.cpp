@@ -1,0 +1,116 @@
+// The pybind11 module clothball._native: declarations only. Validation lives in the Python
+// facade (clothball.game.cloth); stepping releases the GIL.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include "core/backend.hpp"
+#include "falcon/bind_falcon.hpp"
+
+namespace py = pybind11;
+using Array = py::array_t<double, py::array::c_style | py::array::forcecast>;
+
+namespace {
+
+class Engine {
+ public:
+  Engine(const std::string& backend, bool dbl, const cb::Config& c) : n_(c.n) {
+    if (backend == "cpu") impl_ = cb::make_cpu_backend(c, dbl);
+    else if (backend == "cuda") impl_ = cb::make_cuda_backend(c, dbl);
+    else throw py::value_error("backend must be 'cpu' or 'cuda', got '" + backend + "'");
+  }
+  void configure(const cb::Config& c) { impl_->configure(c); }
+  void set_hips(Array h) { impl_->set_hips(checked(h, 12, "hips").data()); }
+  void set_state(Array p, Array v) {
+    impl_->set_state(checked(p, 3 * nodes(), "positions").data(),
+                     checked(v, 3 * nodes(), "velocities").data());
+  }
+  Array positions() { return mesh([&](double* o) { impl_->get_positions(o); }); }
+  Array velocities() { return mesh([&](double* o) { impl_->get_velocities(o); }); }
+  Array normals() { return mesh([&](double* o) { impl_->get_normals(o); }); }
+  void set_ball(Array pv) { impl_->set_ball(checked(pv, 6, "ball").data()); }
+  Array ball() {
+    Array out(6);
+    impl_->get_ball(out.mutable_data());
+    return out;
+  }
+  Array corners() {
+    Array out({4, 6});
+    impl_->get_corners(out.mutable_data());
+    return out;
+  }
+  void step(int frames, int substeps, double dt) {
+    py::gil_scoped_release release;
+    impl_->step(frames, substeps, dt);
+  }
+
+ private:
+  size_t nodes() const { return size_t(n_) * n_; }
+  template <class F>
+  Array mesh(F&& fill) {
+    Array out({n_, n_, 3});
+    fill(out.mutable_data());
+    return out;
+  }
+  static Array checked(Array a, size_t size, const char* what) {
+    if (size_t(a.size()) != size)
+      throw py::value_error(std::string(what) + ": expected " + std::to_string(size) +
+                            " values, got " + std::to_string(a.size()));
+    return a;
+  }
+  int n_;
+  std::unique_ptr<cb::Backend> impl_;
+};
+
+}  // namespace
+
+PYBIND11_MODULE(_native, m) {
+  m.doc() = "clothball native core: mass-spring cloth (CPU and CUDA) and the Falcon driver";
+  py::class_<cb::Config>(m, "Config")
+      .def(py::init<>())
+      .def_readwrite("n", &cb::Config::n)
+      .def_readwrite("rest_len", &cb::Config::rest_len)
+      .def_readwrite("node_mass", &cb::Config::node_mass)
+      .def_readwrite("k_struct", &cb::Config::k_struct)
+      .def_readwrite("k_shear", &cb::Config::k_shear)
+      .def_readwrite("k_bend", &cb::Config::k_bend)
+      .def_readwrite("struct_compress", &cb::Config::struct_compress)
+      .def_property(
+          "gravity", [](const cb::Config& c) { return std::array<double, 3>{c.gravity[0], c.gravity[1], c.gravity[2]}; },
+          [](cb::Config& c, std::array<double, 3> g) { for (int k = 0; k < 3; ++k) c.gravity[k] = g[k]; })
+      .def_readwrite("damping", &cb::Config::damping)
+      .def_readwrite("ball_radius", &cb::Config::ball_radius)
+      .def_readwrite("ball_mass", &cb::Config::ball_mass)
+      .def_readwrite("ball_k", &cb::Config::ball_k)
+      .def_readwrite("ball_damping", &cb::Config::ball_damping)
+      .def_readwrite("coupling_k", &cb::Config::coupling_k)
+      .def_readwrite("effects", &cb::Config::effects);
+
+  py::class_<Engine>(m, "Engine")
+      .def(py::init<const std::string&, bool, const cb::Config&>(), py::arg("backend"),
+           py::arg("double_precision"), py::arg("config"))
+      .def("configure", &Engine::configure)
+      .def("set_hips", &Engine::set_hips)
+      .def("set_state", &Engine::set_state)
+      .def("positions", &Engine::positions)
+      .def("velocities", &Engine::velocities)
+      .def("normals", &Engine::normals)
+      .def("set_ball", &Engine::set_ball)
+      .def("ball", &Engine::ball)
+      .def("corners", &Engine::corners)
+      .def("step", &Engine::step, py::arg("frames"), py::arg("substeps"), py::arg("dt"));
+
+  py::dict effects;
+  effects["structural"] = unsigned(cb::STRUCTURAL);
+  effects["shear"] = unsigned(cb::SHEAR);
+  effects["bend"] = unsigned(cb::BEND);
+  effects["gravity"] = unsigned(cb::GRAVITY);
+  effects["damping"] = unsigned(cb::DAMPING);
+  effects["ball"] = unsigned(cb::BALL);
+  effects["coupling"] = unsigned(cb::COUPLING);
+  m.attr("EFFECT_BITS") = effects;
+  m.def("cuda_unavailable_reason", &cb::cuda_unavailable_reason,
+        "Empty string when a CUDA device can be used, else the reason it cannot.");
+  m.def("cpu_threads", &cb::cpu_threads);
+  clothball_falcon::bind(m);
+}

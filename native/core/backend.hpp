@@ -1,0 +1,48 @@
+// The interface both backends implement. Plain C++ (no CUDA, no pybind11) so the binding
+// file and the CUDA file meet only here. Arrays cross it as float64, nodes row-major
+// (i * n + j), 3 values a node.
+#pragma once
+#include <array>
+#include <memory>
+#include <string>
+#include <utility>
+
+#include "params.hpp"
+
+namespace cb {
+
+class Backend {
+ public:
+  virtual ~Backend() = default;
+  virtual void configure(const Config& c) = 0;  // same n; new parameters or effect set
+  virtual void set_hips(const double* h) = 0;   // 4 x 3
+  virtual void set_state(const double* pos, const double* vel) = 0;
+  virtual void get_positions(double* out) = 0;
+  virtual void get_velocities(double* out) = 0;
+  virtual void get_normals(double* out) = 0;
+  virtual void set_ball(const double* pv) = 0;  // position then velocity
+  virtual void get_ball(double* pv) = 0;
+  // Corner positions and velocities (4 x 6) as of the last frame: all that must leave the
+  // device every frame.
+  virtual void get_corners(double* out) = 0;
+  virtual void step(int frames, int substeps, double dt) = 0;
+};
+
+std::unique_ptr<Backend> make_cpu_backend(const Config& c, bool dbl);
+std::unique_ptr<Backend> make_cuda_backend(const Config& c, bool dbl);
+// Empty when a CUDA device can be used, else why not.
+std::string cuda_unavailable_reason();
+int cpu_threads();
+
+// A table with one entry per effect set: Impl<E>::fn for every E in [0, N).
+template <class Fn, template <unsigned> class Impl, unsigned... E>
+std::array<Fn, sizeof...(E)> effect_table(std::integer_sequence<unsigned, E...>) {
+  return {{Impl<E>::fn...}};
+}
+
+// Corner node indices in the documented order: (0,0), (0,n-1), (n-1,n-1), (n-1,0).
+inline std::array<int, 4> corner_nodes(int n) {
+  return {0, n - 1, n * n - 1, (n - 1) * n};
+}
+
+}  // namespace cb

@@ -1,0 +1,138 @@
+// The paper's physics, written once for both backends: per-node forces (eqs. 1, 2, 4, 7),
+// the ball's motion (eqs. 5, 6) and semi-implicit Euler (eq. 3). Every force of a substep
+// is computed from the state at the substep's start (the paper's double buffering).
+#pragma once
+#include "params.hpp"
+
+namespace cb {
+
+// Force on node i from a spring to node j. `compress` scales the force when the spring is
+// shorter than its rest length: 0 gives the paper's tension-only spring (eq. 2), 1 a
+// two-sided linear spring. Coincident nodes have no direction, so they exert no force
+// instead of dividing by zero.
+template <class R>
+CB_HD V3<R> spring_force(V3<R> pi, V3<R> pj, R k, R rest, R compress) {
+  V3<R> d = pj - pi;
+  R len = length(d);
+  R ext = len - rest;
+  ext *= ext > R(0) ? R(1) : compress;
+  // Selects, not branches, and a division that is always safe: the CPU loops vectorise.
+  const bool has_dir = len > R(1e-12);
+  R s = (has_dir ? k * ext : R(0)) / (has_dir ? len : R(1));
+  return d * s;
+}
+
+// Contact force of eq. (4) on a node at distance vector d = p_i - p_b from the ball centre.
+// A node exactly at the centre is pushed straight down (the ball then goes up).
+// Written with selects rather than early returns so that CPU loops vectorise.
+template <class R>
+CB_HD V3<R> ball_contact(V3<R> d, R radius, R k) {
+  R r = length(d);
+  const bool inside = r < radius, centred = r <= R(1e-12);
+  R s = ((inside & !centred) ? k * (radius - r) : R(0)) / (centred ? R(1) : r);
+  V3<R> f = d * s;
+  f.y -= (inside & centred) ? k * radius : R(0);
+  return f;
+}
+
+// Which coupled corner (0..3) node (i, j) is, or -1. Order: (0,0), (0,n-1), (n-1,n-1), (n-1,0).
+CB_HD int corner_slot(int i, int j, int n) {
+  int last = n - 1;
+  if (i == 0) return j == 0 ? 0 : (j == last ? 1 : -1);
+  if (i == last) return j == last ? 2 : (j == 0 ? 3 : -1);
+  return -1;
+}
+
+// Total force on node (i, j) from the state `pos`/`vel` at the substep's start (eq. 1).
+// `contact` receives this node's ball contact force (eq. 4) for the ball's sum (eq. 5).
+// Interior = true promises that every neighbour up to two nodes away exists and that the
+// node is no corner, so the bounds tests vanish (the CPU loop then vectorises).
+template <class R, unsigned E, bool Interior = false>
+CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, V3<R> pi, V3<R> vi, int i,
+                       int j, const V3<R>* hips, V3<R> ball_p, V3<R>& contact) {
+  const int n = p.n;
+  const int q = i * n + j;
+  V3<R> f{R(0), R(0), R(0)};
+  if constexpr ((E & STRUCTURAL) != 0) {
+    const R k = p.k_struct, L = p.L, c = p.struct_compress;
+    if (Interior || j > 0) f += spring_force(pi, pos.get(q - 1), k, L, c);
+    if (Interior || j < n - 1) f += spring_force(pi, pos.get(q + 1), k, L, c);
+    if (Interior || i > 0) f += spring_force(pi, pos.get(q - n), k, L, c);
+    if (Interior || i < n - 1) f += spring_force(pi, pos.get(q + n), k, L, c);
+  }
+  if constexpr ((E & SHEAR) != 0) {
+    const R k = p.k_shear, L = p.L_diag;
+    if (Interior || (i > 0 && j > 0)) f += spring_force(pi, pos.get(q - n - 1), k, L, R(1));
+    if (Interior || (i > 0 && j < n - 1)) f += spring_force(pi, pos.get(q - n + 1), k, L, R(1));
+    if (Interior || (i < n - 1 && j > 0)) f += spring_force(pi, pos.get(q + n - 1), k, L, R(1));
+    if (Interior || (i < n - 1 && j < n - 1)) f += spring_force(pi, pos.get(q + n + 1), k, L, R(1));
+  }
+  if constexpr ((E & BEND) != 0) {
+    const R k = p.k_bend, L = p.L_bend;
+    if (Interior || j > 1) f += spring_force(pi, pos.get(q - 2), k, L, R(1));
+    if (Interior || j < n - 2) f += spring_force(pi, pos.get(q + 2), k, L, R(1));
+    if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * n), k, L, R(1));
+    if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * n), k, L, R(1));
+  }
+  if constexpr ((E & GRAVITY) != 0) f += p.gravity_force;
+  if constexpr ((E & DAMPING) != 0) f -= vi * p.damping;
+  if constexpr ((E & BALL) != 0) {
+    contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k);
+    f += contact;
+  }
+  if constexpr ((E & COUPLING) != 0 && !Interior) {
+    int c = corner_slot(i, j, n);
+    if (c >= 0) f += (hips[c] - pi) * p.coupling_k;  // eq. (7), the node's side
+  }
+  return f;
+}
+
+// Eq. (3): semi-implicit Euler.
+template <class R>
+CB_HD void euler_update(V3<R>& x, V3<R>& v, V3<R> f, R inv_mass, R dt) {
+  v += f * (inv_mass * dt);
+  x += v * dt;
+}
+
+// One node's semi-implicit Euler substep from buffer (P, V) into (P2, V2). Returns the
+// node's ball contact force, for the ball's sum.
+template <class R, unsigned E, bool Interior = false>
+CB_HD V3<R> se_node_update(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
+                           const Planes<R>& P2, const Planes<R>& V2, const V3<R>* hips,
+                           V3<R> ball_p, int i, int j, R dt) {
+  const int q = i * p.n + j;
+  V3<R> x = P.get(q), v = V.get(q), contact{R(0), R(0), R(0)};
+  V3<R> f = node_force<R, E, Interior>(p, P, x, v, i, j, hips, ball_p, contact);
+  euler_update(x, v, f, p.inv_mass, dt);
+  P2.set(q, x);
+  V2.set(q, v);
+  return contact;
+}
+
+// Eqs. (5)-(6): the ball under gravity, minus the summed contact forces, minus damping.
+template <class R, unsigned E>
+CB_HD Ball<R> ball_update(const Params<R>& p, Ball<R> b, V3<R> contact_sum, R dt) {
+  V3<R> f{R(0), R(0), R(0)};
+  if constexpr ((E & GRAVITY) != 0) f = p.gravity * p.ball_mass;
+  f -= contact_sum;
+  f -= b.v * p.ball_damping;
+  euler_update(b.p, b.v, f, p.ball_inv_mass, dt);
+  return b;
+}
+
+// Unit normal at node (i, j) from the cross product of the grid tangents (central
+// differences, one-sided at the border). Eq. (8) as printed is not a normal.
+template <class R>
+CB_HD V3<R> node_normal(const Planes<R>& pos, int n, int i, int j) {
+  auto at = [&](int a, int b) { return pos.get(a * n + b); };
+  int j0 = j > 0 ? j - 1 : j, j1 = j < n - 1 ? j + 1 : j;
+  int i0 = i > 0 ? i - 1 : i, i1 = i < n - 1 ? i + 1 : i;
+  V3<R> tu = at(i, j1) - at(i, j0);  // along +x at rest
+  V3<R> tv = at(i1, j) - at(i0, j);  // along +z at rest
+  V3<R> nrm = cross(tv, tu);         // +y for the flat cloth
+  R len = length(nrm);
+  if (len > R(0)) return nrm * (R(1) / len);
+  return {R(0), R(1), R(0)};
+}
+
+}  // namespace cb

@@ -1,0 +1,78 @@
+// Scene parameters as the kernels see them, and the effect flags that specialise them.
+#pragma once
+#include "vec.hpp"
+
+namespace cb {
+
+// Effects that change the per-node force. Each combination is compiled as its own kernel,
+// so an absent effect is compiled out rather than branched over.
+enum Effect : unsigned {
+  STRUCTURAL = 1u << 0,
+  SHEAR = 1u << 1,
+  BEND = 1u << 2,
+  GRAVITY = 1u << 3,
+  DAMPING = 1u << 4,
+  BALL = 1u << 5,
+  COUPLING = 1u << 6,
+};
+constexpr unsigned kNumForceEffects = 7;
+constexpr unsigned kNumEffectSets = 1u << kNumForceEffects;
+
+// Host-side configuration, always in double; converted to Params<R> by each backend.
+struct Config {
+  int n = 0;
+  double rest_len = 0;      // L = size / (n - 1)
+  double node_mass = 0;     // total mass / n^2
+  double k_struct = 0, k_shear = 0, k_bend = 0;
+  double struct_compress = 0;  // 0: tension-only structural springs (eq. 2); 1: two-sided
+  double gravity[3] = {0, -9.81, 0};
+  double damping = 0;       // beta1, N s/m per node (eq. 1)
+  double ball_radius = 0, ball_mass = 1, ball_k = 0, ball_damping = 0;
+  double coupling_k = 0;    // K of eq. (7)
+  unsigned effects = 0;
+};
+
+template <class R>
+struct Params {
+  int n;
+  R L, L_diag, L_bend;
+  R inv_mass;
+  R k_struct, k_shear, k_bend, struct_compress;
+  V3<R> gravity_force;  // m g per node
+  V3<R> gravity;
+  R damping;
+  R ball_radius, ball_inv_mass, ball_mass, ball_k, ball_damping;
+  R coupling_k;
+
+  static Params from(const Config& c) {
+    Params p{};
+    p.n = c.n;
+    p.L = R(c.rest_len);
+    p.L_diag = R(c.rest_len * 1.4142135623730951);
+    p.L_bend = R(2.0 * c.rest_len);
+    p.inv_mass = R(1.0 / c.node_mass);
+    p.k_struct = R(c.k_struct);
+    p.k_shear = R(c.k_shear);
+    p.k_bend = R(c.k_bend);
+    p.struct_compress = R(c.struct_compress);
+    p.gravity = {R(c.gravity[0]), R(c.gravity[1]), R(c.gravity[2])};
+    p.gravity_force = {R(c.gravity[0] * c.node_mass), R(c.gravity[1] * c.node_mass),
+                       R(c.gravity[2] * c.node_mass)};
+    p.damping = R(c.damping);
+    p.ball_radius = R(c.ball_radius);
+    p.ball_mass = R(c.ball_mass);
+    p.ball_inv_mass = R(1.0 / c.ball_mass);
+    p.ball_k = R(c.ball_k);
+    p.ball_damping = R(c.ball_damping);
+    p.coupling_k = R(c.coupling_k);
+    return p;
+  }
+};
+
+// Ball state: position then velocity.
+template <class R>
+struct Ball {
+  V3<R> p, v;
+};
+
+}  // namespace cb

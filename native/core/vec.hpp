@@ -1,0 +1,43 @@
+// Small 3-vector shared by the CPU and CUDA backends.
+#pragma once
+#include <cmath>
+
+#if defined(__CUDACC__)
+#define CB_HD __host__ __device__ __forceinline__
+#elif defined(__GNUC__)
+// Forced: the per-node functions must inline into the CPU loops for them to vectorise.
+#define CB_HD inline __attribute__((always_inline))
+#else
+#define CB_HD inline
+#endif
+
+namespace cb {
+
+template <class R>
+struct V3 {
+  R x, y, z;
+};
+
+template <class R> CB_HD V3<R> operator+(V3<R> a, V3<R> b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+template <class R> CB_HD V3<R> operator-(V3<R> a, V3<R> b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+template <class R> CB_HD V3<R> operator*(V3<R> a, R s) { return {a.x * s, a.y * s, a.z * s}; }
+template <class R> CB_HD V3<R>& operator+=(V3<R>& a, V3<R> b) { a.x += b.x; a.y += b.y; a.z += b.z; return a; }
+template <class R> CB_HD V3<R>& operator-=(V3<R>& a, V3<R> b) { a.x -= b.x; a.y -= b.y; a.z -= b.z; return a; }
+template <class R> CB_HD R dot(V3<R> a, V3<R> b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+template <class R> CB_HD V3<R> cross(V3<R> a, V3<R> b) {
+  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+template <class R> CB_HD R length(V3<R> a) { return sqrt(dot(a, a)); }
+
+// Structure-of-arrays view of one buffer of 3-vectors: x, y and z planes of N values each.
+// SoA keeps every access coalesced on the GPU and vectorisable on the CPU.
+template <class R>
+struct Planes {
+  R* x;
+  R* y;
+  R* z;
+  CB_HD V3<R> get(int q) const { return {x[q], y[q], z[q]}; }
+  CB_HD void set(int q, V3<R> v) const { x[q] = v.x; y[q] = v.y; z[q] = v.z; }
+};
+
+}  // namespace cb

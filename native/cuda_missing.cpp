@@ -1,0 +1,17 @@
+// Stand-in linked when the module is built without the CUDA backend.
+#include <stdexcept>
+
+#include "core/backend.hpp"
+
+namespace cb {
+
+std::string cuda_unavailable_reason() {
+  return "this build of clothball has no CUDA backend (rebuild with "
+         "-C cmake.define.CLOTHBALL_CUDA=ON on a machine with nvcc)";
+}
+
+std::unique_ptr<Backend> make_cuda_backend(const Config&, bool) {
+  throw std::runtime_error("CUDA backend unavailable: " + cuda_unavailable_reason());
+}
+
+}  // namespace cb
