@@ -112,5 +112,7 @@ PYBIND11_MODULE(_native, m) {
   m.def("cuda_unavailable_reason", &cb::cuda_unavailable_reason,
         "Empty string when a CUDA device can be used, else the reason it cannot.");
   m.def("cpu_threads", &cb::cpu_threads);
+  m.def("cuda_copy_bandwidth_gbs", &cb::cuda_copy_bandwidth_gbs, py::arg("bytes"),
+        py::arg("reps") = 20, py::call_guard<py::gil_scoped_release>());
   clothball_falcon::bind(m);
 }

@@ -10,6 +10,10 @@ std::string cuda_unavailable_reason() {
          "-C cmake.define.CLOTHBALL_CUDA=ON on a machine with nvcc)";
 }
 
+double cuda_copy_bandwidth_gbs(size_t, int) {
+  throw std::runtime_error("CUDA unavailable: " + cuda_unavailable_reason());
+}
+
 std::unique_ptr<Backend> make_cuda_backend(const Config&, bool) {
   throw std::runtime_error("CUDA backend unavailable: " + cuda_unavailable_reason());
 }

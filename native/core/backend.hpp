@@ -33,6 +33,8 @@ std::unique_ptr<Backend> make_cuda_backend(const Config& c, bool dbl);
 // Empty when a CUDA device can be used, else why not.
 std::string cuda_unavailable_reason();
 int cpu_threads();
+// Device-to-device copy bandwidth (bytes read + written per second / 1e9), median of reps.
+double cuda_copy_bandwidth_gbs(size_t bytes, int reps);
 
 // A table with one entry per effect set: Impl<E>::fn for every E in [0, N).
 template <class Fn, template <unsigned> class Impl, unsigned... E>

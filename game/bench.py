@@ -1,0 +1,189 @@
+"""``clothball bench``: time per substep, the paper's Table 1 re-measured.
+
+Median wall time per substep after warm-up, on the ``classic`` scene at each size, for the
+CPU and (where there is one) the CUDA backend, in float32 and float64. Frames run with a
+fixed substep count so that the per-frame costs (the corner read-back) are shared out the
+same way at every size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from .. import _native  # type: ignore[attr-defined]
+from .cloth import Cloth, cuda_unavailable_reason
+from .scene import Scene, SceneError
+
+# The paper's Table 1: n -> (CPU ms, GPU double ms, GPU single ms), one update each.
+PAPER_TABLE1: dict[int, tuple[float, float, float]] = {
+    25: (2.34, 0.38, 0.35),
+    50: (9.38, 0.43, 0.36),
+    85: (27.64, 1.01, 0.44),
+    100: (37.79, 1.31, 0.85),
+    135: (60.06, 1.91, 0.97),
+    150: (84.98, 1.97, 1.25),
+    200: (151.53, 3.27, 1.85),
+    250: (240.59, 4.7, 2.24),
+    300: (343.65, 5.92, 2.53),
+    350: (468.66, 8.76, 3.15),
+    400: (612.58, 10.56, 3.62),
+    450: (771.68, 13.78, 4.11),
+    500: (956.15, 15.92, 5.15),
+}
+SIZES = tuple(PAPER_TABLE1)
+GPU_EXTRA_SIZES = (1024, 2048, 4096)
+QUICK_SIZES = (25, 50, 100)
+BENCH_SUBSTEPS = 10
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="a short run: few sizes, few repeats")
+    p.add_argument("--json", metavar="FILE", help="also write the rows as JSON")
+    p.add_argument("--scene", default="classic", help="scene name or path (default classic)")
+    p.add_argument("--sizes", help="comma-separated n values (default: the paper's sizes)")
+    p.add_argument("--backends", default="auto", help="cpu,cuda or auto (every one present)")
+    p.add_argument("--precisions", default="float32,float64", help="float32,float64")
+    p.add_argument("--repeats", type=int, default=None, help="timed repeats (median taken)")
+    p.add_argument(
+        "--server", action="store_true", help="benchmark the game server instead (see --help)"
+    )
+    try:
+        from ..server import loadbench  # noqa: PLC0415
+
+        loadbench.configure_server_flags(p)
+    except (ImportError, AttributeError):
+        pass
+
+
+def _csv(text: str, what: str, allowed: tuple[str, ...] | None = None) -> list[str]:
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise ValueError(f"--{what}: empty list")
+    if allowed is not None:
+        bad = [t for t in items if t not in allowed]
+        if bad:
+            raise ValueError(f"--{what}: unknown {', '.join(bad)}; choose from {', '.join(allowed)}")
+    return items
+
+
+def time_substep(cloth: Cloth, repeats: int, min_time: float = 0.02) -> float:
+    """Median seconds per substep over ``repeats`` timed runs, after warm-up."""
+    cloth.step(2)  # warm-up: first launch, graph capture, caches
+    frames = 1
+    while True:  # grow each run until it lasts at least min_time
+        t0 = time.perf_counter()
+        cloth.step(frames)
+        elapsed = time.perf_counter() - t0
+        if elapsed >= min_time or frames >= 1 << 16:
+            break
+        frames *= 2
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        cloth.step(frames)
+        samples.append((time.perf_counter() - t0) / (frames * cloth.substeps))
+    return statistics.median(samples)
+
+
+def plan(args: argparse.Namespace) -> list[tuple[str, str, int]]:
+    """The (backend, precision, n) cases to run, in order."""
+    cuda_missing = cuda_unavailable_reason()
+    if args.backends == "auto":
+        backends = ["cpu"] + ([] if cuda_missing else ["cuda"])
+    else:
+        backends = _csv(args.backends, "backends", ("cpu", "cuda"))
+        if "cuda" in backends and cuda_missing:
+            raise ValueError(f"--backends: cuda requested but {cuda_missing}")
+    precisions = _csv(args.precisions, "precisions", ("float32", "float64"))
+    if args.sizes:
+        try:
+            sizes = [int(s) for s in _csv(args.sizes, "sizes")]
+        except ValueError as e:
+            raise ValueError(f"--sizes: expected whole numbers: {e}") from None
+        if any(not 2 <= s <= 8192 for s in sizes):
+            raise ValueError("--sizes: each n must be in 2..8192")
+    else:
+        sizes = list(QUICK_SIZES if args.quick else SIZES)
+    cases = []
+    for backend in backends:
+        extra = list(GPU_EXTRA_SIZES) if backend == "cuda" and not args.sizes and not args.quick else []
+        for precision in precisions:
+            for n in sizes + extra:
+                cases.append((backend, precision, n))
+    return cases
+
+
+def run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
+    from tqdm import tqdm  # noqa: PLC0415
+
+    base = Scene.load(args.scene)
+    repeats = args.repeats or (3 if args.quick else 7)
+    rows = []
+    cases = plan(args)
+    for backend, precision, n in tqdm(cases, desc="bench", unit="case", file=sys.stderr):
+        scene = base.with_changes({"cloth": {"n": n}, "sim": {"substeps": BENCH_SUBSTEPS}})
+        cloth = Cloth(scene, backend=backend, precision=precision)
+        sec = time_substep(cloth, repeats)
+        bytes_min = 12 * (4 if precision == "float32" else 8) * n * n
+        rows.append(
+            {
+                "n": n,
+                "backend": backend,
+                "precision": precision,
+                "substep_us": sec * 1e6,
+                "scene": base.name,
+                "effects": sorted(base.effects),
+                "substeps_per_frame": cloth.substeps,
+                "min_bytes_per_substep": bytes_min,
+                "effective_gbs": bytes_min / sec / 1e9,
+                "cpu_threads": _native.cpu_threads(),
+            }
+        )
+        del cloth
+    return rows
+
+
+def print_table(rows: list[dict[str, Any]], copy_gbs: float | None) -> None:
+    print(f"{'n':>6} {'backend':>7} {'precision':>9} {'us/substep':>11} {'GB/s':>7}  paper (ms)")
+    for r in rows:
+        paper = PAPER_TABLE1.get(r["n"])
+        note = ""
+        if paper:
+            cpu, dp, sp = paper
+            ref = cpu if r["backend"] == "cpu" else (sp if r["precision"] == "float32" else dp)
+            label = "CPU" if r["backend"] == "cpu" else ("GPU SP" if r["precision"] == "float32" else "GPU DP")
+            note = f"{label} {ref:g} ms -> {ref * 1e3 / r['substep_us']:.0f}x faster"
+        bw = r["effective_gbs"]
+        extra = f" ({bw / copy_gbs:.0%} of copy)" if copy_gbs and r["backend"] == "cuda" else ""
+        print(
+            f"{r['n']:>6} {r['backend']:>7} {r['precision']:>9} {r['substep_us']:>11.2f} "
+            f"{bw:>7.1f}  {note}{extra}"
+        )
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.server:
+        from ..server import loadbench  # noqa: PLC0415
+
+        return loadbench.run(args)
+    try:
+        rows = run_table(args)
+    except (ValueError, SceneError) as e:
+        print(f"clothball bench: {e}", file=sys.stderr)
+        return 2
+    copy_gbs = None
+    if any(r["backend"] == "cuda" for r in rows):
+        copy_gbs = _native.cuda_copy_bandwidth_gbs(1 << 30)
+        print(f"device-to-device copy: {copy_gbs:.0f} GB/s (read + write)")
+    print_table(rows, copy_gbs)
+    if args.json:
+        out = {"rows": rows, "copy_gbs": copy_gbs, "argv": sys.argv[1:]}
+        Path(args.json).write_text(json.dumps(out, indent=2))
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,32 @@
+"""Shared fixtures. GPU tests are generated per backend: they skip where no CUDA device is
+present, unless CLOTHBALL_REQUIRE_GPU=1, which turns those skips into failures."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from clothball.game import cuda_unavailable_reason
+
+REQUIRE_GPU = os.environ.get("CLOTHBALL_REQUIRE_GPU", "") not in ("", "0")
+
+
+def require_cuda() -> None:
+    why = cuda_unavailable_reason()
+    if why:
+        if REQUIRE_GPU:
+            pytest.fail(f"CLOTHBALL_REQUIRE_GPU=1 but the CUDA backend is unavailable: {why}")
+        pytest.skip(f"no CUDA backend: {why}")
+
+
+@pytest.fixture(params=["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def backend(request: pytest.FixtureRequest) -> str:
+    if request.param == "cuda":
+        require_cuda()
+    return request.param
+
+
+@pytest.fixture(params=["float32", "float64"])
+def precision(request: pytest.FixtureRequest) -> str:
+    return request.param

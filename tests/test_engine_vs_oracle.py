@@ -1,0 +1,123 @@
+"""Both backends against the NumPy float64 oracle, every effect, both precisions.
+
+Tolerances are derived, not guessed: the oracle itself is run twice, once from a state
+perturbed by one rounding error of the precision under test (eps * |x| on every
+coordinate). How far those two oracle runs drift apart is how far two correct
+implementations that round differently may drift; the backend must stay within 10x that
+drift plus 10 eps of the largest coordinate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clothball.game import Cloth, ReferenceCloth, Scene
+
+FRAMES = 40  # x substeps (8-12 here): hundreds of substeps per case
+
+BASE = {"cloth": {"n": 14, "size": 0.5, "height": 1.0}}
+
+
+def scene_with(effects: list[str], **extra: dict) -> Scene:
+    d = {"cloth": dict(BASE["cloth"]), "sim": {"effects": effects}}
+    for section, table in extra.items():
+        d.setdefault(section, {}).update(table)
+    return Scene.from_dict(d)
+
+
+CASES = {
+    "structural": (["structural", "gravity"], {}),
+    "structural_two_sided": (["structural", "gravity"], {"cloth": {"structural_two_sided": True}}),
+    "shear": (["structural", "shear", "gravity"], {"cloth": {"k_shear": 400.0}}),
+    "bend": (["structural", "bend", "gravity"], {"cloth": {"k_bend": 100.0}}),
+    "gravity_only": (["gravity"], {}),
+    "damping": (["structural", "gravity", "damping"], {"cloth": {"damping": 0.01}}),
+    "ball": (
+        ["structural", "gravity", "ball"],
+        {"ball": {"position": [0.03, 1.05, -0.02], "velocity": [0.0, -1.0, 0.0]}},
+    ),
+    "coupling": (["structural", "gravity", "coupling"], {}),
+    "all": (
+        ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],
+        {"ball": {"position": [0.0, 1.06, 0.0]}},
+    ),
+}
+
+HIPS_MOVE = np.array([[0.02, 0.03, -0.01], [0.0, -0.02, 0.01], [-0.01, 0.01, 0.0], [0.0, 0.0, 0.02]])
+
+
+def _drive(sim, scene: Scene, frames: int, substeps: int, hips: np.ndarray) -> None:
+    if isinstance(sim, Cloth):
+        sim.set_hips(hips)
+        sim.step(frames)
+    else:
+        sim.hips = hips
+        sim.step(frames, substeps)
+
+
+def _state(sim) -> np.ndarray:
+    if isinstance(sim, Cloth):
+        pos, vel = sim.positions(), sim.velocities()
+        bp, bv = sim.ball()
+    else:
+        pos, vel, bp, bv = sim.pos, sim.vel, sim.ball_pos, sim.ball_vel
+    return np.concatenate([pos.ravel(), vel.ravel(), bp, bv])
+
+
+def allowed_drift(scene: Scene, precision: str, substeps: int, hips: np.ndarray) -> float:
+    eps = float(np.finfo(np.float32 if precision == "float32" else np.float64).eps)
+    rng = np.random.default_rng(7)
+    a, b = ReferenceCloth(scene), ReferenceCloth(scene)
+    b.pos = b.pos * (1 + eps * rng.choice([-1.0, 1.0], size=b.pos.shape))
+    b.ball_pos = b.ball_pos * (1 + eps * rng.choice([-1.0, 1.0], size=3))
+    for sim in (a, b):
+        _drive(sim, scene, FRAMES, substeps, hips)
+    drift = np.abs(_state(a) - _state(b)).max()
+    scale = np.abs(_state(a)).max()
+    return 10 * drift + 10 * eps * scale
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_matches_oracle(case: str, backend: str, precision: str) -> None:
+    effects, extra = CASES[case]
+    scene = scene_with(effects, **extra)
+    cloth = Cloth(scene, backend=backend, precision=precision)
+    ref = ReferenceCloth(scene)
+    hips = ref.hips + HIPS_MOVE
+    _drive(cloth, scene, FRAMES, cloth.substeps, hips)
+    _drive(ref, scene, FRAMES, cloth.substeps, hips)
+    tol = allowed_drift(scene, precision, cloth.substeps, hips)
+    got, want = _state(cloth), _state(ref)
+    assert np.all(np.isfinite(got))
+    err = np.abs(got - want).max()
+    assert err <= tol, f"{case} {backend} {precision}: max error {err:.3g} > allowed {tol:.3g}"
+    # The run did something: the state moved well beyond the tolerance.
+    assert np.abs(want - _state(ReferenceCloth(scene))).max() > 100 * tol
+    np.testing.assert_allclose(cloth.corner_forces(), ref.corner_forces(), rtol=0, atol=2000 * tol)
+    np.testing.assert_allclose(cloth.normals(), ref.normals(), rtol=0, atol=1e-3 if precision == "float32" else 1e-8)
+
+
+def test_normals_of_a_known_surface(backend: str) -> None:
+    """A cloth bent into the plane y = x tan(a) has normal (-sin a, cos a, 0) everywhere."""
+    scene = scene_with(["structural"])
+    cloth = Cloth(scene, backend=backend, precision="float64")
+    a = 0.3
+    pos = ReferenceCloth(scene).pos.copy()
+    pos[..., 1] = pos[..., 0] * np.tan(a)
+    cloth.set_state(pos, np.zeros_like(pos))
+    nrm = cloth.normals()
+    np.testing.assert_allclose(nrm, np.broadcast_to([-np.sin(a), np.cos(a), 0.0], nrm.shape), atol=1e-12)
+
+
+def test_free_fall_is_exact(backend: str, precision: str) -> None:
+    """Gravity alone: semi-implicit Euler gives y_k = y0 - g dt^2 k(k+1)/2 exactly."""
+    scene = scene_with(["gravity"], sim={"substeps": 4})
+    cloth = Cloth(scene, backend=backend, precision=precision)
+    cloth.step(25)
+    k = 25 * 4
+    dt = cloth.dt
+    y = 1.0 - 9.81 * dt * dt * k * (k + 1) / 2
+    rtol = 1e-5 if precision == "float32" else 1e-12
+    np.testing.assert_allclose(cloth.positions()[..., 1], y, rtol=rtol)
+    np.testing.assert_allclose(cloth.velocities()[..., 1], -9.81 * dt * k, rtol=rtol)
