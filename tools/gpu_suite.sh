@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# The GPU run: build with CUDA for the local card, run the engine tests with
+# CLOTHBALL_REQUIRE_GPU=1 (a GPU skip is a failure), then the benchmarks.
+# Usage (on a machine with an NVIDIA GPU and no network):
+#   OUT=results bash tools/gpu_suite.sh [bench args...]
+# Pure-Python wheels the machine lacks (tqdm) may be put in .whl/ beforehand.
+set -uo pipefail
+OUT=${OUT:-gpu-results}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+if compgen -G ".whl/*.whl" >/dev/null; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl || exit 1
+  export PYTHONPATH=/tmp/site
+fi
+nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv | tee "$OUT/gpu.txt"
+python3 -m pip install -q --no-build-isolation --no-deps -Cbuild-dir=/tmp/cb-build \
+  -Ccmake.define.CLOTHBALL_CUDA=ON -Ccmake.define.CMAKE_CUDA_ARCHITECTURES=90 . \
+  >"$OUT/build.log" 2>&1 || { tail -40 "$OUT/build.log"; exit 1; }
+cd /tmp  # import the installed package, not the source tree
+CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -c "$OLDPWD/setup.cfg" \
+  --rootdir "$OLDPWD" "$OLDPWD/tests/test_engine_vs_oracle.py" "$OLDPWD/tests/test_cloth_api.py" \
+  "$OLDPWD/tests/test_scene.py" 2>&1 | tee "$OUT/gpu_tests.txt" | tail -5
+tests_rc=${PIPESTATUS[0]}
+cd "$OLDPWD"
+python3 -m clothball.game.cli bench --backends cuda --json "$OUT/bench_gpu.json" "$@" 2>/dev/null \
+  | tee "$OUT/bench_gpu.txt"
+exit "$tests_rc"
