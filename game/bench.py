@@ -2,8 +2,9 @@
 
 Median wall time per substep after warm-up, on the ``classic`` scene at each size, for the
 CPU and (where there is one) the CUDA backend, in float32 and float64. Frames run with a
-fixed substep count so that the per-frame costs (the corner read-back) are shared out the
-same way at every size.
+fixed substep count per size. That count is the automatic one for the scene at that size (a
+fixed count would be unstable at large n, where the nodes are light), so every timed
+substep is one a real run would take.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 from .. import _native  # type: ignore[attr-defined]
 from .cloth import Cloth, cuda_unavailable_reason
 from .scene import Scene, SceneError
+from .stability import auto_substeps
 
 # The paper's Table 1: n -> (CPU ms, GPU double ms, GPU single ms), one update each.
 PAPER_TABLE1: dict[int, tuple[float, float, float]] = {
@@ -39,7 +41,6 @@ PAPER_TABLE1: dict[int, tuple[float, float, float]] = {
 SIZES = tuple(PAPER_TABLE1)
 GPU_EXTRA_SIZES = (1024, 2048, 4096)
 QUICK_SIZES = (25, 50, 100)
-BENCH_SUBSTEPS = 10
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -127,7 +128,8 @@ def run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
     rows = []
     cases = plan(args)
     for backend, precision, n in tqdm(cases, desc="bench", unit="case", file=sys.stderr):
-        scene = base.with_changes({"cloth": {"n": n}, "sim": {"substeps": BENCH_SUBSTEPS}})
+        sized = base.with_changes({"cloth": {"n": n}})
+        scene = sized.with_changes({"sim": {"substeps": auto_substeps(sized)}})
         cloth = Cloth(scene, backend=backend, precision=precision)
         sec = time_substep(cloth, repeats)
         bytes_min = 12 * (4 if precision == "float32" else 8) * n * n

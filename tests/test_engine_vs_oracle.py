@@ -42,6 +42,11 @@ CASES = {
         ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],
         {"ball": {"position": [0.0, 1.06, 0.0]}},
     ),
+    # 1600 nodes: several GPU blocks, so the cross-block ball force sum is exercised.
+    "all_large": (
+        ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],
+        {"cloth": {"n": 40}, "ball": {"position": [0.01, 1.06, 0.0]}},
+    ),
 }
 
 HIPS_MOVE = np.array([[0.02, 0.03, -0.01], [0.0, -0.02, 0.01], [-0.01, 0.01, 0.0], [0.0, 0.0, 0.02]])

@@ -22,6 +22,6 @@ CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -c "$OLDPWD/set
   "$OLDPWD/tests/test_scene.py" 2>&1 | tee "$OUT/gpu_tests.txt" | tail -5
 tests_rc=${PIPESTATUS[0]}
 cd "$OLDPWD"
-python3 -m clothball.game.cli bench --backends cuda --json "$OUT/bench_gpu.json" "$@" 2>/dev/null \
+python3 -m clothball.game.cli bench --backends cuda --json "$OUT/bench_gpu.json" "$@" 2>"$OUT/bench_gpu.err" \
   | tee "$OUT/bench_gpu.txt"
 exit "$tests_rc"
