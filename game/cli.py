@@ -12,6 +12,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("clothball.game.bench", "measure time per substep (the paper's Table 1)"),
     "scenes": ("clothball.game.scenes_cmd", "list the shipped scenes and their effects"),
+    "falcon": ("clothball.game.falcon_cmd", "check a Novint Falcon and bench its 1 kHz loop"),
 }
 
 
