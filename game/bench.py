@@ -69,7 +69,9 @@ def _csv(text: str, what: str, allowed: tuple[str, ...] | None = None) -> list[s
     if allowed is not None:
         bad = [t for t in items if t not in allowed]
         if bad:
-            raise ValueError(f"--{what}: unknown {', '.join(bad)}; choose from {', '.join(allowed)}")
+            raise ValueError(
+                f"--{what}: unknown {', '.join(bad)}; choose from {', '.join(allowed)}"
+            )
     return items
 
 
@@ -113,7 +115,8 @@ def plan(args: argparse.Namespace) -> list[tuple[str, str, int]]:
         sizes = list(QUICK_SIZES if args.quick else SIZES)
     cases = []
     for backend in backends:
-        extra = list(GPU_EXTRA_SIZES) if backend == "cuda" and not args.sizes and not args.quick else []
+        gpu_sizes = backend == "cuda" and not args.sizes and not args.quick
+        extra = list(GPU_EXTRA_SIZES) if gpu_sizes else []
         for precision in precisions:
             for n in sizes + extra:
                 cases.append((backend, precision, n))
@@ -159,7 +162,7 @@ def print_table(rows: list[dict[str, Any]], copy_gbs: float | None) -> None:
         if paper:
             cpu, dp, sp = paper
             ref = cpu if r["backend"] == "cpu" else (sp if r["precision"] == "float32" else dp)
-            label = "CPU" if r["backend"] == "cpu" else ("GPU SP" if r["precision"] == "float32" else "GPU DP")
+            label = "CPU" if r["backend"] == "cpu" else "GPU " + r["precision"]
             note = f"{label} {ref:g} ms -> {ref * 1e3 / r['substep_us']:.0f}x faster"
         bw = r["effective_gbs"]
         extra = f" ({bw / copy_gbs:.0%} of copy)" if copy_gbs and r["backend"] == "cuda" else ""

@@ -13,6 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("clothball.game.bench", "measure time per substep (the paper's Table 1)"),
     "scenes": ("clothball.game.scenes_cmd", "list the shipped scenes and their effects"),
     "falcon": ("clothball.game.falcon_cmd", "check a Novint Falcon and bench its 1 kHz loop"),
+    "host": ("clothball.server.host", "run a game server (rooms, bots, spectators, replays)"),
 }
 
 

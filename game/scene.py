@@ -51,7 +51,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "height": Key(1.0, "float", -100.0, 100.0, doc="rest height y of the cloth, m"),
         "k_structural": Key(2000.0, "float", 0.0, 1e9, doc="structural spring stiffness, N/m"),
         "structural_two_sided": Key(
-            False, "bool", doc="structural springs also push when compressed (eq. 2 is tension-only)"
+            False, "bool", doc="structural springs also push when compressed (eq. 2: tension only)"
         ),
         "k_shear": Key(200.0, "float", 0.0, 1e9, effect="shear", doc="shear spring stiffness, N/m"),
         "k_bend": Key(50.0, "float", 0.0, 1e9, effect="bend", doc="bending spring stiffness, N/m"),

@@ -23,7 +23,10 @@ BALL_TRAVEL = 0.2  # most of its radius the ball may move in one substep
 
 
 def euler_dt_bound(omega2: float, gamma: float) -> float:
-    """Largest stable semi-implicit Euler dt for m x'' = -k x - c x' (omega^2 = k/m, gamma = c/m)."""
+    """Largest stable semi-implicit Euler dt for m x'' = -k x - c x'.
+
+    omega2 = k / m, gamma = c / m.
+    """
     if omega2 <= 0.0:
         return 2.0 / gamma if gamma > 0.0 else math.inf
     return (math.sqrt(gamma * gamma + 4.0 * omega2) - gamma) / omega2

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 
 import pytest
-
 from clothball.game import cuda_unavailable_reason
 
 REQUIRE_GPU = os.environ.get("CLOTHBALL_REQUIRE_GPU", "") not in ("", "0")

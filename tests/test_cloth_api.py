@@ -7,7 +7,6 @@ import time
 
 import numpy as np
 import pytest
-
 from clothball.game import Cloth, Scene
 from clothball.game.cloth import corners_of
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import pytest
-
 from clothball.game import Scene, SceneError
 from clothball.game.scene import SCHEMA, available
 
@@ -67,7 +66,10 @@ def test_load_by_path(tmp_path) -> None:
         ({"cloth": {"n": 5}, "sim": {"frame_dt": 0}}, "sim.frame_dt"),
         ({"cloth": {"n": 5}, "sim": {"substeps": 0}}, "sim.substeps"),
         ({"cloth": {"n": 5, "k_shear": 10.0}}, "cloth.k_shear"),  # shear not named
-        ({"cloth": {"n": 5}, "ball": {"radius": 0.1}, "sim": {"effects": ["structural"]}}, "ball.radius"),
+        (
+            {"cloth": {"n": 5}, "ball": {"radius": 0.1}, "sim": {"effects": ["structural"]}},
+            "ball.radius",
+        ),
     ],
 )
 def test_bad_scenes_name_the_key(data: dict, key: str) -> None:
