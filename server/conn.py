@@ -1,0 +1,214 @@
+"""One client connection: coalescing sender, rate limits and error replies.
+
+Outgoing data waits in three places, never in a growing queue of state:
+
+* control messages (JSON: replies, room state, events) in a bounded FIFO; a client that
+  lets it fill up (``MAX_CONTROL_QUEUE``) is too slow and is dropped;
+* the newest CORNER message (one slot: a newer frame replaces an unsent one);
+* the newest MESH message (one slot, likewise).
+
+A single sender task writes them in that order, waiting for the socket to drain. A client
+whose socket stays backed up for ``SLOW_DROP_S`` seconds is dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import secrets
+import time
+from typing import TYPE_CHECKING, Any
+
+from websockets.asyncio.server import ServerConnection
+from websockets.exceptions import ConnectionClosed
+
+from . import protocol as P
+
+if TYPE_CHECKING:
+    from .room import Room
+
+log = logging.getLogger("clothball.server")
+
+MAX_CONTROL_QUEUE = 512
+SLOW_DROP_S = 5.0
+CONTROL_RATE = (20.0, 40.0)  # control messages per second, burst
+BINARY_RATE = (1200.0, 400.0)  # HIP messages per second, burst
+ERROR_RATE = (5.0, 20.0)  # error replies per second, burst (the rest are counted, not sent)
+ABUSE_DROPS = 5000  # messages dropped for rate within ABUSE_WINDOW s: the connection is closed
+ABUSE_WINDOW = 2.0
+
+
+class TokenBucket:
+    def __init__(self, rate: float, burst: float) -> None:
+        self.rate, self.burst = rate, burst
+        self.tokens = burst
+        self.t = time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
+        self.t = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+class Conn:
+    """A websocket client of the server (lobby, player or spectator)."""
+
+    def __init__(self, ws: ServerConnection) -> None:
+        self.id = secrets.token_urlsafe(6)
+        self.ws = ws
+        self.role = "lobby"  # "lobby", "player", "spectator"
+        self.room: Room | None = None
+        self.seat: int | None = None
+        self.name = "guest"
+        self.want_mesh = True
+        self.corner_interval = 0.0  # s between CORNER messages (client's corner_rate)
+        self.hello_done = False
+        self.closed = False
+        self._control: collections.deque[str] = collections.deque()
+        self._corner: bytes | None = None
+        self._mesh: bytes | None = None
+        self._last_corner_time = -1e9
+        self._wake = asyncio.Event()
+        self.control_bucket = TokenBucket(*CONTROL_RATE)
+        self.binary_bucket = TokenBucket(*BINARY_RATE)
+        self.error_bucket = TokenBucket(*ERROR_RATE)
+        self.errors_suppressed = 0
+        self.rate_drops: collections.deque[float] = collections.deque()
+        self.sent = 0
+        self.received = 0
+        self.corners_replaced = 0
+        self._backed_up_since: float | None = None
+        self._sending_since: float | None = None
+        self._sender = asyncio.create_task(self._send_loop())
+
+    # --- offering data --------------------------------------------------------------------
+    def send_json(self, msg: dict[str, Any]) -> None:
+        if self.closed:
+            return
+        if len(self._control) >= MAX_CONTROL_QUEUE:
+            self.drop("too slow: control messages are not being read")
+            return
+        self._control.append(P.encode_json(msg))
+        self._wake.set()
+
+    def _stuck(self) -> bool:
+        since = self._sending_since
+        if since is not None and time.monotonic() - since > SLOW_DROP_S:
+            self.drop("too slow: one message has waited for the socket too long")
+            return True
+        return False
+
+    def offer_corner(self, data: bytes, server_time: float) -> None:
+        if self.closed or server_time - self._last_corner_time < self.corner_interval:
+            return
+        if self._stuck():
+            return
+        self._last_corner_time = server_time
+        if self._corner is not None:
+            self.corners_replaced += 1
+        self._corner = data
+        self._wake.set()
+
+    def offer_mesh(self, data: bytes) -> None:
+        if self.closed or not self.want_mesh or self._stuck():
+            return
+        self._mesh = data
+        self._wake.set()
+
+    def error(self, err: P.ProtocolError | str, message: str = "", re: object = None) -> None:
+        """Send an error reply, unless this client has had too many lately."""
+        if isinstance(err, P.ProtocolError):
+            code, message = err.code, err.message
+        else:
+            code = err
+        if not self.error_bucket.take():
+            self.errors_suppressed += 1
+            return
+        msg = P.error_message(code, message, re)
+        if self.errors_suppressed:
+            msg["suppressed"] = self.errors_suppressed
+            self.errors_suppressed = 0
+        self.send_json(msg)
+
+    def rate_dropped(self) -> bool:
+        """Count a message dropped for rate; True when the client should be disconnected."""
+        now = time.monotonic()
+        self.rate_drops.append(now)
+        while self.rate_drops and self.rate_drops[0] < now - ABUSE_WINDOW:
+            self.rate_drops.popleft()
+        return len(self.rate_drops) > ABUSE_DROPS
+
+    # --- sending --------------------------------------------------------------------------
+    async def _send_loop(self) -> None:
+        ws = self.ws
+        try:
+            while True:
+                await self._wake.wait()
+                self._wake.clear()
+                while True:
+                    if self._control:
+                        msg: str | bytes = self._control.popleft()
+                    elif self._corner is not None:
+                        msg, self._corner = self._corner, None
+                    elif self._mesh is not None:
+                        msg, self._mesh = self._mesh, None
+                    else:
+                        break
+                    self._sending_since = time.monotonic()
+                    await ws.send(msg)
+                    self._sending_since = None
+                    self.sent += 1
+                    self._check_backlog()
+        except ConnectionClosed:
+            pass
+        except asyncio.CancelledError:
+            raise
+        except Exception:  # pragma: no cover - a sender bug must not kill the server
+            log.exception("sender for client %s failed", self.id)
+        self.closed = True
+
+    def _check_backlog(self) -> None:
+        transport = self.ws.transport
+        if transport is None:
+            return
+        if transport.get_write_buffer_size() > 256 * 1024:
+            now = time.monotonic()
+            if self._backed_up_since is None:
+                self._backed_up_since = now
+            elif now - self._backed_up_since > SLOW_DROP_S:
+                self.drop("too slow: the connection has been backed up too long")
+        else:
+            self._backed_up_since = None
+
+    def drop(self, reason: str) -> None:
+        """Close the connection (policy violation), without waiting."""
+        if self.closed:
+            return
+        self.closed = True
+        log.info("dropping client %s: %s", self.id, reason)
+        asyncio.ensure_future(self._close(1008, reason[:120]))
+
+    def kicked(self, reason: str) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        asyncio.ensure_future(self._close(4000, reason[:120]))
+
+    async def _close(self, code: int, reason: str) -> None:
+        try:
+            await self.ws.close(code, reason)
+        except Exception:  # pragma: no cover
+            pass
+
+    async def finish(self) -> None:
+        self.closed = True
+        self._sender.cancel()
+        try:
+            await self._sender
+        except (asyncio.CancelledError, Exception):
+            pass

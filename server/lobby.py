@@ -1,0 +1,99 @@
+"""The lobby: the server's rooms and the scenes a room can be created with."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+from collections.abc import Callable
+from typing import Any
+
+from ..game.scene import Scene
+from . import protocol as P
+from .protocol import ProtocolError
+from .room import Room, RoomHost, RoomSettings
+
+log = logging.getLogger("clothball.server")
+
+MAX_ROOMS = 32
+IDLE_CLOSE_S = 60.0  # a client-created room with nobody in it closes after this long
+
+
+class Lobby:
+    def __init__(self, scenes: dict[str, Scene], host: RoomHost, backend: str = "auto",
+                 max_rooms: int = MAX_ROOMS, room_factory: Callable[..., Room] = Room,
+                 epoch: float | None = None) -> None:
+        if not scenes:
+            raise ValueError("scenes: at least one scene is needed")
+        self.scenes = scenes
+        self.default_scene = next(iter(scenes))
+        self.host = host
+        self.backend = backend
+        self.max_rooms = max_rooms
+        self.rooms: dict[str, Room] = {}
+        self.permanent: set[str] = set()
+        self._room_factory = room_factory
+        self.epoch = epoch
+
+    def create(self, name: str, scene: str | None = None, *, public: bool = True,
+               settings: RoomSettings | None = None, owner: str | None = None,
+               permanent: bool = False) -> Room:
+        scene_name = scene or self.default_scene
+        if scene_name not in self.scenes:
+            raise ProtocolError(
+                "bad_message", f"scene {scene_name!r} unknown; this server has "
+                f"{', '.join(sorted(self.scenes))}"
+            )
+        if len(self.rooms) >= self.max_rooms:
+            raise ProtocolError("server_busy", f"this server already runs {self.max_rooms} rooms")
+        room_id = secrets.token_urlsafe(6)
+        room = self._room_factory(room_id, name, self.scenes[scene_name], self.host,
+                                  backend=self.backend, public=public, settings=settings,
+                                  owner=owner, epoch=self.epoch)
+        self.rooms[room_id] = room
+        if permanent:
+            self.permanent.add(room_id)
+        room.start()
+        log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
+                 "public" if public else "private")
+        return room
+
+    def get(self, room_id: object) -> Room:
+        if not isinstance(room_id, str) or room_id not in self.rooms:
+            raise ProtocolError("unknown_room", f"no room {room_id!r}")
+        return self.rooms[room_id]
+
+    def listing(self) -> list[dict[str, Any]]:
+        """The public rooms (private ones are joined by id and code)."""
+        return [r.info() for r in self.rooms.values() if r.public]
+
+    async def close_idle(self, now: float) -> None:
+        for rid, room in list(self.rooms.items()):
+            if rid in self.permanent:
+                continue
+            if room.is_empty() and now - room.last_active > IDLE_CLOSE_S:
+                if any(s.kind == "bot" for s in room.seats) and room.spectators:
+                    continue
+                log.info("closing idle room %s", rid)
+                del self.rooms[rid]
+                await room.close()
+
+    async def close(self) -> None:
+        rooms, self.rooms = list(self.rooms.values()), {}
+        await asyncio.gather(*(r.close() for r in rooms))
+
+
+def parse_settings(msg: dict[str, Any]) -> RoomSettings:
+    """Room settings from a ``create_room`` message (every field optional, range-checked)."""
+    d = RoomSettings()
+    return RoomSettings(
+        first_to=P.field_int(msg, "first_to", d.first_to, 1, 99),  # type: ignore[arg-type]
+        countdown=P.field_float(msg, "countdown", d.countdown, 0.0, 10.0),  # type: ignore[arg-type]
+        reset_offset=P.field_float(msg, "reset_offset", d.reset_offset, 0.0, 0.2),  # type: ignore[arg-type]
+        reset_speed=P.field_float(msg, "reset_speed", d.reset_speed, 0.0, 5.0),  # type: ignore[arg-type]
+        bots_allowed=P.field_bool(msg, "bots_allowed", d.bots_allowed),
+        bot_difficulty=P.field_float(msg, "bot_difficulty", d.bot_difficulty, 0.0, 1.0),  # type: ignore[arg-type]
+        grace=P.field_float(msg, "grace", d.grace, 0.5, 60.0),  # type: ignore[arg-type]
+        autoplay=P.field_bool(msg, "autoplay", d.autoplay),
+        restart_delay=P.field_float(msg, "restart_delay", d.restart_delay, 0.0, 60.0),  # type: ignore[arg-type]
+    )

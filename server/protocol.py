@@ -1,0 +1,432 @@
+"""The wire protocol: the one codec shared by the server and every client.
+
+``docs/protocol.md`` documents every message. In short: JSON text frames carry control
+messages (``{"type": ...}``), binary frames carry the hot streams, each with the same
+16-byte little-endian header::
+
+    offset 0  u8   type     HIP=1, CORNER=2, MESH=3, TRACK=4
+    offset 1  u8   version  PROTOCOL_VERSION
+    offset 2  u16  flags    MESH: bit 0 zlib payload, bit 1 row-delta payload
+    offset 4  u32  seq      sender's sequence number (CORNER/MESH/TRACK: frame mod 2^32)
+    offset 8  f64  time     sender's clock, seconds (server: since the server started)
+
+Every decoder validates what it reads and raises ``ProtocolError`` (with a stable
+``code`` and a human message) rather than return something half-formed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+PROTOCOL_VERSION = 1
+
+HIP, CORNER, MESH, TRACK = 1, 2, 3, 4
+BINARY_TYPES = {HIP: "HIP", CORNER: "CORNER", MESH: "MESH", TRACK: "TRACK"}
+
+FLAG_ZLIB = 1
+FLAG_DELTA = 2
+
+HEADER = struct.Struct("<BBHId")
+HIP_BODY = struct.Struct("<3f")
+# frame, seat, pad, pos, vel, force, K, ball pos, ball vel, hip seq echo, hip time echo
+CORNER_BODY = struct.Struct("<qB3x3f3f3ff3f3fId")
+# frame, n, pad, bbox lo, bbox hi, ball pos, ball radius, hips (4x3)
+MESH_BODY = struct.Struct("<qH2x3f3f3ff12f")
+# frame, ball pos, ball vel, hips (4x3), corners (4x3)
+TRACK_BODY = struct.Struct("<q3f3f12f12f")
+
+HIP_SIZE = HEADER.size + HIP_BODY.size
+CORNER_SIZE = HEADER.size + CORNER_BODY.size
+TRACK_SIZE = HEADER.size + TRACK_BODY.size
+
+MAX_JSON_BYTES = 4096  # largest control message a client may send
+MAX_MESSAGE_BYTES = 65536  # anything larger closes the connection (websocket max_size)
+MAX_MESH_N = 1024
+QMAX = 65535
+
+# Error codes sent in {"type": "error", "code": ...}.
+ERROR_CODES = (
+    "bad_json",  # not JSON, not an object, or not UTF-8
+    "bad_message",  # a field missing, of the wrong type, non-finite or out of range
+    "bad_binary",  # a binary frame of the wrong size, type or content
+    "bad_version",  # protocol version not supported
+    "unknown_type",  # no such message type
+    "too_big",  # message larger than allowed
+    "rate_limited",  # messages too frequent; the extra ones are dropped
+    "not_allowed",  # this role or state cannot send that
+    "unknown_room",
+    "bad_seat",  # no such seat or not free
+    "bad_code",  # private room join code wrong or missing
+    "bad_token",  # reconnect token unknown or expired
+    "room_full",
+    "illegal_move",  # the game rules refuse it (e.g. start while playing)
+    "server_busy",
+)
+
+
+class ProtocolError(ValueError):
+    """A message that breaks the protocol. ``code`` is one of ``ERROR_CODES``."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+    def to_message(self, re: object = None) -> dict[str, Any]:
+        return error_message(self.code, self.message, re)
+
+
+def error_message(code: str, message: str, re: object = None) -> dict[str, Any]:
+    msg: dict[str, Any] = {"type": "error", "code": code, "message": message}
+    if re is not None:
+        msg["re"] = re
+    return msg
+
+
+# --- JSON control messages -------------------------------------------------------------------
+
+
+def encode_json(msg: dict[str, Any]) -> str:
+    """A control message as compact JSON text (NaN/Inf refused)."""
+    return json.dumps(msg, separators=(",", ":"), allow_nan=False)
+
+
+def _reject_constant(name: str) -> float:
+    raise ProtocolError("bad_json", f"{name} is not allowed in JSON")
+
+
+def decode_json(text: str | bytes, limit: int = MAX_JSON_BYTES) -> dict[str, Any]:
+    """Parse a control message: a JSON object with a string ``type``."""
+    if len(text) > limit:
+        raise ProtocolError("too_big", f"control message of {len(text)} bytes; limit {limit}")
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise ProtocolError("bad_json", f"not UTF-8: {e}") from None
+    try:
+        msg = json.loads(text, parse_constant=_reject_constant)
+    except ProtocolError:
+        raise
+    except (ValueError, RecursionError) as e:
+        raise ProtocolError("bad_json", f"not valid JSON: {e}") from None
+    if not isinstance(msg, dict):
+        raise ProtocolError("bad_json", f"expected a JSON object, got {type(msg).__name__}")
+    t = msg.get("type")
+    if not isinstance(t, str) or not t:
+        raise ProtocolError("bad_message", "missing field 'type' (a string)")
+    return msg
+
+
+def field_str(msg: dict[str, Any], key: str, default: str | None = None, *, max_len: int = 64,
+              required: bool = False) -> str | None:
+    """A string field (stripped of control characters), or ``default`` when absent."""
+    if key not in msg or msg[key] is None:
+        if required:
+            raise ProtocolError("bad_message", f"missing field '{key}' (a string)")
+        return default
+    v = msg[key]
+    if not isinstance(v, str):
+        raise ProtocolError("bad_message", f"'{key}': expected a string, got {type(v).__name__}")
+    if len(v) > max_len:
+        raise ProtocolError("bad_message", f"'{key}': at most {max_len} characters, got {len(v)}")
+    if any(ord(ch) < 32 or ord(ch) == 127 for ch in v):
+        raise ProtocolError("bad_message", f"'{key}': control characters are not allowed")
+    return v
+
+
+def field_int(msg: dict[str, Any], key: str, default: int | None, lo: int, hi: int, *,
+              required: bool = False) -> int | None:
+    """A whole-number field in ``lo..hi``, or ``default`` when absent."""
+    if key not in msg or msg[key] is None:
+        if required:
+            raise ProtocolError("bad_message", f"missing field '{key}' (a whole number)")
+        return default
+    v = msg[key]
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ProtocolError("bad_message", f"'{key}': expected a whole number, got {v!r}")
+    if not lo <= v <= hi:
+        raise ProtocolError("bad_message", f"'{key}': must be in {lo}..{hi}, got {v}")
+    return v
+
+
+def field_float(msg: dict[str, Any], key: str, default: float | None, lo: float, hi: float, *,
+                required: bool = False) -> float | None:
+    """A finite number field in ``[lo, hi]``, or ``default`` when absent."""
+    if key not in msg or msg[key] is None:
+        if required:
+            raise ProtocolError("bad_message", f"missing field '{key}' (a number)")
+        return default
+    v = msg[key]
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ProtocolError("bad_message", f"'{key}': expected a number, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise ProtocolError("bad_message", f"'{key}': must be finite, got {v!r}")
+    if not lo <= v <= hi:
+        raise ProtocolError("bad_message", f"'{key}': must be in [{lo}, {hi}], got {v}")
+    return v
+
+
+def field_bool(msg: dict[str, Any], key: str, default: bool) -> bool:
+    if key not in msg or msg[key] is None:
+        return default
+    v = msg[key]
+    if not isinstance(v, bool):
+        raise ProtocolError("bad_message", f"'{key}': expected true or false, got {v!r}")
+    return v
+
+
+def request_id(msg: dict[str, Any]) -> str | int | None:
+    """The optional ``id`` a client puts on a request; replies echo it as ``re``."""
+    v = msg.get("id")
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int | str):
+        return None
+    if isinstance(v, str) and len(v) > 64:
+        return None
+    if isinstance(v, int) and not -(2**53) <= v <= 2**53:
+        return None
+    return v
+
+
+# --- binary header ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Header:
+    type: int
+    version: int
+    flags: int
+    seq: int
+    time: float
+
+
+def decode_header(data: bytes, expect: int | None = None) -> Header:
+    if len(data) < HEADER.size:
+        raise ProtocolError("bad_binary", f"binary message of {len(data)} bytes; header is 16")
+    t, v, flags, seq, time = HEADER.unpack_from(data)
+    if t not in BINARY_TYPES:
+        raise ProtocolError("bad_binary", f"unknown binary message type {t}")
+    if v != PROTOCOL_VERSION:
+        raise ProtocolError(
+            "bad_version", f"binary message version {v}; this server speaks {PROTOCOL_VERSION}"
+        )
+    if expect is not None and t != expect:
+        raise ProtocolError(
+            "bad_binary", f"expected a {BINARY_TYPES[expect]} message, got {BINARY_TYPES[t]}"
+        )
+    if not math.isfinite(time):
+        raise ProtocolError("bad_binary", "header time must be finite")
+    return Header(t, v, flags, seq, time)
+
+
+# --- HIP: client -> server --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Hip:
+    """A hand position (world metres) with the client's sequence number and clock."""
+
+    position: tuple[float, float, float]
+    seq: int
+    time: float
+
+
+def encode_hip(position: Any, seq: int, time: float) -> bytes:
+    x, y, z = (float(v) for v in position)
+    return HEADER.pack(HIP, PROTOCOL_VERSION, 0, seq & 0xFFFFFFFF, time) + HIP_BODY.pack(x, y, z)
+
+
+def decode_hip(data: bytes) -> Hip:
+    """A HIP frame; raises ``ProtocolError`` on a wrong size, type, version or a NaN/Inf."""
+    if len(data) != HIP_SIZE:
+        raise ProtocolError("bad_binary", f"HIP message must be {HIP_SIZE} bytes, got {len(data)}")
+    h = decode_header(data, HIP)
+    x, y, z = HIP_BODY.unpack_from(data, HEADER.size)
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise ProtocolError("bad_binary", "HIP position must be finite (got NaN or Inf)")
+    return Hip((x, y, z), h.seq, h.time)
+
+
+# --- CORNER: server -> player, every frame ----------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Corner:
+    """One corner's state after a frame (see ``game.devices.base.CornerState``)."""
+
+    frame: int
+    seat: int
+    position: np.ndarray  # (3,) m
+    velocity: np.ndarray  # (3,) m/s
+    force: np.ndarray  # (3,) N, on the device: -K (h - c)
+    stiffness: float  # coupling K, N/m
+    ball_position: np.ndarray  # (3,) m
+    ball_velocity: np.ndarray  # (3,) m/s
+    hip_seq: int  # seq of the last HIP the server applied (0: none yet)
+    hip_time: float  # that HIP's client time (NaN: none yet)
+    server_time: float  # s, server clock at the end of the frame
+
+
+def encode_corner(frame: int, seat: int, position: Any, velocity: Any, force: Any,
+                  stiffness: float, ball_position: Any, ball_velocity: Any, hip_seq: int,
+                  hip_time: float, server_time: float) -> bytes:
+    return HEADER.pack(
+        CORNER, PROTOCOL_VERSION, 0, frame & 0xFFFFFFFF, server_time
+    ) + CORNER_BODY.pack(
+        frame, seat, *position, *velocity, *force, stiffness, *ball_position, *ball_velocity,
+        hip_seq & 0xFFFFFFFF, hip_time,
+    )
+
+
+def decode_corner(data: bytes) -> Corner:
+    if len(data) != CORNER_SIZE:
+        raise ProtocolError(
+            "bad_binary", f"CORNER message must be {CORNER_SIZE} bytes, got {len(data)}"
+        )
+    h = decode_header(data, CORNER)
+    v = CORNER_BODY.unpack_from(data, HEADER.size)
+    f = np.array(v[2:18], dtype=np.float64)
+    return Corner(
+        frame=v[0], seat=v[1], position=f[0:3], velocity=f[3:6], force=f[6:9],
+        stiffness=float(f[9]), ball_position=f[10:13], ball_velocity=f[13:16],
+        hip_seq=v[18], hip_time=v[19], server_time=h.time,
+    )
+
+
+# --- MESH: server -> spectators, ~30 Hz -------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Mesh:
+    frame: int
+    server_time: float
+    positions: np.ndarray  # (n, n, 3) float64, dequantised
+    lo: np.ndarray  # (3,) bounding box the positions were quantised in
+    hi: np.ndarray
+    ball_position: np.ndarray  # (3,)
+    ball_radius: float
+    hips: np.ndarray  # (4, 3)
+    flags: int
+
+
+def quantise(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (n, n, 3) -> uint16 per axis relative to their bounding box (lo, hi)."""
+    p = np.asarray(positions, dtype=np.float64)
+    flat = p.reshape(-1, 3)
+    lo = flat.min(axis=0).astype(np.float32).astype(np.float64)
+    hi = flat.max(axis=0).astype(np.float32).astype(np.float64)
+    hi = np.maximum(hi, lo)  # float32 rounding must not flip the box
+    span = hi - lo
+    scale = np.where(span > 0.0, QMAX / np.where(span > 0.0, span, 1.0), 0.0)
+    q = np.clip(np.rint((p - lo) * scale), 0, QMAX).astype("<u2")
+    return q, lo, hi
+
+
+def dequantise(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return lo + q.astype(np.float64) * ((hi - lo) / QMAX)
+
+
+def encode_mesh(frame: int, server_time: float, positions: np.ndarray, ball_position: Any,
+                ball_radius: float, hips: Any, compress: bool = True) -> bytes:
+    """A MESH frame. Positions are quantised to uint16 in their bounding box (error at most
+    extent/131070 per axis); with ``compress`` the rows are delta-coded and zlib'd when that
+    is at least 10% smaller."""
+    p = np.asarray(positions)
+    if p.ndim != 3 or p.shape[0] != p.shape[1] or p.shape[2] != 3:
+        raise ValueError(f"positions: expected (n, n, 3), got {p.shape}")
+    n = p.shape[0]
+    q, lo, hi = quantise(p)
+    payload = q.tobytes()
+    flags = 0
+    if compress:
+        d = q.copy()
+        d[:, 1:, :] = q[:, 1:, :] - q[:, :-1, :]  # uint16 wraps: decoded by a cumulative sum
+        z = zlib.compress(d.tobytes(), 1)
+        if len(z) <= 0.9 * len(payload):
+            payload, flags = z, FLAG_ZLIB | FLAG_DELTA
+    body = MESH_BODY.pack(frame, n, *lo, *hi, *ball_position, ball_radius,
+                          *np.asarray(hips, dtype=np.float64).reshape(12))
+    head = HEADER.pack(MESH, PROTOCOL_VERSION, flags, frame & 0xFFFFFFFF, server_time)
+    return head + body + payload
+
+
+def decode_mesh(data: bytes) -> Mesh:
+    h = decode_header(data, MESH)
+    if len(data) < HEADER.size + MESH_BODY.size:
+        raise ProtocolError("bad_binary", "MESH message too short")
+    v = MESH_BODY.unpack_from(data, HEADER.size)
+    frame, n = v[0], v[1]
+    if not 2 <= n <= MAX_MESH_N:
+        raise ProtocolError("bad_binary", f"MESH n must be 2..{MAX_MESH_N}, got {n}")
+    f = np.array(v[2:], dtype=np.float64)
+    payload = data[HEADER.size + MESH_BODY.size:]
+    if h.flags & ~(FLAG_ZLIB | FLAG_DELTA):
+        raise ProtocolError("bad_binary", f"MESH unknown flags {h.flags:#x}")
+    expected = n * n * 3 * 2
+    if h.flags & FLAG_ZLIB:
+        try:
+            d = zlib.decompressobj()
+            payload = d.decompress(payload, expected + 1)
+        except zlib.error as e:
+            raise ProtocolError("bad_binary", f"MESH payload not valid zlib: {e}") from None
+    if len(payload) != expected:
+        raise ProtocolError("bad_binary", f"MESH payload of {len(payload)} bytes, need {expected}")
+    q = np.frombuffer(payload, dtype="<u2").reshape(n, n, 3)
+    if h.flags & FLAG_DELTA:
+        q = np.cumsum(q, axis=1, dtype=np.uint16)
+    lo, hi = f[0:3], f[3:6]
+    return Mesh(
+        frame=frame, server_time=h.time, positions=dequantise(q, lo, hi), lo=lo, hi=hi,
+        ball_position=f[6:9], ball_radius=float(f[9]), hips=f[10:22].reshape(4, 3),
+        flags=h.flags,
+    )
+
+
+# --- TRACK: replay files, ~100 Hz -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Track:
+    frame: int
+    server_time: float
+    ball_position: np.ndarray
+    ball_velocity: np.ndarray
+    hips: np.ndarray  # (4, 3)
+    corners: np.ndarray  # (4, 3)
+
+
+def encode_track(frame: int, server_time: float, ball_position: Any, ball_velocity: Any,
+                 hips: Any, corners: Any) -> bytes:
+    head = HEADER.pack(TRACK, PROTOCOL_VERSION, 0, frame & 0xFFFFFFFF, server_time)
+    return head + TRACK_BODY.pack(
+        frame, *ball_position, *ball_velocity,
+        *np.asarray(hips, dtype=np.float64).reshape(12),
+        *np.asarray(corners, dtype=np.float64).reshape(12),
+    )
+
+
+def decode_track(data: bytes) -> Track:
+    if len(data) != TRACK_SIZE:
+        raise ProtocolError("bad_binary", f"TRACK message must be {TRACK_SIZE} bytes")
+    h = decode_header(data, TRACK)
+    v = TRACK_BODY.unpack_from(data, HEADER.size)
+    f = np.array(v[1:], dtype=np.float64)
+    return Track(v[0], h.time, f[0:3], f[3:6], f[6:18].reshape(4, 3), f[18:30].reshape(4, 3))
+
+
+def decode_binary(data: bytes) -> Hip | Corner | Mesh | Track:
+    """Any binary message, by its header type."""
+    h = decode_header(data)
+    return {HIP: decode_hip, CORNER: decode_corner, MESH: decode_mesh, TRACK: decode_track}[h.type](
+        data
+    )

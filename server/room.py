@@ -1,0 +1,576 @@
+"""One room: four seats, spectators, a match, the simulation thread and the round recorder.
+
+Everything here runs on the event loop, except ``RoomSim`` (its own thread). The room is a
+thin layer between the connections and two pure parts: ``game.rules.Match`` (scores and
+phases; raises on an illegal move) and the simulation.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import secrets
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from ..game.rules import EDGE_NAMES, SEATS, IllegalMove, Match, edge_of_seat
+from ..game.scene import Scene
+from . import protocol as P
+from .protocol import ProtocolError
+from .sim import FrameResult, RoomSim
+from .store import REPLAY_VERSION, new_round_id
+
+if TYPE_CHECKING:
+    from .conn import Conn
+
+log = logging.getLogger("clothball.server")
+
+REACH_FRACTION = 0.3  # a hand may move this fraction of the cloth's size from its anchor
+RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
+
+
+class RoomHost(Protocol):
+    """What a room needs from its server."""
+
+    def spawn_bot(self, room: Room, seat: int, token: str, difficulty: float) -> None: ...
+
+    def save_round(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> None: ...
+
+
+@dataclass
+class RoomSettings:
+    """Per-room settings (``create_room`` fields of the same names)."""
+
+    first_to: int = 5
+    countdown: float = 3.0  # s before each round
+    reset_offset: float = 0.05  # m: the ball restarts this far (at most) from the centre
+    reset_speed: float = 0.0  # m/s: horizontal speed the ball restarts with (a harder game)
+    bots_allowed: bool = True
+    bot_difficulty: float = 0.6
+    grace: float = 15.0  # s a disconnected player's seat is held
+    autoplay: bool = False  # start (and restart) matches when only bots are seated
+    restart_delay: float = 5.0  # s after a match before an autoplay room starts the next
+
+
+@dataclass
+class Seat:
+    index: int
+    kind: str = "empty"  # "empty", "human", "bot"
+    name: str = ""
+    token: str | None = None
+    conn: Conn | None = None
+    ready: bool = False
+    held_until: float | None = None  # disconnected: seat held until this loop time
+    grace_timer: asyncio.TimerHandle | None = None
+    difficulty: float = 0.6
+
+    @property
+    def connected(self) -> bool:
+        return self.conn is not None
+
+    def info(self) -> dict[str, Any]:
+        return {
+            "seat": self.index,
+            "edge": EDGE_NAMES[edge_of_seat(self.index)],
+            "kind": self.kind,
+            "name": self.name,
+            "ready": self.ready or self.kind == "bot",
+            "connected": self.connected,
+        }
+
+
+@dataclass
+class RoundRecord:
+    id: str
+    round: int
+    started_at: float
+    players: list[dict[str, Any]] = field(default_factory=list)
+
+
+class Room:
+    def __init__(self, room_id: str, name: str, scene: Scene, host: RoomHost, *,
+                 backend: str = "auto", public: bool = True,
+                 settings: RoomSettings | None = None, owner: str | None = None,
+                 mesh_hz: float = 30.0, track_hz: float = 100.0,
+                 clock: Callable[[], float] = time.perf_counter, epoch: float | None = None,
+                 rng: np.random.Generator | None = None) -> None:
+        self.id = room_id
+        self.name = name
+        self.scene = scene
+        self.public = public
+        self.code = None if public else secrets.token_urlsafe(8)
+        self.settings = settings or RoomSettings()
+        self.owner = owner  # client id allowed to start and add bots (None: any seated player)
+        self.host = host
+        self.match = Match(first_to=self.settings.first_to)
+        self.seats = [Seat(i, difficulty=self.settings.bot_difficulty) for i in range(SEATS)]
+        self.spectators: set[Conn] = set()
+        self.mesh_hz = mesh_hz
+        self.track_hz = track_hz
+        self.rng = rng or np.random.default_rng()
+        self.loop = asyncio.get_running_loop()
+        self.sim = RoomSim(scene, backend, deliver=self._on_frame, loop=self.loop,
+                           mesh_hz=mesh_hz, track_hz=track_hz, clock=clock, epoch=epoch)
+        self.anchors = self.sim.anchors
+        self.size = self.sim.size
+        self.half_extent = np.full(3, REACH_FRACTION * self.size)
+        self.created = time.time()
+        self.last_active = self.loop.time()
+        self._task: asyncio.Task[None] | None = None  # the countdown / restart in progress
+        self._recording: RoundRecord | None = None
+        self._closed = False
+        self.frame = 0
+        self.server_time = 0.0
+        self.last_exit: tuple[int, int, list[float]] | None = None
+
+    # --- life -----------------------------------------------------------------------------
+    def start(self) -> None:
+        self.sim.start()
+
+    async def close(self) -> None:
+        self._closed = True
+        if self._task is not None:
+            self._task.cancel()
+        for s in self.seats:
+            if s.grace_timer is not None:
+                s.grace_timer.cancel()
+        await asyncio.to_thread(self.sim.stop)
+
+    # --- views ----------------------------------------------------------------------------
+    def info(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "scene": self.scene.name,
+            "n": self.scene.n,
+            "public": self.public,
+            "state": self.match.state,
+            "round": self.match.round,
+            "first_to": self.match.first_to,
+            "scores": list(self.match.scores),
+            "winners": list(self.match.winners),
+            "seats": [s.info() for s in self.seats],
+            "spectators": len(self.spectators),
+            "bots_allowed": self.settings.bots_allowed,
+            "frame": self.frame,
+        }
+
+    def geometry(self) -> dict[str, Any]:
+        """What a client needs to draw the cloth and map a device onto a corner."""
+        sc = self.scene
+        return {
+            "scene": sc.name,
+            "n": sc.n,
+            "size": self.size,
+            "height": float(sc["cloth"]["height"]),
+            "ball_radius": self.sim.ball_radius,
+            "stiffness": self.sim.stiffness,
+            "frame_dt": self.sim.frame_dt,
+            "mesh_hz": self.mesh_hz,
+            "anchors": self.anchors.tolist(),
+            "reach_half_extent": self.half_extent.tolist(),
+            "edges": list(EDGE_NAMES),
+        }
+
+    def conns(self) -> list[Conn]:
+        out = [s.conn for s in self.seats if s.conn is not None]
+        return out + list(self.spectators)
+
+    def humans(self) -> list[Seat]:
+        return [s for s in self.seats if s.kind == "human"]
+
+    def seated(self) -> list[int]:
+        return [s.index for s in self.seats if s.kind != "empty"]
+
+    def is_empty(self) -> bool:
+        return not self.spectators and all(s.kind != "human" for s in self.seats)
+
+    # --- messages out ---------------------------------------------------------------------
+    def broadcast(self, msg: dict[str, Any]) -> None:
+        for c in self.conns():
+            c.send_json(msg)
+
+    def broadcast_state(self) -> None:
+        self.broadcast({"type": "room", **self.info()})
+
+    def event(self, kind: str, /, **fields: Any) -> None:
+        msg = {"type": "event", "event": kind, "room": self.id, "frame": self.frame,
+               "time": self.sim.now(), **fields}
+        self.broadcast(msg)
+        self.sim.command("record_event", P.encode_json(msg).encode())  # kept if recording
+
+    # --- seats ----------------------------------------------------------------------------
+    def check_code(self, code: str | None) -> None:
+        if self.code is not None and not (code and secrets.compare_digest(code, self.code)):
+            raise ProtocolError("bad_code", f"room {self.id} is private: a valid 'code' is needed")
+
+    def join_player(self, conn: Conn, seat: int | None, name: str, code: str | None
+                    ) -> dict[str, Any]:
+        self.check_code(code)
+        if seat is None:
+            free = [s for s in self.seats if s.kind == "empty"]
+            if not free:
+                raise ProtocolError("room_full", f"room {self.id} has no free seat")
+            target = free[0]
+        else:
+            if not 0 <= seat < SEATS:
+                raise ProtocolError("bad_seat", f"seat must be 0..{SEATS - 1}, got {seat}")
+            target = self.seats[seat]
+            if target.kind != "empty":
+                raise ProtocolError("bad_seat", f"seat {seat} is taken ({target.kind})")
+        target.kind, target.name, target.ready = "human", name, False
+        target.token = secrets.token_urlsafe(24)
+        self._attach(target, conn)
+        self.event("seat", seat=target.index, kind="human", name=name)
+        self.broadcast_state()
+        return self._joined(target)
+
+    def resume(self, conn: Conn, token: str) -> dict[str, Any]:
+        """Take a held seat back (a reconnect, or a bot claiming the seat it was given)."""
+        for s in self.seats:
+            if s.token is not None and secrets.compare_digest(s.token, token):
+                if s.conn is not None and s.conn is not conn:
+                    old = s.conn
+                    self._detach(s)
+                    old.kicked("your seat was resumed by another connection")
+                if s.grace_timer is not None:
+                    s.grace_timer.cancel()
+                    s.grace_timer = None
+                s.held_until = None
+                self._attach(s, conn)
+                self.event("seat", seat=s.index, kind=s.kind, name=s.name, resumed=True)
+                self.broadcast_state()
+                return self._joined(s)
+        raise ProtocolError("bad_token", "reconnect token unknown or expired")
+
+    def _attach(self, seat: Seat, conn: Conn) -> None:
+        seat.conn = conn
+        conn.room, conn.seat, conn.role = self, seat.index, "player"
+        self.last_active = self.loop.time()
+
+    def _detach(self, seat: Seat) -> None:
+        if seat.conn is not None:
+            seat.conn.room, seat.conn.seat, seat.conn.role = None, None, "lobby"
+        seat.conn = None
+        self.sim.set_hip(seat.index, None)
+
+    def _joined(self, seat: Seat) -> dict[str, Any]:
+        return {
+            "type": "joined",
+            "room": self.id,
+            "role": "player",
+            "seat": seat.index,
+            "edge": edge_of_seat(seat.index),
+            "edge_name": EDGE_NAMES[edge_of_seat(seat.index)],
+            "token": seat.token,
+            "kind": seat.kind,
+            "reach": {
+                "centre": self.anchors[seat.index].tolist(),
+                "half_extent": self.half_extent.tolist(),
+            },
+            "geometry": self.geometry(),
+            "state": self.info(),
+            "code": self.code,
+        }
+
+    def join_spectator(self, conn: Conn, code: str | None) -> dict[str, Any]:
+        self.check_code(code)
+        self.spectators.add(conn)
+        conn.room, conn.seat, conn.role = self, None, "spectator"
+        self.last_active = self.loop.time()
+        self.broadcast_state()
+        return {"type": "joined", "room": self.id, "role": "spectator",
+                "geometry": self.geometry(), "state": self.info()}
+
+    def leave(self, conn: Conn) -> None:
+        """The connection leaves on purpose: its seat is freed at once."""
+        if conn in self.spectators:
+            self.spectators.discard(conn)
+            conn.room, conn.role = None, "lobby"
+            self.broadcast_state()
+            return
+        if conn.seat is not None and self.seats[conn.seat].conn is conn:
+            seat = self.seats[conn.seat]
+            self._detach(seat)
+            self._free(seat, "left")
+
+    def disconnected(self, conn: Conn) -> None:
+        """The connection dropped: a player's seat is held for the grace period."""
+        if conn in self.spectators:
+            self.spectators.discard(conn)
+            self.broadcast_state()
+            return
+        if conn.seat is None or self.seats[conn.seat].conn is not conn:
+            return
+        seat = self.seats[conn.seat]
+        self._detach(seat)
+        grace = self.settings.grace
+        seat.held_until = self.loop.time() + grace
+        seat.grace_timer = self.loop.call_later(grace, self._grace_over, seat.index)
+        self.event("seat", seat=seat.index, kind=seat.kind, name=seat.name, held_for=grace)
+        self.broadcast_state()
+
+    def _grace_over(self, index: int) -> None:
+        seat = self.seats[index]
+        seat.grace_timer = None
+        seat.held_until = None
+        if seat.conn is not None or self._closed:
+            return
+        if seat.kind == "human" and self.settings.bots_allowed:
+            self.add_bot(index, self.settings.bot_difficulty, reason="grace_over")
+        else:
+            self._free(seat, "grace_over")
+
+    def _free(self, seat: Seat, reason: str) -> None:
+        seat.kind, seat.name, seat.token, seat.ready = "empty", "", None, False
+        self.sim.set_hip(seat.index, None)
+        self.event("seat", seat=seat.index, kind="empty", reason=reason)
+        self.broadcast_state()
+        if not self.humans() and not self._bot_seats() and self.match.state in (
+            "countdown", "playing"
+        ):
+            self._abort("everyone left")
+        self._maybe_start()
+
+    def _bot_seats(self) -> list[Seat]:
+        return [s for s in self.seats if s.kind == "bot"]
+
+    def add_bot(self, index: int | None, difficulty: float, reason: str = "added") -> int:
+        if not self.settings.bots_allowed:
+            raise ProtocolError("not_allowed", f"room {self.id} does not allow bots")
+        if index is None:
+            free = [s.index for s in self.seats if s.kind == "empty"]
+            if not free:
+                raise ProtocolError("room_full", f"room {self.id} has no free seat")
+            index = free[0]
+        seat = self.seats[index]
+        if seat.kind != "empty" and not (reason == "grace_over" and seat.conn is None):
+            raise ProtocolError("bad_seat", f"seat {index} is taken ({seat.kind})")
+        seat.kind, seat.name, seat.ready = "bot", f"bot-{index}", True
+        seat.difficulty = difficulty
+        seat.token = secrets.token_urlsafe(24)
+        self.event("seat", seat=index, kind="bot", name=seat.name, reason=reason)
+        self.broadcast_state()
+        self.host.spawn_bot(self, index, seat.token, difficulty)
+        self._maybe_start()
+        return index
+
+    def remove_bot(self, index: int) -> None:
+        seat = self.seats[index]
+        if seat.kind != "bot":
+            raise ProtocolError("bad_seat", f"seat {index} holds no bot")
+        conn = seat.conn
+        self._detach(seat)
+        self._free(seat, "bot_removed")
+        if conn is not None:
+            conn.kicked("bot removed")
+
+    # --- control --------------------------------------------------------------------------
+    def may_control(self, conn: Conn) -> bool:
+        if self.owner is not None:
+            return conn.id == self.owner
+        return conn.seat is not None
+
+    def set_ready(self, conn: Conn, ready: bool) -> None:
+        if conn.seat is None:
+            raise ProtocolError("not_allowed", "only a seated player can be ready")
+        self.seats[conn.seat].ready = ready
+        self.broadcast_state()
+        self._maybe_start()
+
+    def request_start(self, conn: Conn) -> None:
+        if not self.may_control(conn):
+            raise ProtocolError("not_allowed", "only the room's host can start the match")
+        self._start_match()
+
+    def _maybe_start(self) -> None:
+        if self._closed or self.match.state not in ("waiting", "over"):
+            return
+        if self._task is not None and not self._task.done():
+            return
+        humans = self.humans()
+        if humans:
+            if all(s.ready for s in humans) and all(s.conn is not None for s in humans):
+                self._start_match()
+        elif self._bot_seats() and self.settings.autoplay:
+            delay = self.settings.restart_delay if self.match.state == "over" else 0.0
+            self._task = asyncio.create_task(self._delayed_start(delay))
+
+    async def _delayed_start(self, delay: float) -> None:
+        await asyncio.sleep(delay)
+        self._task = None
+        if not self.humans() and self._bot_seats() and self.match.state in ("waiting", "over"):
+            self._start_match()
+
+    def _start_match(self) -> None:
+        try:
+            self.match.start(self.seated())
+        except IllegalMove as e:
+            raise ProtocolError("illegal_move", str(e)) from None
+        for s in self.seats:
+            if s.kind == "human":
+                s.ready = False
+        self.event("match_start", first_to=self.match.first_to, seats=self.seated())
+        self.broadcast_state()
+        self._run(self._countdown())
+
+    def _run(self, coro: Any) -> None:
+        if self._task is not None and not self._task.done():
+            self._task.cancel()
+        self._task = asyncio.create_task(coro)
+
+    async def _countdown(self) -> None:
+        remaining = self.settings.countdown
+        while remaining > 0:
+            self.event("countdown", seconds=math.ceil(remaining - 1e-9))
+            step = min(1.0, remaining)
+            await asyncio.sleep(step)
+            remaining -= step
+        if self.match.state != "countdown":
+            return
+        pos, vel = self._reset_ball()
+        rnd = self.match.begin_round()
+        self.sim.command("reset_ball", (pos, vel))
+        self._recording = RoundRecord(
+            id=new_round_id(), round=rnd, started_at=time.time(),
+            players=[s.info() for s in self.seats],
+        )
+        self.sim.command("record_start", self._recording.id)
+        self.event("round_start", round=rnd, ball=pos.tolist(), ball_velocity=vel.tolist())
+        self.sim.command("arm")
+        self.broadcast_state()
+
+    def _reset_ball(self) -> tuple[np.ndarray, np.ndarray]:
+        """The scene's start position with a small random horizontal offset."""
+        start = np.array(self.scene["ball"]["position"], dtype=np.float64)
+        v0 = np.array(self.scene["ball"]["velocity"], dtype=np.float64)
+        angle = self.rng.uniform(0.0, 2.0 * math.pi)
+        r = self.settings.reset_offset * math.sqrt(self.rng.uniform(0.0, 1.0))
+        pos = start + np.array([r * math.cos(angle), 0.0, r * math.sin(angle)])
+        angle = self.rng.uniform(0.0, 2.0 * math.pi)
+        s = self.settings.reset_speed
+        vel = v0 + np.array([s * math.cos(angle), 0.0, s * math.sin(angle)])
+        return pos, vel
+
+    def _abort(self, why: str) -> None:
+        self.match.abort()
+        self.sim.command("disarm")
+        if self._task is not None:
+            self._task.cancel()
+            self._task = None
+        if self._recording is not None:
+            self.sim.command("record_stop", (self._recording.id, lambda records: None))
+            self._recording = None
+        self.event("match_abort", reason=why)
+        self.broadcast_state()
+
+    # --- frames from the simulation -------------------------------------------------------
+    def _on_frame(self, result: FrameResult) -> None:
+        if self._closed:
+            return
+        if result.corners:
+            self.frame, self.server_time = result.frame, result.server_time
+            for s in self.seats:
+                if s.conn is not None:
+                    s.conn.offer_corner(result.corners[s.index], result.server_time)
+        if result.mesh is not None:
+            for c in self.conns():
+                c.offer_mesh(result.mesh)
+        if result.sim_error is not None:
+            self.event("sim_reset", reason=result.sim_error)
+        if result.exit is not None:
+            self._on_exit(*result.exit)
+
+    def on_hip(self, conn: Conn, hip: P.Hip) -> None:
+        seat = conn.seat
+        if seat is None or self.seats[seat].conn is not conn:
+            raise ProtocolError("not_allowed", "HIP messages are for seated players only")
+        h = np.array(hip.position, dtype=np.float64)
+        lo = self.anchors[seat] - self.half_extent - 1e-6
+        hi = self.anchors[seat] + self.half_extent + 1e-6
+        if np.any(h < lo) or np.any(h > hi):
+            raise ProtocolError(
+                "out_of_range",
+                f"HIP {h.round(4).tolist()} is outside seat {seat}'s reach box "
+                f"{self.anchors[seat].round(4).tolist()} +/- {self.half_extent[0]:.3g} m",
+            )
+        self.sim.set_hip(seat, h, hip.seq, hip.time)
+
+    def _on_exit(self, edge: int, frame: int, ball: list[float]) -> None:
+        if self.match.state != "playing":
+            return
+        self.last_exit = (edge, frame, ball)
+        result = self.match.concede(edge, self.seated())
+        self.event(
+            "score", round=result.round, edge=edge, edge_name=EDGE_NAMES[edge],
+            conceded_by=result.conceded_by, scorers=list(result.scorers),
+            scores=list(result.scores), ball=ball,
+        )
+        if result.match_over:
+            self.event("match_end", winners=list(result.winners), scores=list(result.scores))
+        rec = self._recording
+        self._recording = None
+        if rec is not None:
+            header = self._round_header(rec, edge, result.conceded_by, list(result.scores),
+                                        list(result.scorers))
+            asyncio.create_task(self._finish_recording(header))
+        self.broadcast_state()
+        if result.match_over:
+            self._task = None
+            self._maybe_start()
+        else:
+            self._run(self._countdown())
+
+    def _round_header(self, rec: RoundRecord, edge: int, conceded_by: int | None,
+                      scores: list[int], scorers: list[int]) -> dict[str, Any]:
+        ended = time.time()
+        return {
+            "format": "clothball-replay",
+            "replay_version": REPLAY_VERSION,
+            "protocol_version": P.PROTOCOL_VERSION,
+            "id": rec.id,
+            "room_id": self.id,
+            "room_name": self.name,
+            "scene": self.scene.name,
+            "scene_data": self.scene.to_dict(),
+            "geometry": self.geometry(),
+            "round": rec.round,
+            "players": rec.players,
+            "conceded_edge": edge,
+            "conceded_by": conceded_by,
+            "scorers": scorers,
+            "scores": scores,
+            "first_to": self.match.first_to,
+            "started_at": rec.started_at,
+            "ended_at": ended,
+            "duration_s": ended - rec.started_at,
+            "track_hz": self.track_hz,
+            "tail_s": RECORD_TAIL,
+        }
+
+    async def _finish_recording(self, header: dict[str, Any]) -> None:
+        await asyncio.sleep(RECORD_TAIL)
+        fut: asyncio.Future[list[tuple[int, bytes]]] = self.loop.create_future()
+
+        def got(records: list[tuple[int, bytes]]) -> None:
+            def settle() -> None:
+                if not fut.done():
+                    fut.set_result(records)
+
+            try:
+                self.loop.call_soon_threadsafe(settle)
+            except RuntimeError:  # loop closed
+                pass
+
+        self.sim.command("record_stop", (header["id"], got))
+        try:
+            records = await asyncio.wait_for(fut, timeout=5.0)
+        except TimeoutError:
+            log.warning("room %s: round %s not saved (simulation stopped)", self.id, header["id"])
+            return
+        self.host.save_round(header, records)

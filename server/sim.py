@@ -1,0 +1,294 @@
+"""A room's simulation thread: simulated time locked to wall time, in 1 ms frames.
+
+The thread owns the ``Cloth`` (which is not thread-safe) and keeps its pace whatever the
+event loop or the network does: it sleeps until the next frame is due, applies the latest
+hand positions (latest wins), steps every frame that is due (catching up at most
+``max_catchup`` frames after a hiccup; older time is dropped and counted), reads back the
+four corners and the ball, checks whether the ball has left the cloth, and hands the result
+to the event loop *coalesced*: at most one delivery is pending at a time and it carries the
+newest frame, so a busy loop never builds a queue. Every ``1/mesh_hz`` s it quantises the
+mesh into a MESH message (once for all spectators), and while a round is recorded it keeps
+the MESH messages and a TRACK message every ``1/track_hz`` s.
+
+The event loop talks to the thread only through ``set_hip`` (an atomic slot per seat) and
+``command`` (a queue the thread drains between frames).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..game.cloth import Cloth, SimulationError, corners_of, rest_positions
+from ..game.rules import exit_edge
+from ..game.scene import Scene
+from . import protocol as P
+
+log = logging.getLogger("clothball.server")
+
+
+@dataclass
+class FrameResult:
+    """The state after the newest frame, as the event loop receives it."""
+
+    frame: int
+    server_time: float
+    corners: list[bytes]  # one CORNER message per seat
+    mesh: bytes | None = None  # newest MESH message, when one was made since the last delivery
+    exit: tuple[int, int, list[float]] | None = None  # (edge, frame, ball position)
+    sim_error: str | None = None
+
+
+@dataclass
+class SimStats:
+    frames: int = 0
+    steps: int = 0  # step calls (a call covers one frame, more when catching up)
+    skipped_frames: int = 0  # frames dropped because the loop fell further behind than allowed
+    lateness: list[float] = field(default_factory=list)  # s, newest samples (bounded)
+    meshes: int = 0
+
+
+def set_cpu_threads(n: int) -> bool:
+    """Limit the CPU backend's OpenMP threads *for the calling thread* (its own ICV).
+
+    A room steps on one thread by default: on a small machine a second OpenMP thread
+    competes with the event loop for the cores, and OpenMP's spinning barriers then cost
+    whole scheduler slices. (Needs an API in the native module; until then libgomp is
+    asked directly, and nothing happens where it is not the OpenMP runtime in use.)
+    """
+    try:
+        import ctypes
+
+        ctypes.CDLL("libgomp.so.1").omp_set_num_threads(int(n))
+        return True
+    except (OSError, AttributeError):
+        return False
+
+
+class RoomSim:
+    """The simulation of one room, run on its own thread (see the module doc)."""
+
+    LATENESS_SAMPLES = 200_000
+
+    def __init__(self, scene: Scene, backend: str = "auto", *,
+                 deliver: Callable[[FrameResult], None] | None = None,
+                 loop: asyncio.AbstractEventLoop | None = None,
+                 mesh_hz: float = 30.0, track_hz: float = 100.0, max_catchup: int = 50,
+                 compress_mesh: bool = True, clock: Callable[[], float] = time.perf_counter,
+                 epoch: float | None = None, cpu_threads: int | None = 1) -> None:
+        self.scene = scene
+        self.cpu_threads = cpu_threads
+        self.cloth = Cloth(scene, backend=backend)
+        self.frame_dt = self.cloth.frame_dt
+        rest = rest_positions(scene)
+        self.anchors = corners_of(rest)
+        self.size = float(scene["cloth"]["size"])
+        self.floor_y = float(scene["cloth"]["height"]) - 1.5 * self.size
+        self.has_ball = "ball" in scene.effects
+        self.ball_radius = float(scene["ball"]["radius"]) if self.has_ball else 0.0
+        coupled = "coupling" in scene.effects
+        self.stiffness = float(scene["coupling"]["stiffness"]) if coupled else 0.0
+        self.mesh_every = max(1, round(1.0 / (mesh_hz * self.frame_dt)))
+        self.track_every = max(1, round(1.0 / (track_hz * self.frame_dt)))
+        self.max_catchup = max_catchup
+        self.compress_mesh = compress_mesh
+        self.clock = clock
+        self.epoch = clock() if epoch is None else epoch  # server time zero
+        self._deliver = deliver
+        self._loop = loop
+        self._hip_slots: list[tuple[np.ndarray, int, float] | None] = [None] * 4
+        self._commands: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._pending_lock = threading.Lock()
+        self._pending: FrameResult | None = None
+        self._armed = False
+        self._recordings: dict[str, list[tuple[int, bytes]]] = {}
+        self.stats = SimStats()
+        self._applied: list[tuple[int, float]] = [(0, math.nan)] * 4
+
+    # --- event-loop side ------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="clothball-room-sim", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+
+    def now(self) -> float:
+        """Server time: seconds since the server started."""
+        return self.clock() - self.epoch
+
+    def set_hip(self, seat: int, position: np.ndarray | None, seq: int = 0,
+                client_time: float = math.nan) -> None:
+        """The latest hand position for a seat (None: the corner rests at its anchor)."""
+        self._hip_slots[seat] = None if position is None else (position, seq, client_time)
+
+    def command(self, name: str, arg: Any = None) -> None:
+        """Queue a command for the thread: ``reset_ball`` ((pos, vel)), ``arm``, ``disarm``,
+        ``record_start`` (an id), ``record_event`` (bytes, to every recording in progress),
+        ``record_stop`` ((id, callback): the callback gets that recording's records, on the
+        thread). Recordings may overlap (a round's tail and the next round's start)."""
+        self._commands.put((name, arg))
+
+    # --- thread side ----------------------------------------------------------------------
+    def _run(self) -> None:
+        if self.cpu_threads:
+            set_cpu_threads(self.cpu_threads)
+        try:
+            self._loop_body()
+        except Exception:  # pragma: no cover - logged, the room reports the sim as stopped
+            log.exception("room simulation thread failed")
+
+    def _loop_body(self) -> None:
+        cloth, dt = self.cloth, self.frame_dt
+        t0 = self.clock()
+        done = 0  # frames simulated since t0
+        next_mesh = 0
+        next_track = 0
+        stats = self.stats
+        while not self._stop.is_set():
+            now = self.clock()
+            due = int((now - t0) / dt)
+            behind = due - done
+            if behind <= 0:
+                wait = t0 + (done + 1) * dt - now
+                if wait > 0.0002:
+                    time.sleep(wait - 0.0001)
+                continue
+            if behind > self.max_catchup:
+                skip = behind - self.max_catchup
+                t0 += skip * dt
+                stats.skipped_frames += skip
+                behind = self.max_catchup
+            self._drain_commands()
+            hips = self.anchors.copy()
+            for s, slot in enumerate(self._hip_slots):
+                if slot is not None:
+                    hips[s] = slot[0]
+                    self._applied[s] = (slot[1], slot[2])
+            cloth.set_hips(hips)
+            sim_error = None
+            try:
+                cloth.step(behind)
+            except SimulationError as e:
+                sim_error = str(e)
+                log.warning("room simulation reset: %s", e)
+                self.cloth = cloth = Cloth(self.scene, backend=cloth.backend)
+                cloth.set_hips(hips)
+            done += behind
+            frame = cloth.frame
+            stats.frames += behind
+            stats.steps += 1
+            pos, vel = cloth.corners()
+            force = cloth.corner_forces()
+            if self.has_ball:
+                bp, bv = cloth.ball()
+            else:
+                bp, bv = np.zeros(3), np.zeros(3)
+            t_end = self.clock()
+            server_time = t_end - self.epoch
+            lat = stats.lateness
+            lat.append(t_end - (t0 + done * dt))
+            if len(lat) > self.LATENESS_SAMPLES:
+                del lat[: len(lat) // 2]
+            corners = [
+                P.encode_corner(frame, s, pos[s], vel[s], force[s], self.stiffness, bp, bv,
+                                self._applied[s][0], self._applied[s][1], server_time)
+                for s in range(4)
+            ]
+            result = FrameResult(frame, server_time, corners, sim_error=sim_error)
+            if self.has_ball:
+                if self._armed:
+                    edge = exit_edge(bp, pos, self.floor_y)
+                    if edge is not None:
+                        self._armed = False
+                        result.exit = (edge, frame, [float(v) for v in bp])
+                elif bp[1] < self.floor_y - 50.0 * self.size:
+                    # Nobody is playing and the ball fell off: put it back, keep it bounded.
+                    sp = self.scene["ball"]["position"]
+                    cloth.set_ball(sp, (0.0, 0.0, 0.0))
+            self._publish(result)
+            # The mesh and the track after the per-frame work: they only delay the next frame.
+            if done >= next_mesh:
+                next_mesh = done + self.mesh_every
+                mesh = P.encode_mesh(frame, server_time, cloth.positions(), bp,
+                                     self.ball_radius, hips, compress=self.compress_mesh)
+                stats.meshes += 1
+                for rec in self._recordings.values():
+                    rec.append((1, mesh))
+                self._publish_mesh(mesh)
+            if self._recordings and done >= next_track:
+                next_track = done + self.track_every
+                track = P.encode_track(frame, server_time, bp, bv, hips, pos)
+                for rec in self._recordings.values():
+                    rec.append((1, track))
+
+    def _drain_commands(self) -> None:
+        while True:
+            try:
+                name, arg = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            if name == "reset_ball" and self.has_ball:
+                self.cloth.set_ball(arg[0], arg[1])
+            elif name == "arm":
+                self._armed = True
+            elif name == "disarm":
+                self._armed = False
+            elif name == "record_start":
+                self._recordings[arg] = []
+            elif name == "record_event":
+                for rec in self._recordings.values():
+                    rec.append((0, arg))
+            elif name == "record_stop":
+                rid, callback = arg
+                callback(self._recordings.pop(rid, []))
+
+    def _publish(self, result: FrameResult) -> None:
+        with self._pending_lock:
+            prev = self._pending
+            self._pending = result
+            if prev is not None:
+                # Coalesce: keep the newest frame, but never lose a mesh, an exit or an error.
+                if result.mesh is None:
+                    result.mesh = prev.mesh
+                if result.exit is None:
+                    result.exit = prev.exit
+                if result.sim_error is None:
+                    result.sim_error = prev.sim_error
+                return
+        self._schedule()
+
+    def _publish_mesh(self, mesh: bytes) -> None:
+        with self._pending_lock:
+            if self._pending is not None:
+                self._pending.mesh = mesh
+                return
+            self._pending = FrameResult(-1, 0.0, [], mesh=mesh)
+        self._schedule()
+
+    def _schedule(self) -> None:
+        if self._loop is None or self._deliver is None:
+            return
+        try:
+            self._loop.call_soon_threadsafe(self._hand_over)
+        except RuntimeError:  # the loop is closed: the server is stopping
+            self._stop.set()
+
+    def _hand_over(self) -> None:
+        with self._pending_lock:
+            result, self._pending = self._pending, None
+        if result is not None and self._deliver is not None:
+            self._deliver(result)
