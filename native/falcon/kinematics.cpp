@@ -96,7 +96,20 @@ bool Kinematics::forward(const Vec3& target, const Vec3& guess, Vec3& p, int max
       return true;
     }
     for (int k = 0; k < 3; ++k) J[k] = Jm[k][0] * r[0] + Jm[k][1] * r[1] + Jm[k][2] * r[2];
-    for (int k = 0; k < 3; ++k) p[k] += J[k];
+    // Newton step; near the edge of the workspace a full step can leave it, so halve the
+    // step until every leg can reach the trial point.
+    double lam = 1.0;
+    Vec3 trial, th_trial;
+    bool ok = false;
+    for (int h = 0; h < 10 && !ok; ++h, lam *= 0.5) {
+      for (int k = 0; k < 3; ++k) trial[k] = p[k] + lam * J[k];
+      ok = inverse(trial, th_trial);
+    }
+    if (!ok) {
+      if (iterations) *iterations = it + 1;
+      return false;
+    }
+    p = trial;
   }
   Vec3 th;
   if (iterations) *iterations = max_iter;
