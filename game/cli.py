@@ -28,10 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(_module=module)
         try:
             importlib.import_module(module).configure(p)
-        except ModuleNotFoundError as e:
-            if e.name != module:
-                raise
-            p.set_defaults(_missing=str(e))
+        except Exception as e:  # noqa: BLE001 - one broken command must not break the others
+            p.set_defaults(_missing=f"{type(e).__name__}: {e}")
     return parser
 
 
@@ -41,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s"
     )
     if getattr(args, "_missing", None):
-        print(f"clothball {args.command}: not available in this build", file=sys.stderr)
+        print(f"clothball {args.command}: not available ({args._missing})", file=sys.stderr)
         return 2
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
