@@ -193,8 +193,8 @@ class GameServer:
     def _error(self, status: int, message: str) -> Response:
         return self._json({"error": message, "status": status}, status)
 
-    def _process_request(self, connection: ServerConnection, request: Request
-                         ) -> Response | None:
+    async def _process_request(self, connection: ServerConnection, request: Request
+                               ) -> Response | None:
         url = urllib.parse.urlsplit(request.path)
         path = url.path
         if path == "/ws":
@@ -202,7 +202,12 @@ class GameServer:
                 return self._error(503, "server full")
             return None
         try:
-            return self._route(path, urllib.parse.parse_qs(url.query))
+            if path == "/api/rooms":  # live state: read on the loop that changes it
+                return self._json({"rooms": self.lobby.listing()})
+            if path == "/api/stats":
+                return self._json(self.stats_snapshot())
+            # Files and the index are read on a worker thread: the room loops go on.
+            return await asyncio.to_thread(self._route, path, urllib.parse.parse_qs(url.query))
         except Exception:  # pragma: no cover - never take the server down on a request
             log.exception("HTTP %s failed", path)
             return self._error(500, "internal error")
@@ -215,10 +220,6 @@ class GameServer:
             return self._response(200, PLACEHOLDER_PAGE.encode(), "text/html; charset=utf-8")
         if path == "/healthz":
             return self._response(200, b"ok\n", "text/plain; charset=utf-8")
-        if path == "/api/rooms":
-            return self._json({"rooms": self.lobby.listing()})
-        if path == "/api/stats":
-            return self._json(self.stats_snapshot())
         if path == "/api/replays":
             try:
                 limit = min(1000, max(1, int(query.get("limit", ["100"])[0])))

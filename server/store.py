@@ -229,10 +229,9 @@ class ReplayStore:
         return None if r is None else self._row(r)
 
     def path_of(self, rid: str) -> Path | None:
-        row = self.get(rid)
-        if row is None:
+        if self.get(rid) is None:
             return None
-        path = self.replays / row["file"]
+        path = self.replays / f"{rid}.cbr"
         return path if path.is_file() else None
 
     @staticmethod
