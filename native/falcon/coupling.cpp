@@ -30,7 +30,7 @@ CouplingOutput Coupling::compute(double now, const Vec3& h, const Vec3& hdot, do
   out.gain = g;
 
   Vec3 Fc{0, 0, 0};
-  double U = 0, P_in = 0;
+  double U = 0, P_hand = 0;
   if (valid) {
     const double te = std::min(age, cfg_.max_extrapolation);
     for (int i = 0; i < 3; ++i) {
@@ -42,14 +42,14 @@ CouplingOutput Coupling::compute(double now, const Vec3& h, const Vec3& hdot, do
       Fc[i] = -K * x - B * xd;
       if (!std::isfinite(Fc[i])) Fc[i] = 0;
       U += 0.5 * K * x * x;
-      P_in += -Fc[i] * xd;
+      P_hand += Fc[i] * hdot[i];
     }
   }
 
   // Passivity observer over the window, then the controller.
   double alpha = 0;
   if (have_prev_ && dt > 0) {
-    const double e = (U - prev_U_) - P_in * dt;
+    const double e = (U - prev_U_) + P_hand * dt;
     if (e > 0) total_generated_ += e;
     window_.emplace_back(now, e);
     window_sum_ += e;

@@ -5,13 +5,17 @@
 //
 // g fades linearly-in-time (through a smoothstep) to 0 over fade_out once the sample is
 // older than stale_after, and back to 1 over fade_in once fresh samples arrive, so the
-// spring never snaps. alpha is the time-domain passivity controller: an observer sums,
-// over a short window, the energy the coupling generated,
-//   e_k = (U_k - U_{k-1}) - P_in,k dt,  U = 1/2 sum_i K_i g x_i^2,  P_in = -F_c . (h_dot - c_dot)
-// (zero for an ideal spring, negative for a damper, positive when delay, extrapolation
-// error or a rising gain create energy). When the window total is positive, alpha damps
-// the hand just enough to dissipate it this tick (bounded), and the dissipation is credited
-// back to the window.
+// spring never snaps. alpha is the time-domain passivity controller. Seen from the hand,
+// the coupling and everything behind it (network, server, cloth) should be passive: it may
+// give back only energy the hand put in. The observer sums over a short window
+//   e_k = (U_k - U_{k-1}) + F_c . h_dot dt,   U = 1/2 sum_i g K_i x_i^2,  x = h - c_ext
+// (energy that appeared in the spring or went out to the hand without the hand doing the
+// work: zero for an ideal spring to a still corner, negative for a damper, positive when
+// the delayed corner, extrapolation error or a rising gain pump energy in). When the window
+// total is positive, alpha damps the hand just enough to dissipate it this tick (bounded),
+// and the dissipation is credited back to the window. Energy the cloth really puts in (a
+// ball tugging the corner) is damped as well: the price of an observer that sees only the
+// local side (the protocol carries no energy budget), bounded by max_passivity_damping.
 #pragma once
 #include <deque>
 #include <utility>
