@@ -57,18 +57,22 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
                                                      Ball<R>* __restrict__ ball_out,
                                                      BallAcc<R>* acc, R dt) {
   const int n = p.n;
-  const int q = blockIdx.x * blockDim.x + threadIdx.x;
   V3<R> contact{R(0), R(0), R(0)};
   V3<R> ball_p{R(0), R(0), R(0)};
   if constexpr ((E & BALL) != 0) ball_p = ball_in->p;
-  if (q < n * n) {
+  // Grid-stride loop over a grid sized to the machine, not to the cloth: a large cloth then
+  // needs one ball-sum atomic per resident block rather than one per 256 nodes.
+  const int first = blockIdx.x * blockDim.x + threadIdx.x;
+  for (int q = first; q < n * n; q += gridDim.x * blockDim.x) {
     const int i = q / n, j = q - i * n;
-    V3<R> x = in.pos.get(q), v = in.vel.get(q);
-    V3<R> f = node_force<R, E>(p, in.pos, x, v, i, j, hips, ball_p, contact);
+    V3<R> x = in.pos.get(q), v = in.vel.get(q), c{R(0), R(0), R(0)};
+    V3<R> f = node_force<R, E>(p, in.pos, x, v, i, j, hips, ball_p, c);
+    contact += c;
     euler_update(x, v, f, p.inv_mass, dt);
     out.pos.set(q, x);
     out.vel.set(q, v);
   }
+  const int q = first;
   if constexpr ((E & BALL) == 0) {
     if (q == 0) *ball_out = *ball_in;  // no ball in this scene: carry its state unchanged
   }
@@ -120,6 +124,11 @@ __global__ void gather_corners(int n, DevBuf<R> s, const Ball<R>* ball, R* out) 
 }
 
 template <class R>
+__global__ void load_hips(const V3<R>* host_hips, V3<R>* dev_hips) {
+  if (threadIdx.x < 4) dev_hips[threadIdx.x] = host_hips[threadIdx.x];
+}
+
+template <class R>
 __global__ void normals_kernel(int n, Planes<R> pos, R* out) {
   const int q = blockIdx.x * blockDim.x + threadIdx.x;
   if (q >= n * n) return;
@@ -161,9 +170,15 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaMemset(acc_, 0, sizeof(BallAcc<R>)));
     CB_CUDA(cudaMalloc(&hips_dev_, sizeof(V3<R>) * 4));
     CB_CUDA(cudaMemset(hips_dev_, 0, sizeof(V3<R>) * 4));
-    CB_CUDA(cudaMalloc(&readback_dev_, sizeof(R) * kReadback));
-    CB_CUDA(cudaMallocHost(&hips_host_, sizeof(V3<R>) * 4));
-    CB_CUDA(cudaMallocHost(&readback_host_, sizeof(R) * kReadback));
+    // Mapped pinned memory: kernels read the hands and write the per-frame read-back
+    // directly, with no copy nodes in the frame's graph.
+    CB_CUDA(cudaHostAlloc(&hips_host_, sizeof(V3<R>) * 4, cudaHostAllocMapped));
+    CB_CUDA(cudaHostAlloc(&readback_host_, sizeof(R) * kReadback, cudaHostAllocMapped));
+    CB_CUDA(cudaHostGetDevicePointer(&hips_mapped_, hips_host_, 0));
+    CB_CUDA(cudaHostGetDevicePointer(&readback_mapped_, readback_host_, 0));
+    int sms = 0;
+    CB_CUDA(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, 0));
+    max_blocks_ = sms * 8;
     for (int k = 0; k < 4; ++k) hips_host_[k] = {R(0), R(0), R(0)};
     for (int k = 0; k < kReadback; ++k) readback_host_[k] = R(0);
     configure(c);
@@ -172,7 +187,7 @@ class CudaCloth final : public Backend {
   ~CudaCloth() override {
     drop_graphs();
     cudaFree(state_); cudaFree(ball_); cudaFree(acc_); cudaFree(hips_dev_);
-    cudaFree(readback_dev_); cudaFreeHost(hips_host_); cudaFreeHost(readback_host_);
+    cudaFreeHost(hips_host_); cudaFreeHost(readback_host_);
     cudaStreamDestroy(stream_);
   }
 
@@ -184,7 +199,7 @@ class CudaCloth final : public Backend {
   }
 
   void set_hips(const double* h) override {
-    // Pinned host memory: the graph's first node copies it at every launch.
+    // Mapped pinned memory: the graph's first kernel reads it at every launch.
     for (int k = 0; k < 4; ++k) hips_host_[k] = {R(h[3 * k]), R(h[3 * k + 1]), R(h[3 * k + 2])};
   }
 
@@ -246,17 +261,15 @@ class CudaCloth final : public Backend {
   cudaGraphExec_t capture(int start, int substeps, R dt) {
     cudaGraph_t graph;
     CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
-    CB_CUDA(cudaMemcpyAsync(hips_dev_, hips_host_, sizeof(V3<R>) * 4, cudaMemcpyHostToDevice, stream_));
+    load_hips<R><<<1, 32, 0, stream_>>>(hips_mapped_, hips_dev_);
     int b = start;
-    const unsigned blocks = unsigned((N_ + kBlock - 1) / kBlock);
+    const unsigned blocks = unsigned(std::min((N_ + kBlock - 1) / kBlock, max_blocks_));
     for (int s = 0; s < substeps; ++s) {
       kernel_<<<blocks, kBlock, 0, stream_>>>(p_, dev(b), dev(1 - b), hips_dev_, ball_ + b,
                                              ball_ + (1 - b), acc_, dt);
       b = 1 - b;
     }
-    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(b), ball_ + b, readback_dev_);
-    CB_CUDA(cudaMemcpyAsync(readback_host_, readback_dev_, sizeof(R) * kReadback,
-                            cudaMemcpyDeviceToHost, stream_));
+    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(b), ball_ + b, readback_mapped_);
     CB_CUDA(cudaStreamEndCapture(stream_, &graph));
     cudaGraphExec_t exec;
     CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
@@ -271,10 +284,8 @@ class CudaCloth final : public Backend {
   }
 
   void refresh_readback() {
-    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(cur_), ball_ + cur_, readback_dev_);
+    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(cur_), ball_ + cur_, readback_mapped_);
     CB_CUDA(cudaGetLastError());
-    CB_CUDA(cudaMemcpyAsync(readback_host_, readback_dev_, sizeof(R) * kReadback,
-                            cudaMemcpyDeviceToHost, stream_));
     CB_CUDA(cudaStreamSynchronize(stream_));
   }
 
@@ -294,8 +305,10 @@ class CudaCloth final : public Backend {
   BallAcc<R>* acc_ = nullptr;
   V3<R>* hips_dev_ = nullptr;
   V3<R>* hips_host_ = nullptr;
-  R* readback_dev_ = nullptr;
+  V3<R>* hips_mapped_ = nullptr;  // device view of hips_host_
   R* readback_host_ = nullptr;
+  R* readback_mapped_ = nullptr;  // device view of readback_host_
+  int max_blocks_ = 1;
   int cur_ = 0;
   using GraphKey = std::tuple<int, R, int>;
   std::map<GraphKey, cudaGraphExec_t> graphs_;
