@@ -243,3 +243,39 @@ class Scene:
 def available() -> list[str]:
     """Names of the scenes shipped in ``assets/scenes``."""
     return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
+def schema_markdown() -> str:
+    """docs/scenes.md, generated from SCHEMA so that the documentation stays true."""
+    lines = [
+        "# Scene files",
+        "",
+        "A scene is a TOML file in `assets/scenes/` (load it by name) or anywhere (by path).",
+        "Every key but `cloth.n` has a default, so a scene names only what it changes. Units are",
+        "SI. Unknown sections or keys, wrong types, NaN/Inf and out-of-range values are refused",
+        "with an error naming the key. A key that belongs to an effect the scene does not name in",
+        "`sim.effects` is refused too (it is almost always a mistake).",
+        "",
+        "Effects: " + ", ".join(f"`{e}`" for e in EFFECTS) + ".",
+        "",
+        "Regenerate this file with `clothball scenes --markdown > docs/scenes.md`.",
+        "",
+    ]
+    for section, keys in SCHEMA.items():
+        lines += [
+            f"## [{section}]",
+            "",
+            "| key | default | range / choices | effect | meaning |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for name, key in keys.items():
+            if key.choices:
+                rng = ", ".join(key.choices)
+            elif key.lo is not None:
+                rng = f"{'(' if key.lo_open else '['}{key.lo:g}, {key.hi:g}]"
+            else:
+                rng = ""
+            d = list(key.default) if isinstance(key.default, tuple) else key.default
+            lines.append(f"| `{name}` | `{d}` | {rng} | {key.effect or ''} | {key.doc} |")
+        lines.append("")
+    return "\n".join(lines)

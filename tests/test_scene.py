@@ -88,3 +88,13 @@ def test_bad_files(tmp_path) -> None:
     p.write_text("[cloth]\nn = 3\nsize = nan\n")
     with pytest.raises(SceneError, match="cloth.size"):
         Scene.load(p)
+
+
+def test_scene_reference_is_current() -> None:
+    """docs/scenes.md is generated from the schema; regenerate it when the schema changes."""
+    from pathlib import Path
+
+    from clothball.game.scene import schema_markdown
+
+    doc = Path(__file__).resolve().parent.parent / "docs" / "scenes.md"
+    assert doc.read_text().strip() == schema_markdown().strip()
