@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import pytest
+from clothball._native import falcon as f
 from hypothesis import given
 from hypothesis import strategies as st
-
-from clothball._native import falcon as f
 
 int16 = st.integers(-32768, 32767)
 

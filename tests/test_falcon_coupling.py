@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from clothball._native import falcon as f
 
 DT = 1e-3

@@ -6,7 +6,6 @@ import os
 from pathlib import Path
 
 import pytest
-
 from clothball._native import falcon as f
 from clothball.game.devices import falcon as F
 

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from clothball._native import falcon as f
 
 KIN = f.Kinematics()

@@ -253,7 +253,9 @@ class FalconDevice:
         """Loop statistics: rate (Hz), period mean/p50/p99/max (s), late ticks, misses."""
         return dict(self.driver.stats())
 
-    def hold(self, world_target: np.ndarray, stiffness: float = 300.0, damping: float = 5.0) -> None:
+    def hold(
+        self, world_target: np.ndarray, stiffness: float = 300.0, damping: float = 5.0
+    ) -> None:
         """Emulator only: a scripted user pulls the grip towards a world point."""
         if self.emulator is None or self.mapping is None:
             raise FalconError("hold() needs the emulator and a started device")

@@ -283,6 +283,8 @@ void bind(py::module_& m) {
       .def_property_readonly("running", &Driver::running)
       .def("set_corner", &Driver::set_corner, py::arg("position"), py::arg("velocity"),
            py::arg("stiffness"), py::arg("damping"), py::arg("age"))
+      .def("set_corner_at", &Driver::set_corner_at, py::arg("position"), py::arg("velocity"),
+           py::arg("stiffness"), py::arg("damping"), py::arg("received_at"))
       .def("clear_corner", &Driver::clear_corner)
       .def("set_config", &Driver::set_config)
       .def("config", &Driver::config)

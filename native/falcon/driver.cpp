@@ -48,17 +48,29 @@ double Driver::now() const { return double(mono_ns() - epoch_ns_) * 1e-9; }
 
 bool Driver::firmware_loaded() {
   if (running()) throw FalconError("stop the loop first");
-  return clothball_falcon::firmware_loaded(*transport_);
+  normal_mode_ = clothball_falcon::firmware_loaded(*transport_);
+  return normal_mode_;
 }
 
 int Driver::ensure_firmware(const std::string& path, const FirmwareOptions& opt) {
   if (running()) throw FalconError("stop the loop first");
-  if (clothball_falcon::firmware_loaded(*transport_)) return 0;
+  normal_mode_ = false;
+  if (clothball_falcon::firmware_loaded(*transport_)) {
+    normal_mode_ = true;
+    return 0;
+  }
   const auto image = read_firmware_file(path);
-  return load_firmware(*transport_, image, opt);
+  const int attempts = load_firmware(*transport_, image, opt);
+  normal_mode_ = true;
+  return attempts;
 }
 
 bool Driver::exchange(const HostCommand& cmd, DeviceReport& rep) {
+  if (!normal_mode_) {  // a device whose firmware already runs: set the line up once
+    enter_normal_mode(*transport_);
+    reader_.clear();
+    normal_mode_ = true;
+  }
   const Packet out = encode_command(cmd);
   transport_->write(out.data(), out.size());
   const long deadline = mono_ns() + long(cfg_.read_timeout_ms) * 1000000L;
@@ -109,13 +121,19 @@ void Driver::home(double timeout_s) {
 
 void Driver::set_corner(const Vec3& c, const Vec3& cdot, const Vec3& K, const Vec3& B,
                         double age) {
+  set_corner_at(c, cdot, K, B, now() - std::max(0.0, std::isfinite(age) ? age : 1e9));
+}
+
+void Driver::set_corner_at(const Vec3& c, const Vec3& cdot, const Vec3& K, const Vec3& B,
+                           double received_at) {
   CornerSample s;
   s.position = c;
   s.velocity = cdot;
   s.stiffness = K;
   s.damping = B;
-  s.received_at = now() - std::max(0.0, std::isfinite(age) ? age : 1e9);
+  s.received_at = received_at;
   s.valid = true;
+  if (!std::isfinite(received_at)) throw FalconError("corner receive time must be finite");
   for (int i = 0; i < 3; ++i)
     if (!std::isfinite(c[i]) || !std::isfinite(cdot[i]) || !std::isfinite(K[i]) ||
         !std::isfinite(B[i]))

@@ -65,6 +65,9 @@ class Driver {
 
   // Latest corner state, device frame; `age` = seconds since it was received.
   void set_corner(const Vec3& c, const Vec3& cdot, const Vec3& K, const Vec3& B, double age);
+  // The same with the receive time on the driver clock (scripted clocks in tests).
+  void set_corner_at(const Vec3& c, const Vec3& cdot, const Vec3& K, const Vec3& B,
+                     double received_at);
   void clear_corner();
   void set_config(const DriverConfig& cfg);
   DriverConfig config() const;
@@ -108,6 +111,7 @@ class Driver {
   double last_now_ = -1;
   std::array<int16_t, 3> motor_{0, 0, 0};
   int missed_ = 0;
+  bool normal_mode_ = false;
   long ticks_ = 0;
 
   // Statistics.
