@@ -66,7 +66,8 @@ class GameServer:
                  backend: str = "auto", host: str = "127.0.0.1", port: int = 8765,
                  bots: int = 0, room_settings: RoomSettings | None = None,
                  default_room: bool = True, web_dir: Path | None = None,
-                 bot_factory: Callable[..., Any] | None = None) -> None:
+                 bot_factory: Callable[..., Any] | None = None,
+                 hello_timeout: float = HELLO_TIMEOUT) -> None:
         if scenes is None:
             scenes = {"classic": Scene.load("classic")}
         self.scenes = scenes
@@ -86,6 +87,7 @@ class GameServer:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._saves: set[asyncio.Task[Any]] = set()
         self._bot_factory = bot_factory
+        self.hello_timeout = hello_timeout
         self.main_room: Room | None = None
         self.stats = {"messages_in": 0, "messages_out": 0, "bad_messages": 0, "rounds_saved": 0}
         self._cpu0 = time.process_time()
@@ -275,6 +277,7 @@ class GameServer:
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),
             **self.stats,
+            "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             "rooms": rooms,
         }
 
@@ -284,9 +287,9 @@ class GameServer:
         self.clients.add(conn)
         try:
             try:
-                first = await asyncio.wait_for(ws.recv(), HELLO_TIMEOUT)
+                first = await asyncio.wait_for(ws.recv(), self.hello_timeout)
             except TimeoutError:
-                conn.error("bad_message", f"no hello within {HELLO_TIMEOUT:g} s")
+                conn.error("bad_message", f"no hello within {self.hello_timeout:g} s")
                 await asyncio.sleep(0.05)
                 await ws.close(1008, "no hello")
                 return
@@ -446,7 +449,7 @@ class GameServer:
         room = self.lobby.get(msg.get("room"))
         code = P.field_str(msg, "code", None, max_len=64)
         if role == "player":
-            seat = P.field_int(msg, "seat", None, 0, 3)
+            seat = P.field_int(msg, "seat", None, -(2**31), 2**31)  # the room names bad seats
             return room.join_player(conn, seat, conn.name, code)
         if role == "spectator":
             return room.join_spectator(conn, code)

@@ -56,6 +56,7 @@ ERROR_CODES = (
     "bad_json",  # not JSON, not an object, or not UTF-8
     "bad_message",  # a field missing, of the wrong type, non-finite or out of range
     "bad_binary",  # a binary frame of the wrong size, type or content
+    "out_of_range",  # a HIP outside the seat's reach box
     "bad_version",  # protocol version not supported
     "unknown_type",  # no such message type
     "too_big",  # message larger than allowed

@@ -43,7 +43,8 @@ def test_player_moves_its_corner_and_the_cloth_follows(tmp_path) -> None:
             c = p.corner
             assert c.hip_seq > 0  # the server echoes the HIP it applied
             # the coupling force pulls the device towards the corner: F = -K (h - c)
-            assert np.allclose(c.force, -c.stiffness * (target - c.position), atol=1e-2 * c.stiffness)
+            expected = -c.stiffness * (target - c.position)
+            assert np.allclose(c.force, expected, atol=1e-2 * c.stiffness)
             assert p.latencies and all(lat > 0 for lat in p.latencies)
             # the spectator's mesh shows the raised corner (node (n-1, n-1) is corner 2)
             await until(lambda: spec.mesh is not None and spec.mesh.frame > c.frame - 40, 5)
