@@ -207,6 +207,9 @@ class GameServer:
             if path == "/api/rooms":  # live state: read on the loop that changes it
                 return self._json({"rooms": self.lobby.listing()})
             if path == "/api/stats":
+                if urllib.parse.parse_qs(url.query).get("reset") == ["1"]:
+                    for room in self.lobby.rooms.values():
+                        room.sim.stats.lateness.clear()
                 return self._json(self.stats_snapshot())
             # Files and the index are read on a worker thread: the room loops go on.
             return await asyncio.to_thread(self._route, path, urllib.parse.parse_qs(url.query))

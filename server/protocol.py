@@ -329,8 +329,10 @@ def quantise(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     hi = np.maximum(hi, lo)  # float32 rounding must not flip the box
     span = hi - lo
     scale = np.where(span > 0.0, QMAX / np.where(span > 0.0, span, 1.0), 0.0)
-    q = np.clip(np.rint((p - lo) * scale), 0, QMAX).astype("<u2")
-    return q, lo, hi
+    x = (p - lo) * scale
+    x += 0.5  # round half up: x >= 0 up to float32 rounding of lo, clipped below
+    np.clip(x, 0.0, QMAX, out=x)
+    return x.astype("<u2"), lo, hi
 
 
 def dequantise(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

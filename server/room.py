@@ -119,6 +119,8 @@ class Room:
         self.anchors = self.sim.anchors
         self.size = self.sim.size
         self.half_extent = np.full(3, REACH_FRACTION * self.size)
+        self._reach_lo = [tuple((a - self.half_extent - 1e-6).tolist()) for a in self.anchors]
+        self._reach_hi = [tuple((a + self.half_extent + 1e-6).tolist()) for a in self.anchors]
         self.created = time.time()
         self.last_active = self.loop.time()
         self._task: asyncio.Task[None] | None = None  # the countdown / restart in progress
@@ -490,16 +492,15 @@ class Room:
         seat = conn.seat
         if seat is None or self.seats[seat].conn is not conn:
             raise ProtocolError("not_allowed", "HIP messages are for seated players only")
-        h = np.array(hip.position, dtype=np.float64)
-        lo = self.anchors[seat] - self.half_extent - 1e-6
-        hi = self.anchors[seat] + self.half_extent + 1e-6
-        if np.any(h < lo) or np.any(h > hi):
+        x, y, z = hip.position
+        lo, hi = self._reach_lo[seat], self._reach_hi[seat]
+        if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
             raise ProtocolError(
                 "out_of_range",
-                f"HIP {h.round(4).tolist()} is outside seat {seat}'s reach box "
+                f"HIP {[round(v, 4) for v in hip.position]} is outside seat {seat}'s reach box "
                 f"{self.anchors[seat].round(4).tolist()} +/- {self.half_extent[0]:.3g} m",
             )
-        self.sim.set_hip(seat, h, hip.seq, hip.time)
+        self.sim.set_hip(seat, np.array(hip.position), hip.seq, hip.time)
 
     def _on_exit(self, edge: int, frame: int, ball: list[float]) -> None:
         if self.match.state != "playing":

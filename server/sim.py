@@ -109,6 +109,9 @@ class RoomSim:
         self._commands: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._encoder: threading.Thread | None = None
+        self._mesh_box: tuple[int, float, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._mesh_ready = threading.Event()
         self._pending_lock = threading.Lock()
         self._pending: FrameResult | None = None
         self._armed = False
@@ -120,11 +123,16 @@ class RoomSim:
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="clothball-room-sim", daemon=True)
         self._thread.start()
+        self._encoder = threading.Thread(target=self._encode_meshes, name="clothball-room-mesh",
+                                         daemon=True)
+        self._encoder.start()
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5.0)
+        self._mesh_ready.set()
+        for t in (self._thread, self._encoder):
+            if t is not None and t is not threading.current_thread():
+                t.join(timeout=5.0)
 
     def now(self) -> float:
         """Server time: seconds since the server started."""
@@ -203,8 +211,10 @@ class RoomSim:
             lat.append(t_end - (t0 + done * dt))
             if len(lat) > self.LATENESS_SAMPLES:
                 del lat[: len(lat) // 2]
+            pl, vl, fl = pos.tolist(), vel.tolist(), force.tolist()
+            bpl, bvl = bp.tolist(), bv.tolist()
             corners = [
-                P.encode_corner(frame, s, pos[s], vel[s], force[s], self.stiffness, bp, bv,
+                P.encode_corner(frame, s, pl[s], vl[s], fl[s], self.stiffness, bpl, bvl,
                                 self._applied[s][0], self._applied[s][1], server_time)
                 for s in range(4)
             ]
@@ -220,20 +230,33 @@ class RoomSim:
                     sp = self.scene["ball"]["position"]
                     cloth.set_ball(sp, (0.0, 0.0, 0.0))
             self._publish(result)
-            # The mesh and the track after the per-frame work: they only delay the next frame.
+            # The mesh and the track after the per-frame work. Quantising and compressing
+            # the mesh takes about a millisecond: the encoder thread does it, off the frame.
             if done >= next_mesh:
                 next_mesh = done + self.mesh_every
-                mesh = P.encode_mesh(frame, server_time, cloth.positions(), bp,
-                                     self.ball_radius, hips, compress=self.compress_mesh)
-                stats.meshes += 1
-                for rec in self._recordings.values():
-                    rec.append((1, mesh))
-                self._publish_mesh(mesh)
+                self._mesh_box = (frame, server_time, cloth.positions(), bp, hips.copy())
+                self._mesh_ready.set()
             if self._recordings and done >= next_track:
                 next_track = done + self.track_every
                 track = P.encode_track(frame, server_time, bp, bv, hips, pos)
                 for rec in self._recordings.values():
                     rec.append((1, track))
+
+    def _encode_meshes(self) -> None:
+        """The encoder thread: the newest mesh snapshot -> one MESH message."""
+        while not self._stop.is_set():
+            if not self._mesh_ready.wait(0.1):
+                continue
+            self._mesh_ready.clear()
+            box, self._mesh_box = self._mesh_box, None
+            if box is None:
+                continue
+            frame, server_time, positions, bp, hips = box
+            mesh = P.encode_mesh(frame, server_time, positions, bp, self.ball_radius, hips,
+                                 compress=self.compress_mesh)
+            self.stats.meshes += 1
+            self._commands.put(("record_mesh", mesh))
+            self._publish_mesh(mesh)
 
     def _drain_commands(self) -> None:
         while True:
@@ -249,6 +272,9 @@ class RoomSim:
                 self._armed = False
             elif name == "record_start":
                 self._recordings[arg] = []
+            elif name == "record_mesh":
+                for rec in self._recordings.values():
+                    rec.append((1, arg))
             elif name == "record_event":
                 for rec in self._recordings.values():
                     rec.append((0, arg))

@@ -1,0 +1,314 @@
+"""``clothball bench --server``: the game server under load, on loopback.
+
+Three processes so that each side's CPU is its own: the server (one room, CPU or CUDA
+backend, n = 64 by default), the players (4 clients sending HIP at 1 kHz and timing how
+long until a CORNER message echoes each HIP they sent), and the spectators (50 clients
+counting MESH messages). Reported: frame lateness p50/p99 (how long after its wall-clock
+deadline each frame's state was ready, from the server's own counters), HIP-to-corner
+latency p50/p99 (client clock, send -> receipt of the CORNER that applied it), messages per
+second in and out of the server, spectator mesh rates, and CPU use of each process.
+
+Run ``python -m clothball.server.loadbench --role server|spectators ...`` only through the
+bench; ``run(args)`` starts the others itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from typing import Any
+
+import numpy as np
+
+TARGET_LATENCY_P99_MS = 5.0
+TARGET_LATENESS_P99_MS = 5.0
+TARGET_MESH_HZ = 30.0
+
+
+def configure_server_flags(parser: argparse.ArgumentParser) -> None:
+    """Flags of ``clothball bench --server`` (``--json`` is the bench's own)."""
+    g = parser.add_argument_group("server bench (--server)")
+    g.add_argument("--seconds", type=float, default=30.0,
+                   help="measured duration of the server bench (default %(default)s)")
+    g.add_argument("--spectators", type=int, default=50,
+                   help="spectator clients (default %(default)s)")
+    g.add_argument("--players", type=int, default=4, choices=range(1, 5),
+                   help="player clients (default %(default)s)")
+    g.add_argument("--hip-rate", type=float, default=1000.0,
+                   help="HIP messages a second per player (default %(default)s)")
+    g.add_argument("--server-n", type=int, default=64,
+                   help="cloth nodes per side in the bench room (default %(default)s)")
+    g.add_argument("--server-backend", default="cpu", choices=("auto", "cpu", "cuda"),
+                   help="cloth backend of the bench room (default %(default)s)")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Stand-alone use (``python -m clothball.server.loadbench``)."""
+    configure_server_flags(parser)
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--role", choices=("bench", "server", "spectators"), default="bench",
+                        help=argparse.SUPPRESS)
+    parser.add_argument("--url", default="", help=argparse.SUPPRESS)
+
+
+# --- the server process ------------------------------------------------------------------------
+
+
+async def _serve(args: argparse.Namespace) -> None:
+    from ..game.scene import Scene
+    from .app import GameServer
+    from .room import RoomSettings
+
+    sys.setswitchinterval(0.0005)
+    scene = Scene.load("classic").with_changes({"cloth": {"n": args.server_n}})
+    scene.name = "bench"
+    with tempfile.TemporaryDirectory() as data:
+        srv = GameServer(data, scenes={"bench": scene}, backend=args.server_backend,
+                         host="127.0.0.1", port=0,
+                         room_settings=RoomSettings(first_to=99, bots_allowed=False))
+        await srv.start()
+        room = srv.main_room
+        assert room is not None
+        print(json.dumps({"port": srv.port, "room": room.id,
+                          "backend": room.sim.cloth.backend,
+                          "substeps": room.sim.cloth.substeps}), flush=True)
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        loop.add_signal_handler(signal.SIGTERM, stop.set)
+        loop.add_signal_handler(signal.SIGINT, stop.set)
+        await stop.wait()
+        await srv.stop()
+
+
+# --- spectators --------------------------------------------------------------------------------
+
+
+async def _spectate(args: argparse.Namespace) -> None:
+    from ..game.net_client import NetClient
+
+    room = json.loads(args.url)["room"]
+    url = json.loads(args.url)["ws"]
+    clients = []
+    for _ in range(args.spectators):
+        clients.append(await NetClient.connect(url, role="spectator", room=room,
+                                               decode_mesh=False))
+    print(json.dumps({"ready": True}), flush=True)
+    await asyncio.sleep(1.0)  # settle
+    c0 = [c.counts["mesh"] for c in clients]
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    await asyncio.sleep(args.seconds)
+    dt = time.perf_counter() - t0
+    rates = [(c.counts["mesh"] - n) / dt for c, n in zip(clients, c0, strict=True)]
+    cpu = (time.process_time() - cpu0) / dt
+    for c in clients:
+        await c.close()
+    print(json.dumps({"rates": rates, "cpu": cpu}), flush=True)
+
+
+# --- players (this process) --------------------------------------------------------------------
+
+
+async def _play(ws_url: str, room: str, n_players: int, rate: float, seconds: float,
+                reset_stats: Any) -> dict[str, Any]:
+    from ..game.net_client import NetClient
+
+    players = [await NetClient.connect(ws_url, name=f"p{i}", role="player", room=room, seat=i,
+                                       record_latency=True, mesh=False)
+               for i in range(n_players)]
+    for p in players:
+        await p.request("ready", ready=True)
+    sent = [0] * n_players
+    stop_at = [math.inf]
+
+    async def drive(i: int, p: NetClient) -> None:
+        reach = p.reach
+        assert reach is not None
+        loop = asyncio.get_running_loop()
+        period = 1.0 / rate
+        nxt = loop.time()
+        phase = i * math.pi / 2
+        while loop.time() < stop_at[0]:
+            t = loop.time()
+            h = reach.from_unit(np.array([0.0, 0.3 * math.sin(2 * math.pi * 0.5 * t + phase),
+                                          0.0]))
+            await p.send_hip(h)
+            sent[i] += 1
+            nxt += period
+            delay = nxt - loop.time()
+            if delay < -0.05:  # far behind: do not burst to catch up
+                nxt = loop.time()
+            await asyncio.sleep(max(0.0, delay))
+
+    loop = asyncio.get_running_loop()
+    stop_at[0] = loop.time() + 1.0 + seconds
+    tasks = [asyncio.create_task(drive(i, p)) for i, p in enumerate(players)]
+    await asyncio.sleep(1.0)  # settle, then measure
+    for p in players:
+        p.latencies.clear()
+    stats0 = await asyncio.to_thread(reset_stats)
+    s0, c0 = list(sent), [p.counts["corner"] for p in players]
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    await asyncio.gather(*tasks)
+    dt = time.perf_counter() - t0
+    cpu = (time.process_time() - cpu0) / dt
+    lat = np.concatenate([np.array(p.latencies) for p in players]) * 1e3
+    out = {
+        "hip_rate_hz": [(s - s_) / dt for s, s_ in zip(sent, s0, strict=True)],
+        "corner_rate_hz": [(p.counts["corner"] - c) / dt for p, c in zip(players, c0,
+                                                                         strict=True)],
+        "latency_ms": _pct(lat),
+        "cpu": cpu,
+        "stats0": stats0,
+        "t0": t0,
+    }
+    for p in players:
+        await p.close()
+    return out
+
+
+def _pct(v: np.ndarray) -> dict[str, float]:
+    if v.size == 0:
+        return {"count": 0}
+    p50, p99, p999 = np.percentile(v, [50, 99, 99.9])
+    return {"count": int(v.size), "min": float(v.min()), "p50": float(p50), "p99": float(p99),
+            "p999": float(p999), "max": float(v.max())}
+
+
+def _get(url: str) -> Any:
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the whole bench (server, spectators and players) and print the figures."""
+    role = getattr(args, "role", "bench")
+    if role == "server":
+        asyncio.run(_serve(args))
+        return 0
+    if role == "spectators":
+        asyncio.run(_spectate(args))
+        return 0
+    seconds = float(args.seconds)
+    base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
+            "--server-backend", args.server_backend, "--seconds", str(seconds),
+            "--spectators", str(args.spectators)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    server = subprocess.Popen([*base, "--role", "server"], stdout=subprocess.PIPE, text=True,
+                              env=env)
+    spect: subprocess.Popen[str] | None = None
+    try:
+        assert server.stdout is not None
+        info = json.loads(server.stdout.readline())
+        http = f"http://127.0.0.1:{info['port']}"
+        ws = f"ws://127.0.0.1:{info['port']}/ws"
+        print(f"server bench: {args.players} players x {args.hip_rate:g} Hz HIP, "
+              f"{args.spectators} spectators, {seconds:g} s, n={args.server_n}, "
+              f"backend {info['backend']} ({info['substeps']} substeps/frame), "
+              f"{os.cpu_count()} CPUs", file=sys.stderr)
+        if args.spectators > 0:
+            spect = subprocess.Popen(
+                [*base, "--role", "spectators", "--url",
+                 json.dumps({"ws": ws, "room": info["room"]})],
+                stdout=subprocess.PIPE, text=True, env=env)
+            assert spect.stdout is not None
+            json.loads(spect.stdout.readline())  # connected
+        players = asyncio.run(_play(ws, info["room"], args.players, args.hip_rate, seconds,
+                                    lambda: _get(f"{http}/api/stats?reset=1")))
+        stats0, t0 = players.pop("stats0"), players.pop("t0")
+        stats1 = _get(f"{http}/api/stats")
+        dt = time.perf_counter() - t0
+        spec_out = {"rates": [], "cpu": 0.0}
+        if spect is not None:
+            assert spect.stdout is not None
+            spec_out = json.loads(spect.stdout.readline())
+            spect.wait(timeout=30)
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            server.kill()
+        if spect is not None and spect.poll() is None:
+            spect.kill()
+    room = next(iter(stats1["rooms"].values()))
+    room0 = next(iter(stats0["rooms"].values()))
+    rates = np.array(spec_out["rates"]) if spec_out["rates"] else np.zeros(0)
+    result = {
+        "seconds": seconds,
+        "players": args.players,
+        "spectators": args.spectators,
+        "hip_rate_target_hz": args.hip_rate,
+        "n": args.server_n,
+        "backend": info["backend"],
+        "substeps": info["substeps"],
+        "cpus": os.cpu_count(),
+        "frame_lateness_ms": room["lateness_ms"],
+        "skipped_frames": room["skipped_frames"] - room0["skipped_frames"],
+        "frames": room["frames"] - room0["frames"],
+        "hip_to_corner_ms": players["latency_ms"],
+        "hip_rate_hz": players["hip_rate_hz"],
+        "corner_rate_hz": players["corner_rate_hz"],
+        "server_messages_in_per_s": (stats1["messages_in"] - stats0["messages_in"]) / dt,
+        "server_messages_out_per_s": (stats1["messages_out"] - stats0["messages_out"]) / dt,
+        "spectator_mesh_hz": _pct(rates) if rates.size else {"count": 0},
+        "cpu_server_cores": (stats1["cpu_s"] - stats0["cpu_s"]) / dt,
+        "cpu_players_cores": players["cpu"],
+        "cpu_spectators_cores": spec_out["cpu"],
+    }
+    lat, late = result["hip_to_corner_ms"], result["frame_lateness_ms"]
+    result["targets"] = {
+        "hip_to_corner_p99_le_5ms": bool(lat.get("p99", math.inf) <= TARGET_LATENCY_P99_MS),
+        "frame_lateness_p99_le_5ms": bool(late.get("p99", math.inf) <= TARGET_LATENESS_P99_MS),
+        "all_spectators_30hz": bool(rates.size == 0 or rates.min() >= 0.95 * TARGET_MESH_HZ),
+    }
+    if getattr(args, "json", False):
+        print(json.dumps(result, indent=2))
+    else:
+        _print(result)
+    return 0
+
+
+def _print(r: dict[str, Any]) -> None:
+    def p(d: dict[str, float]) -> str:
+        if not d.get("count"):
+            return "no samples"
+        return f"p50 {d['p50']:.2f}  p99 {d['p99']:.2f}  p99.9 {d['p999']:.2f}  max {d['max']:.2f}"
+
+    mesh = r["spectator_mesh_hz"]
+    ok = {True: "meets target", False: "MISSES target"}
+    t = r["targets"]
+    print(f"frame lateness (ms)       {p(r['frame_lateness_ms'])}   "
+          f"[{ok[t['frame_lateness_p99_le_5ms']]}: p99 <= 5]")
+    print(f"HIP -> corner state (ms)  {p(r['hip_to_corner_ms'])}   "
+          f"[{ok[t['hip_to_corner_p99_le_5ms']]}: p99 <= 5]")
+    print(f"skipped frames            {r['skipped_frames']} of {r['frames']}")
+    print("HIP sent (Hz/player)      " + ", ".join(f"{x:.0f}" for x in r["hip_rate_hz"]))
+    print("CORNER recv (Hz/player)   " + ", ".join(f"{x:.0f}" for x in r["corner_rate_hz"]))
+    rates = (f"min {mesh['min']:.1f}  p50 {mesh['p50']:.1f}  max {mesh['max']:.1f}"
+             if mesh.get("count") else "none")
+    print(f"spectator MESH (Hz)       {rates}   "
+          f"[{ok[t['all_spectators_30hz']]}: every spectator >= 28.5 Hz]")
+    print(f"server messages/s         in {r['server_messages_in_per_s']:.0f}  "
+          f"out {r['server_messages_out_per_s']:.0f}")
+    print(f"CPU (cores)               server {r['cpu_server_cores']:.2f}  "
+          f"players {r['cpu_players_cores']:.2f}  spectators {r['cpu_spectators_cores']:.2f}"
+          f"  (of {r['cpus']})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m clothball.server.loadbench")
+    configure(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
