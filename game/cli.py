@@ -14,6 +14,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scenes": ("clothball.game.scenes_cmd", "list the shipped scenes and their effects"),
     "falcon": ("clothball.game.falcon_cmd", "check a Novint Falcon and bench its 1 kHz loop"),
     "host": ("clothball.server.host", "run a game server (rooms, bots, spectators, replays)"),
+    "play": ("clothball.game.play_cmd", "play in a desktop window (mouse, Falcon or bot)"),
+    "replay": ("clothball.game.replay_cmd", "play a recorded round back (pause, seek, speed)"),
 }
 
 
