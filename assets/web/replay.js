@@ -1,0 +1,213 @@
+// Replay files (server/store.py) and their playback clock.
+//
+// A replay file is a gzip stream of:
+//   16 bytes "CLOTHBALL-REPLAY", u32 format version, u32 header length H, H bytes of JSON
+//   header, then records: u8 kind (0: event JSON text, 1: a binary protocol message, MESH or
+//   TRACK), u32 length L, L bytes. All integers little-endian.
+// Meshes are kept encoded and decoded when shown; tracks (ball and hands at ~100 Hz) are
+// decoded once and interpolated so the ball moves smoothly between 30 Hz cloth frames.
+
+import { gunzip } from "./inflate.js";
+import { MESH, TRACK, asBytes, decodeHeader, decodeMesh, decodeTrack } from "./protocol.js";
+
+export const REPLAY_MAGIC = "CLOTHBALL-REPLAY";
+export const REPLAY_VERSION = 1;
+
+export class ReplayError extends Error {}
+
+/** Parse a whole replay file (the bytes as downloaded): { header, records }. */
+export function parseReplay(data) {
+  let body;
+  try {
+    body = gunzip(asBytes(data));
+  } catch (e) {
+    throw new ReplayError(`not a gzip stream: ${e.message}`);
+  }
+  const magic = new TextDecoder().decode(body.subarray(0, 16));
+  if (body.length < 24 || magic !== REPLAY_MAGIC) throw new ReplayError("not a clothball replay (bad magic)");
+  const dv = new DataView(body.buffer, body.byteOffset, body.byteLength);
+  const version = dv.getUint32(16, true);
+  if (version !== REPLAY_VERSION) {
+    throw new ReplayError(`replay format ${version}, this reader knows ${REPLAY_VERSION}`);
+  }
+  const hlen = dv.getUint32(20, true);
+  let off = 24;
+  let header;
+  try {
+    header = JSON.parse(new TextDecoder().decode(body.subarray(off, off + hlen)));
+  } catch (e) {
+    throw new ReplayError(`replay header is not JSON: ${e.message}`);
+  }
+  off += hlen;
+  const records = [];
+  while (off < body.length) {
+    if (off + 5 > body.length) throw new ReplayError("replay truncated in a record header");
+    const kind = dv.getUint8(off);
+    const len = dv.getUint32(off + 1, true);
+    off += 5;
+    if ((kind !== 0 && kind !== 1) || off + len > body.length) {
+      throw new ReplayError("replay record damaged or truncated");
+    }
+    records.push({ kind, data: body.subarray(off, off + len) });
+    off += len;
+  }
+  return { header, records };
+}
+
+function lerp(a, b, t) { return a.map((v, i) => v + (b[i] - v) * t); }
+
+/** Index of the last item with key <= x in a sorted array (-1 if none). */
+function lastAtOrBefore(items, x, key) {
+  let lo = 0, hi = items.length - 1, ans = -1;
+  while (lo <= hi) {
+    const mid = (lo + hi) >> 1;
+    if (key(items[mid]) <= x) { ans = mid; lo = mid + 1; } else hi = mid - 1;
+  }
+  return ans;
+}
+
+/** A parsed replay on one timeline: seconds from the first record. */
+export class Replay {
+  constructor({ header, records }) {
+    this.header = header;
+    this.frameDt = header.geometry?.frame_dt || 0.001;
+    this.meshes = []; // { frame, data }
+    this.tracks = []; // decoded TRACK
+    this.events = []; // { frame, msg }
+    const text = new TextDecoder();
+    for (const r of records) {
+      if (r.kind === 0) {
+        const msg = JSON.parse(text.decode(r.data));
+        this.events.push({ frame: msg.frame ?? 0, msg });
+      } else {
+        const h = decodeHeader(r.data);
+        if (h.type === MESH) {
+          const dv = new DataView(r.data.buffer, r.data.byteOffset + 16, 8);
+          this.meshes.push({ frame: Number(dv.getBigInt64(0, true)), data: r.data });
+        } else if (h.type === TRACK) {
+          this.tracks.push(decodeTrack(r.data));
+        }
+      }
+    }
+    const frames = [...this.meshes, ...this.tracks].map((m) => m.frame);
+    if (!frames.length) throw new ReplayError("replay has no mesh or track records");
+    this.frame0 = Math.min(...frames);
+    this.frame1 = Math.max(...frames);
+    this.duration = (this.frame1 - this.frame0) * this.frameDt;
+    this._cache = { index: -1, mesh: null };
+  }
+
+  timeOf(frame) { return (frame - this.frame0) * this.frameDt; }
+
+  frameAt(t) { return this.frame0 + t / this.frameDt; }
+
+  /** The index of the mesh shown at time t (the newest one not after t). */
+  meshIndexAt(t) {
+    return Math.max(0, lastAtOrBefore(this.meshes, this.frameAt(t) + 1e-6, (m) => m.frame));
+  }
+
+  mesh(index) {
+    if (this._cache.index !== index) {
+      this._cache = { index, mesh: decodeMesh(this.meshes[index].data) };
+    }
+    return this._cache.mesh;
+  }
+
+  /** Ball and hands at time t, interpolated between tracks (null when there are none). */
+  trackAt(t) {
+    const tr = this.tracks;
+    if (!tr.length) return null;
+    const f = this.frameAt(t);
+    const i = lastAtOrBefore(tr, f, (x) => x.frame);
+    if (i < 0) return tr[0];
+    if (i >= tr.length - 1) return tr[tr.length - 1];
+    const a = tr[i], b = tr[i + 1];
+    const w = (f - a.frame) / Math.max(1, b.frame - a.frame);
+    return {
+      frame: f,
+      ballPosition: lerp(a.ballPosition, b.ballPosition, w),
+      hips: a.hips.map((h, k) => lerp(h, b.hips[k], w)),
+      corners: a.corners.map((c, k) => lerp(c, b.corners[k], w)),
+    };
+  }
+
+  /** Events up to time t (inclusive), oldest first. */
+  eventsUntil(t) {
+    const f = this.frameAt(t) + 1e-6;
+    return this.events.filter((e) => e.frame <= f);
+  }
+
+  /** Scores shown at time t: the header's final scores, less the round's points until the
+   * score event has happened. */
+  scoresAt(t) {
+    const final = this.header.scores || [0, 0, 0, 0];
+    const scored = this.eventsUntil(t).some((e) => e.msg.event === "score");
+    if (scored) return final.slice();
+    const scorers = new Set(this.header.scorers || []);
+    return final.map((s, i) => (scorers.has(i) ? s - 1 : s));
+  }
+}
+
+/** Fetch and parse a replay by id. Throws ReplayError with `status` 404 when unknown. */
+export async function fetchReplay(id) {
+  const r = await fetch(`/api/replays/${encodeURIComponent(id)}`);
+  if (!r.ok) {
+    let why = `HTTP ${r.status}`;
+    try { why = (await r.json()).error || why; } catch { /* not JSON */ }
+    const e = new ReplayError(why);
+    e.status = r.status;
+    throw e;
+  }
+  return new Replay(parseReplay(await r.arrayBuffer()));
+}
+
+/** The playback clock: play, pause, seek, speed. `onTime(t)` is called on every change. */
+export class Playback {
+  constructor(duration, onTime) {
+    this.duration = duration;
+    this.onTime = onTime;
+    this.time = 0;
+    this.speed = 1;
+    this.playing = false;
+    this._last = null;
+    this._raf = 0;
+    this._tick = this._tick.bind(this);
+  }
+
+  play() {
+    if (this.playing) return;
+    if (this.time >= this.duration) this.time = 0;
+    this.playing = true;
+    this._last = performance.now();
+    this._raf = requestAnimationFrame(this._tick);
+    this.onTime(this.time);
+  }
+
+  pause() {
+    this.playing = false;
+    cancelAnimationFrame(this._raf);
+    this.onTime(this.time);
+  }
+
+  toggle() { if (this.playing) this.pause(); else this.play(); }
+
+  seek(t) {
+    this.time = Math.min(this.duration, Math.max(0, t));
+    this._last = performance.now();
+    this.onTime(this.time);
+  }
+
+  setSpeed(s) { this.speed = s; }
+
+  stop() { this.playing = false; cancelAnimationFrame(this._raf); }
+
+  _tick(now) {
+    if (!this.playing) return;
+    const dt = Math.min(0.25, (now - this._last) / 1000);
+    this._last = now;
+    this.time = Math.min(this.duration, this.time + dt * this.speed);
+    if (this.time >= this.duration) this.playing = false;
+    this.onTime(this.time);
+    if (this.playing) this._raf = requestAnimationFrame(this._tick);
+  }
+}
