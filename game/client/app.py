@@ -27,6 +27,7 @@ import pyglet
 from ..devices.mouse import MouseDevice
 from .camera import OrbitCamera
 from .interp import (
+    BACKGROUND,
     EDGE_NAMES,
     SEAT_COLOURS,
     FrameBuffer,
@@ -64,7 +65,7 @@ class ClientWindow(pyglet.window.Window):
         except pyglet.window.NoSuchConfigException:
             super().__init__(width, height, title, resizable=True, visible=visible,
                              vsync=vsync)
-        from .render import BACKGROUND, Renderer
+        from .render import Renderer
 
         self.renderer = Renderer()
         self.background = BACKGROUND
@@ -86,7 +87,7 @@ class ClientWindow(pyglet.window.Window):
         self._last_corner_version = 0
         self.batch = pyglet.graphics.Batch()
         self.hud = pyglet.text.Label("", x=12, y=height - 12, anchor_y="top", multiline=True,
-                                     width=560, font_size=FONT_SIZE, batch=self.batch,
+                                     width=900, font_size=FONT_SIZE, batch=self.batch,
                                      color=(235, 235, 235, 255))
         self.status = pyglet.text.Label("", x=12, y=10, font_size=FONT_SIZE - 2,
                                         batch=self.batch, color=(170, 190, 210, 255))
@@ -290,7 +291,7 @@ class ClientWindow(pyglet.window.Window):
             if pos is not None:
                 px, py, ok = self.camera.project(pos, fw, fh)
                 if ok:
-                    lab.x, lab.y = int(px * sx), int(py * sy + 14)
+                    lab.x, lab.y = int(px * sx), int(py * sy + 22)
                 else:
                     text = ""
             self._set(lab, text)

@@ -33,6 +33,13 @@ SEAT_COLOURS: tuple[tuple[float, float, float], ...] = (
     (0.95, 0.77, 0.06),  # 3 west: yellow
 )
 UNGUARDED = (0.55, 0.55, 0.55)
+# The scene's colours (the window test recognises the cloth by its hue).
+CLOTH_FRONT = (0.86, 0.78, 0.58)  # canvas
+CLOTH_BACK = (0.55, 0.46, 0.30)
+BALL_COLOUR = (0.95, 0.42, 0.12)
+BACKGROUND = (0.10, 0.12, 0.16)
+WIRE_COLOUR = (0.15, 0.15, 0.18)
+FLOOR_COLOUR = (0.16, 0.19, 0.24)
 EDGE_NAMES = ("north", "east", "south", "west")
 
 

@@ -14,9 +14,10 @@ log = logging.getLogger("clothball.client")
 
 class LocalServer:
     """``server.app.GameServer`` on loopback (a free port) with ``bots`` bots in its main
-    room, run by an asyncio loop on a daemon thread. ``start()`` returns the ws URL."""
+    room, run by an asyncio loop on a daemon thread. ``start()`` returns the ws URL.
+    ``scene``: a scene name, a TOML path or a ``game.scene.Scene``."""
 
-    def __init__(self, data_dir: Path | str, *, bots: int = 3, scene: str = "classic",
+    def __init__(self, data_dir: Path | str, *, bots: int = 3, scene: Any = "classic",
                  backend: str = "auto", first_to: int = 5, port: int = 0,
                  settings: dict[str, Any] | None = None) -> None:
         self.data_dir = Path(data_dir)
@@ -60,7 +61,7 @@ class LocalServer:
         sys.setswitchinterval(0.0005)
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        scene = Scene.load(self.scene)
+        scene = self.scene if isinstance(self.scene, Scene) else Scene.load(self.scene)
         settings = RoomSettings(first_to=self.first_to, autoplay=True, **self.settings)
         self.server = GameServer(self.data_dir, scenes={scene.name: scene},
                                  backend=self.backend, host="127.0.0.1", port=self.port,

@@ -25,14 +25,17 @@ from pyglet import gl
 from pyglet.graphics.shader import Shader, ShaderProgram
 
 from .camera import OrbitCamera
-from .interp import RenderFrame, grid_lines, grid_triangles
-
-CLOTH_FRONT = (0.86, 0.78, 0.58)  # canvas
-CLOTH_BACK = (0.55, 0.46, 0.30)
-BALL_COLOUR = (0.95, 0.42, 0.12)
-BACKGROUND = (0.10, 0.12, 0.16)
-WIRE_COLOUR = (0.15, 0.15, 0.18)
-FLOOR_COLOUR = (0.16, 0.19, 0.24)
+from .interp import (
+    BALL_COLOUR,
+    CLOTH_BACK,
+    CLOTH_FRONT,
+    FLOOR_COLOUR,
+    WIRE_COLOUR,
+    RenderFrame,
+    grid_edge,
+    grid_lines,
+    grid_triangles,
+)
 
 LIT_VS = """#version 330 core
 in vec3 position;
@@ -144,7 +147,7 @@ class Buffers:
         gl.glBindVertexArray(self.vao)
         self.vbos: dict[str, gl.GLuint] = {}
         self.sizes: dict[str, int] = {}
-        self.capacity = capacity
+        self.capacity: dict[str, int] = {}
         for name, size in attrs.items():
             vbo = gl.GLuint()
             gl.glGenBuffers(1, ctypes.byref(vbo))
@@ -155,6 +158,7 @@ class Buffers:
             gl.glEnableVertexAttribArray(loc)
             gl.glVertexAttribPointer(loc, size, gl.GL_FLOAT, gl.GL_FALSE, 0, 0)
             self.vbos[name], self.sizes[name] = vbo, size
+            self.capacity[name] = max(1, capacity)
         self.ebo: gl.GLuint | None = None
         self.count = 0
         if indices is not None:
@@ -177,9 +181,9 @@ class Buffers:
         arr = np.ascontiguousarray(data, dtype=np.float32)
         n = arr.size // self.sizes[name]
         gl.glBindBuffer(gl.GL_ARRAY_BUFFER, self.vbos[name])
-        if n > self.capacity:
+        if n > self.capacity[name]:
             gl.glBufferData(gl.GL_ARRAY_BUFFER, arr.nbytes, arr.ctypes.data, gl.GL_DYNAMIC_DRAW)
-            self.capacity = n
+            self.capacity[name] = n
         else:
             gl.glBufferSubData(gl.GL_ARRAY_BUFFER, 0, arr.nbytes, arr.ctypes.data)
         if self.ebo is None:
@@ -214,8 +218,6 @@ class Renderer:
         self.light = np.array([0.35, 1.0, 0.55]) / np.linalg.norm([0.35, 1.0, 0.55])
         self._n = 0
         self.cloth = Buffers(self.lit, {"position": 3, "normal": 3})
-        self.lines = Buffers(self.flat, {"position": 3, "colour": 4})
-        self.lines_ebo_n = 0
         self.wire_buf = Buffers(self.flat, {"position": 3, "colour": 4})
         sphere, sidx = uv_sphere()
         self.sphere = Buffers(self.lit, {"position": 3, "normal": 3}, sidx, len(sphere))
@@ -317,8 +319,6 @@ class Renderer:
 
     def _bands(self, frame: RenderFrame, camera: OrbitCamera, size: float
                ) -> tuple[np.ndarray, np.ndarray]:
-        from .interp import grid_edge
-
         p = frame.positions
         centre = p.reshape(-1, 3).mean(axis=0)
         tris, cols = [], []
