@@ -164,9 +164,9 @@ def replay_vector() -> dict[str, Any]:
     expect = []
     for kind, rec in recs:
         if kind == 0:
-            expect.append({"kind": 0, "json": json.loads(rec)})
+            expect.append({"record": 0, "json": json.loads(rec)})
         else:
-            expect.append({"kind": 1, **expectation(rec)})
+            expect.append({"record": 1, **expectation(rec)})
     return {"b64": b64(data), "header": head, "records": expect}
 
 

@@ -98,7 +98,7 @@ export class OrbitCamera {
   /** Listen to the canvas's pointer and wheel events. Returns a function that detaches. */
   attach(el) {
     const down = (e) => {
-      el.setPointerCapture?.(e.pointerId);
+      try { el.setPointerCapture(e.pointerId); } catch { /* not an active pointer */ }
       this._pointers.set(e.pointerId, [e.clientX, e.clientY]);
       if (this._pointers.size === 2) this._pinch = this._spread();
     };

@@ -1,0 +1,69 @@
+// In-page measurement of the live path's per-frame cost: decode one MESH frame
+// (protocol.decodeMesh: header, zlib inflate, row-delta sum) and upload it to the GPU
+// (Renderer.uploadMesh: one texSubImage2D of the uint16 grid). tools/web_bench.py feeds
+// it MESH frames made by the Python encoder and writes docs/benchmarks/browser.md.
+//
+// performance.now() is coarsened (to 100 us in a page that is not cross-origin isolated),
+// so each frame is timed over `batch` repetitions and divided.
+
+import { decodeMesh } from "./protocol.js";
+import { Renderer } from "./render.js";
+
+function fromBase64(s) {
+  const bin = atob(s);
+  const out = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) out[i] = bin.charCodeAt(i);
+  return out;
+}
+
+function quantiles(xs) {
+  const s = [...xs].sort((a, b) => a - b);
+  const at = (p) => s[Math.min(s.length - 1, Math.max(0, Math.round(p * (s.length - 1))))];
+  return { median: at(0.5), p95: at(0.95), min: s[0], max: s[s.length - 1], count: s.length };
+}
+
+/**
+ * frames: MESH messages as base64 strings (all of one n). Returns per-stage quantiles over
+ * frames of the mean ms per frame: decode, upload, decode+upload, and decode+upload
+ * followed by gl.finish() (the upload completed in the GPU process, an upper bound).
+ */
+export function benchDecodeUpload(frames, { batch = 20 } = {}) {
+  const canvas = document.createElement("canvas");
+  canvas.width = 64; canvas.height = 64;
+  const r = new Renderer(canvas);
+  const gl = r.gl;
+  const bytes = frames.map(fromBase64);
+  // warm up: compile paths, allocate the texture
+  for (const b of bytes) r.uploadMesh(decodeMesh(b));
+  gl.finish();
+  const decode = [], upload = [], both = [], finished = [];
+  for (const b of bytes) {
+    let t = performance.now();
+    let m = null;
+    for (let k = 0; k < batch; k++) m = decodeMesh(b);
+    decode.push((performance.now() - t) / batch);
+    gl.finish();
+    t = performance.now();
+    for (let k = 0; k < batch; k++) r.uploadMesh(m);
+    upload.push((performance.now() - t) / batch);
+    gl.finish();
+    t = performance.now();
+    for (let k = 0; k < batch; k++) r.uploadMesh(decodeMesh(b));
+    both.push((performance.now() - t) / batch);
+    gl.finish();
+    t = performance.now();
+    for (let k = 0; k < batch; k++) { r.uploadMesh(decodeMesh(b)); gl.finish(); }
+    finished.push((performance.now() - t) / batch);
+  }
+  const n = decodeMesh(bytes[0]).n;
+  const ext = gl.getExtension("WEBGL_debug_renderer_info");
+  const renderer = ext ? gl.getParameter(ext.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
+  const sizes = bytes.map((b) => b.length);
+  r.gl.getExtension("WEBGL_lose_context")?.loseContext();
+  return {
+    n, frames: bytes.length, batch, renderer, userAgent: navigator.userAgent,
+    bytes: quantiles(sizes),
+    decode: quantiles(decode), upload: quantiles(upload),
+    decodeUpload: quantiles(both), decodeUploadFinish: quantiles(finished),
+  };
+}
