@@ -192,8 +192,11 @@ class ClientWindow(pyglet.window.Window):
             own_seat = self.model.seat
             own_hand = None
             k = float(self.model.geometry.get("stiffness", 0.0))
-            if own_seat is not None and self.device is not None:
-                own_hand = self.device.hand_position()
+            if own_seat is not None:
+                if isinstance(self.device, MouseDevice):
+                    own_hand = self.device.hand_position()  # fresher than the one sent
+                elif self.net is not None:
+                    own_hand = self.net.last_hand.get()[0]  # Falcon, bot: as sent
         if sample is None:
             return None
         self._aim_camera(sample, own_seat)
@@ -254,7 +257,8 @@ class ClientWindow(pyglet.window.Window):
             events = [self._replay_event_text(e) for e in rp.events_until()][-5:]
             self._set(self.events_label, "\n".join(t for t in events if t))
             self._set(self.status, "Space pause  Left/Right seek  Up/Down speed  "
-                                   "Home restart  M wire mesh")
+                                   "Home restart  M wire mesh  (click the bar to seek)")
+            self.events_label.y = 48
         else:
             if m.room is not None:
                 lines.append(f"room {m.room.get('name')} ({m.room.get('id')})  "
@@ -280,7 +284,12 @@ class ClientWindow(pyglet.window.Window):
         cd = m.countdown(now) if self.replay is None else None
         self._set(self.big, str(cd) if cd is not None else "")
         self.big.x, self.big.y = w // 2, h // 2
-        # names at the corners
+        # names at the corners, pushed outwards on screen (off the cloth and its bands)
+        centre_px = None
+        if self.frame is not None:
+            cx, cy, ok = self.camera.project(self.frame.positions.reshape(-1, 3).mean(axis=0),
+                                             fw, fh)
+            centre_px = np.array([cx, cy]) if ok else None
         for i, lab in enumerate(self.name_labels):
             text, pos = "", None
             if self.frame is not None:
@@ -291,7 +300,12 @@ class ClientWindow(pyglet.window.Window):
             if pos is not None:
                 px, py, ok = self.camera.project(pos, fw, fh)
                 if ok:
-                    lab.x, lab.y = int(px * sx), int(py * sy + 22)
+                    out = np.array([0.0, 1.0])
+                    if centre_px is not None:
+                        d = np.array([px, py]) - centre_px
+                        out = d / max(float(np.linalg.norm(d)), 1e-9)
+                    lab.x = int(px * sx + 34 * out[0])
+                    lab.y = int(py * sy + 30 * out[1] - 6)
                 else:
                     text = ""
             self._set(lab, text)
@@ -334,9 +348,9 @@ class ClientWindow(pyglet.window.Window):
             bar_w = w - 80
             frac = self.replay.position / max(self.replay.data.duration, 1e-9)
             self._ui_shapes.append(pyglet.shapes.Rectangle(
-                40, 60, bar_w, 8, color=(80, 90, 110), batch=self.ui_batch))
+                40, 30, bar_w, 8, color=(80, 90, 110), batch=self.ui_batch))
             self._ui_shapes.append(pyglet.shapes.Rectangle(
-                40, 60, bar_w * frac, 8, color=(240, 160, 60), batch=self.ui_batch))
+                40, 30, bar_w * frac, 8, color=(240, 160, 60), batch=self.ui_batch))
             return
         buttons = self.lobby.buttons(self.model, w, h)
         in_lobby = self.model.room is None
@@ -393,7 +407,7 @@ class ClientWindow(pyglet.window.Window):
             if self._playing():
                 self.device.drag_height(dy)
         elif buttons & mouse.LEFT:
-            if self.replay is not None and y < 90:
+            if self.replay is not None and 22 <= y <= 46:
                 self._seek_bar(x)
             else:
                 self._point(x, y)
@@ -415,7 +429,7 @@ class ClientWindow(pyglet.window.Window):
 
     def on_mouse_press(self, x: int, y: int, button: int, modifiers: int) -> None:
         if self.replay is not None:
-            if y < 90:
+            if 22 <= y <= 46:
                 self._seek_bar(x)
             return
         action = self.lobby.hit(self.model, self.width, self.height, x, y)
@@ -525,7 +539,7 @@ class ClientWindow(pyglet.window.Window):
     def screenshot(self, path: Path | str) -> None:
         """Save the last drawn frame (the back buffer after a draw) as a PNG."""
         self.switch_to()
-        self.dispatch_event("on_draw")
+        self.on_draw()  # directly: outside the loop pyglet would only queue the event
         pyglet.image.get_buffer_manager().get_color_buffer().save(str(path))
 
     def on_close(self) -> None:

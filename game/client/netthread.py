@@ -102,6 +102,7 @@ class NetThread:
         self.frames = FrameInbox()
         self.corner: Latest[tuple[CornerState, P.Corner]] = Latest()
         self.hips_sent = 0
+        self.last_hand: Latest[Any] = Latest()  # the hand position last sent (any device)
         self.hip_latency: float | None = None
         self.client: NetClient | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -363,7 +364,9 @@ class NetThread:
         next_t = loop.time()
         try:
             while client.joined is not None and client.seat is not None:
-                await client.send_hip(dev.hand_position())
+                h = dev.hand_position()
+                await client.send_hip(h)
+                self.last_hand.put(h)
                 self.hips_sent += 1
                 next_t += period
                 delay = next_t - loop.time()
