@@ -290,7 +290,8 @@ def _print(r: dict[str, Any]) -> None:
           f"[{ok[t['frame_lateness_p99_le_5ms']]}: p99 <= 5]")
     print(f"HIP -> corner state (ms)  {p(r['hip_to_corner_ms'])}   "
           f"[{ok[t['hip_to_corner_p99_le_5ms']]}: p99 <= 5]")
-    print(f"skipped frames            {r['skipped_frames']} of {r['frames']}")
+    print(f"frames                    {r['frames']} simulated, {r['skipped_frames']} skipped "
+          "(fell further behind than the catch-up bound)")
     print("HIP sent (Hz/player)      " + ", ".join(f"{x:.0f}" for x in r["hip_rate_hz"]))
     print("CORNER recv (Hz/player)   " + ", ".join(f"{x:.0f}" for x in r["corner_rate_hz"]))
     rates = (f"min {mesh['min']:.1f}  p50 {mesh['p50']:.1f}  max {mesh['max']:.1f}"
