@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import io
 import json
+import tempfile
 import time
 import urllib.request
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -146,12 +148,20 @@ def test_live_room_shows_the_cloth(live: ServerThread, driver) -> None:
              "mesh frames")
     n = SCENE.n
     ij = [[i, j] for i in (n // 4, n // 2, 3 * n // 4) for j in (n // 4, n // 2, 3 * n // 4)]
-    time.sleep(0.3)  # a drawn frame after the latest upload
+    js(driver, "window.clothball.freeze(true)")  # the cloth holds still while we look
+    time.sleep(0.3)  # frames drawn after the latest upload
     pts = js(driver, "return window.clothball.screenPoints(arguments[0])", ij)
     img = screenshot_rgb(driver)
+    js(driver, "window.clothball.freeze(false)")
     assert pts and all(p is not None for p in pts)
-    hits = [is_cloth(img.getpixel((round(x), round(y)))) for x, y in pts]
-    assert sum(hits) >= 6, f"cloth colour at only {sum(hits)} of 9 interior nodes"
+    pixels = [img.getpixel((round(x), round(y))) for x, y in pts]
+    hits = [is_cloth(p) for p in pixels]
+    if sum(hits) < 6:
+        img.save(Path(tempfile.gettempdir()) / "clothball-cloth-test.png")
+    assert sum(hits) >= 6, (
+        f"cloth colour at only {sum(hits)} of 9 interior nodes: {pixels} at {pts}; "
+        f"screenshot in {tempfile.gettempdir()}/clothball-cloth-test.png"
+    )
     # the classifier is not fooled by the background: the canvas's top-left corner
     rect = js(driver, "const r = document.getElementById('view').getBoundingClientRect();"
                       "return [r.left, r.top, r.width, r.height]")

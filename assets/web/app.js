@@ -118,7 +118,7 @@ function onJson(msg) {
 }
 
 function onBinary(buf) {
-  if (app.route?.view !== "room" || !app.renderer) return;
+  if (app.route?.view !== "room" || !app.renderer || app.frozen) return;
   let t0 = performance.now();
   try {
     if (decodeHeader(buf).type !== MESH) return;
@@ -222,7 +222,11 @@ function placeLabels(seats) {
   }
 }
 
-/** Screen points (CSS px in the canvas) of cloth nodes, for the tests. */
+/** Hold the live view still (frames are dropped while frozen): for tests and screenshots. */
+app.frozen = false;
+app.freeze = (on) => { app.frozen = Boolean(on); };
+
+/** Screen points (CSS px in the page) of cloth nodes as last drawn, for the tests. */
 app.screenPoints = (ij) => {
   const r = app.renderer, m = app.lastMesh || app.shownMesh;
   if (!r || !m) return null;

@@ -27,7 +27,7 @@ function buildTable(lengths, count) {
     bl[l]++;
     if (l > max) max = l;
   }
-  if (max === 0) return { table: new Uint32Array(2), bits: 1 };
+  if (max === 0) return { table: new Uint16Array(2), bits: 1 };
   bl[0] = 0;
   const next = new Uint16Array(16);
   let code = 0;
@@ -39,7 +39,7 @@ function buildTable(lengths, count) {
     if (left < 0) throw new InflateError("invalid deflate stream: over-subscribed Huffman code");
   }
   const size = 1 << max;
-  const table = new Uint32Array(size);
+  const table = new Uint16Array(size); // 16-bit entries: half the cache footprint
   for (let sym = 0; sym < count; sym++) {
     const len = lengths[sym];
     if (!len) continue;
@@ -64,6 +64,15 @@ function fixedTables() {
   return [FIXED_L, FIXED_D];
 }
 
+// A bigger output buffer (a top-level function: a closure over the decoder's locals would
+// make V8 keep them in a heap context and slow the hot loop several times over).
+function grow(buf, op, need, cap, fixed) {
+  if (need > cap || fixed) throw new InflateError(`inflated data larger than ${cap} bytes`);
+  const nb = new Uint8Array(Math.min(cap, Math.max(need, buf.length * 2)));
+  nb.set(buf.subarray(0, op));
+  return nb;
+}
+
 /**
  * Raw DEFLATE data starting at `start` of `src` (a Uint8Array).
  * `out`: a preallocated Uint8Array whose exact size is known (decoding more is an error,
@@ -80,14 +89,7 @@ export function inflateRaw(src, start = 0, out = null, limit = 1 << 30) {
   let bc = 0; // bits in it
   let overrun = 0; // zero bytes fed past the end of the input
 
-  function grow(need) {
-    if (need > cap) throw new InflateError(`inflated data larger than ${cap} bytes`);
-    if (need <= buf.length) return;
-    if (out) throw new InflateError(`inflated data larger than ${cap} bytes`);
-    const nb = new Uint8Array(Math.min(cap, Math.max(need, buf.length * 2)));
-    nb.set(buf.subarray(0, op));
-    buf = nb;
-  }
+  const fixed = out !== null;
 
   let last = 0;
   while (!last) {
@@ -106,7 +108,7 @@ export function inflateRaw(src, start = 0, out = null, limit = 1 << 30) {
       pos += 4;
       if ((len ^ 0xffff) !== nlen) throw new InflateError("invalid deflate stored block length");
       if (pos + len > end) throw new InflateError("deflate stream truncated (stored block)");
-      grow(op + len);
+      if (op + len > buf.length) buf = grow(buf, op, op + len, cap, fixed);
       buf.set(src.subarray(pos, pos + len), op);
       op += len; pos += len;
       continue;
@@ -158,15 +160,23 @@ export function inflateRaw(src, start = 0, out = null, limit = 1 << 30) {
     }
     const ltab = lt.table, lmask = (1 << lt.bits) - 1;
     const dtab = dt.table, dmask = (1 << dt.bits) - 1;
+    const safe = end - 4;
     for (;;) {
-      while (bc < 15) { if (pos < end) bb |= src[pos++] << bc; else overrun++; bc += 8; }
+      if (bc < 15) {
+        if (pos < safe) { // fast refill: two bytes, no bounds checks
+          bb |= (src[pos] << bc) | (src[pos + 1] << (bc + 8));
+          pos += 2; bc += 16;
+        } else {
+          while (bc < 15) { if (pos < end) bb |= src[pos++] << bc; else overrun++; bc += 8; }
+        }
+      }
       const e = ltab[bb & lmask];
       if (!e) throw new InflateError("invalid deflate literal/length code");
       const l = e & 15;
       let sym = e >>> 4;
       bb >>>= l; bc -= l;
       if (sym < 256) {
-        if (op >= buf.length) grow(op + 1);
+        if (op >= buf.length) buf = grow(buf, op, op + 1, cap, fixed);
         buf[op++] = sym;
         continue;
       }
@@ -193,9 +203,9 @@ export function inflateRaw(src, start = 0, out = null, limit = 1 << 30) {
         dist += bb & ((1 << dx) - 1); bb >>>= dx; bc -= dx;
       }
       if (dist > op) throw new InflateError("invalid deflate distance: before the start");
-      if (op + len > buf.length) grow(op + len);
+      if (op + len > buf.length) buf = grow(buf, op, op + len, cap, fixed);
       let from = op - dist;
-      if (dist >= len) {
+      if (len > 64 && dist >= len) { // long copies: the builtin; short ones: a loop
         buf.copyWithin(op, from, from + len);
         op += len;
       } else {

@@ -383,7 +383,7 @@ export class Renderer {
     gl.uniform3fv(s.u.uLight, this.light);
     gl.bindVertexArray(this.sphereVao);
     const ballShown = this.ball && this.ball.position.every(Number.isFinite)
-      && this.ball.position[1] > this.floorY - 0.5 * this.size;
+      && this.ball.position[1] > this.floorY + 0.5 * this.ball.radius; // gone: not drawn
     if (ballShown) {
       gl.uniform3fv(s.u.uCenter, this.ball.position);
       gl.uniform1f(s.u.uRadius, this.ball.radius);
