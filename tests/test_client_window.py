@@ -22,7 +22,13 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from clothball.game.client.interp import BACKGROUND, BALL_COLOUR, CLOTH_BACK, CLOTH_FRONT  # noqa: E402
+from clothball.game.client.interp import (  # noqa: E402
+    BACKGROUND,
+    BALL_COLOUR,
+    CLOTH_BACK,
+    CLOTH_FRONT,
+    grid_corners,
+)
 
 SEAT = 2
 SIZE = (960, 600)
@@ -78,14 +84,15 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
     from server_helpers import TINY
     from test_client_net import Pump
 
-    srv = LocalServer(tmp_path / "data", bots=1, scene=TINY, backend="cpu")
+    # no bots: nothing else shakes the cloth, so the picture's middle is cloth for sure
+    srv = LocalServer(tmp_path / "data", bots=0, scene=TINY, backend="cpu")
     url = srv.start()
     spectator = NetThread(url, name="spectator")
     spectator.start()
     pump = Pump(spectator)
     out = tmp_path / "out"
     out.mkdir()
-    seen: list[tuple[float, np.ndarray]] = []
+    seen: list[tuple[np.ndarray, np.ndarray]] = []  # (hand, cloth corner) of SEAT
     try:
         pump.until(lambda: pump.model.connection == "connected", 10, "welcome")
         spectator.join(pump.model.rooms[0]["id"], "spectator").result(10)
@@ -95,7 +102,8 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
         end = time.monotonic() + 60
         while proc.poll() is None and time.monotonic() < end:
             pump()
-            seen += [(f.server_time, f.hips[SEAT].copy()) for f in pump.frames]
+            seen += [(f.hips[SEAT].copy(), grid_corners(f.positions)[SEAT])
+                     for f in pump.frames]
             pump.frames.clear()
             time.sleep(0.02)
         if proc.poll() is None:
@@ -113,13 +121,18 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
     assert np.allclose(moved[[0, 2]], target[[0, 2]], atol=1e-3), report
     assert moved[1] > start[1] + 0.01  # the wheel lifted it
     # the server saw the hand at rest, then where the mouse put it
-    hips = [h for _, h in seen]
+    hips = [h for h, _ in seen]
     assert hips, "the spectator saw no frames"
     at_rest = [i for i, h in enumerate(hips) if np.allclose(h, start, atol=1e-5)]
     at_moved = [i for i, h in enumerate(hips) if np.allclose(h, moved, atol=1e-5)]
     assert at_rest, "the hand at rest was never seen"
     assert at_moved, f"the moved hand was never seen: last {hips[-1]}, expected {moved}"
     assert at_rest[0] < at_moved[0]
+    # and the cloth's corner followed the hand there (the coupling spring pulls it)
+    corner_then = seen[max(i for i in at_rest if i < at_moved[0])][1]
+    corner_now = seen[at_moved[-1]][1]
+    assert np.linalg.norm(corner_now - moved) < 0.5 * np.linalg.norm(corner_then - moved), (
+        corner_then, corner_now, moved)
     # (after the client quits, the server lets go of the seat's hand: not checked here)
     # the screenshot shows the cloth in the middle of the window
     import matplotlib.image
@@ -129,7 +142,7 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
     h, w = img.shape[:2]
     middle = img[int(0.4 * h):int(0.6 * h), int(0.4 * w):int(0.6 * w)]
     frac = float(cloth_like(middle).mean())
-    assert frac > 0.6, f"only {frac:.0%} of the middle looks like cloth"
+    assert frac > 0.6, f"only {frac:.0%} of the middle looks like cloth ({out / 'shot.png'})"
     bg = np.abs(img - np.array(BACKGROUND)).max(axis=-1) < 0.02
     assert 0.1 < bg.mean() < 0.9  # a scene on a background, not a blank window
     assert report["frames_drawn"] > 10

@@ -212,8 +212,8 @@ class ClientWindow(pyglet.window.Window):
         p = sample.positions.reshape(-1, 3)
         size = float(max(np.ptp(p[:, 0]), np.ptp(p[:, 2]), 0.2))
         self.camera.target = p.mean(axis=0)
-        self.camera.distance = 2.0 * size
-        self.camera.pitch = 0.8
+        self.camera.distance = 2.6 * size  # room for the hands' reach around the cloth
+        self.camera.pitch = 0.85
         if own_seat is not None:
             corners = [sample.positions[0, 0], sample.positions[0, -1],
                        sample.positions[-1, -1], sample.positions[-1, 0]]
