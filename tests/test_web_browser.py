@@ -355,3 +355,24 @@ def test_reconnects_with_backoff_after_a_server_restart(tmp_path, driver) -> Non
         assert errs == []  # only the failed reconnect attempts are logged
     finally:
         st.stop()
+
+
+def test_bench_module_measures_decode_and_upload(live: ServerThread, driver) -> None:
+    """tools/web_bench.py's in-page part runs (what it measures is reported, not asserted)."""
+    import base64
+
+    from web_vectors import messages
+
+    frames = [base64.b64encode(d).decode() for name, d in messages()
+              if name in ("mesh_n16_zlib", "mesh_n16_raw")]
+    open_page(driver, live.url)
+    r = driver.execute_async_script("""
+        const [frames, done] = arguments;
+        import('/static/bench.js').then((m) => done(m.benchDecodeUpload(frames,
+          {batch: 2, repeats: 1}))).catch((e) => done({error: String(e.stack || e)}));
+    """, frames)
+    assert "error" not in r, r.get("error")
+    assert r["n"] == 16 and r["frames"] == 2
+    for stage in ("decode", "upload", "decodeUpload", "decodeUploadFinish"):
+        assert r[stage]["count"] == 2 and 0 <= r[stage]["median"] < 1000
+    assert console_errors(driver) == []
