@@ -2,7 +2,8 @@
 
 The test starts Xvfb and a server on loopback, then runs the client in a subprocess (this
 file with ``--driver``: pyglet's global state stays out of the test process). Synthetic
-mouse events (``window.dispatch_event``) move the player's corner; a spectator connected
+mouse events (``window.dispatch_event``) click through the lobby (room, corner) and move
+the player's corner; a spectator connected
 to the same server sees the hand arrive where the pointer is; the window's screenshot
 shows the cloth (its shaded colour in the middle of the picture, not a blank window).
 """
@@ -152,8 +153,8 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
 
 
 def driver(url: str, out: Path) -> int:
-    """Open the client window on ``url``, take seat 2, move the hand with synthetic mouse
-    events, write ``report.json`` and ``shot.png`` into ``out``."""
+    """Open the client window on ``url``, click through the lobby to seat 2, move the hand
+    with synthetic mouse events, write ``report.json`` and ``shot.png`` into ``out``."""
     import pyglet
     from clothball.game.client.app import ClientWindow, run_window
     from clothball.game.client.model import ClientModel
@@ -164,9 +165,18 @@ def driver(url: str, out: Path) -> int:
     net = NetThread(url, name="xvfb", device=mouse)
     net.start()
     window = ClientWindow(net=net, device=mouse, model=ClientModel(name="xvfb", server_url=url),
-                          auto_join={"room": None, "seat": SEAT, "role": "player"},
                           width=SIZE[0], height=SIZE[1], vsync=False)
-    state: dict = {"phase": "wait", "t": time.monotonic(), "deadline": time.monotonic() + 40}
+    state: dict = {"phase": "lobby", "t": time.monotonic(), "deadline": time.monotonic() + 40}
+
+    def click(action: tuple) -> bool:
+        """Click the middle of the lobby button for ``action`` (False: not shown yet)."""
+        for b in window.lobby.buttons(window.model, window.width, window.height):
+            if b.action == action and b.enabled:
+                x, y = round(b.x + b.w / 2), round(b.y + b.h / 2)
+                window.dispatch_event("on_mouse_press", x, y, 1, 0)
+                window.dispatch_event("on_mouse_release", x, y, 1, 0)
+                return True
+        return False
 
     def step(dt: float) -> None:
         now = time.monotonic()
@@ -175,7 +185,13 @@ def driver(url: str, out: Path) -> int:
             state["rc"] = 3
             window.close()
             return
-        if state["phase"] == "wait":
+        if state["phase"] == "lobby":  # through the lobby screens, as a user clicks
+            rooms = window.model.rooms
+            if window.model.connection == "connected" and rooms and window.lobby.screen == "rooms":
+                click(("select_room", rooms[0]["id"]))
+            elif window.lobby.screen == "seats" and click(("take_seat", SEAT)):
+                state["phase"], state["t"] = "wait", now
+        elif state["phase"] == "wait":
             if (window.model.seat == SEAT and window.frame is not None
                     and mouse.reach is not None and window.frames_drawn > 5
                     and now - state["t"] > 1.0):
