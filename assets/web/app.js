@@ -215,7 +215,9 @@ function placeLabels(seats) {
     const p = r.hasMesh && r.corners ? project(r.viewProjection, r.corners[e], w, h) : null;
     if (!p) { lab.hidden = true; continue; }
     lab.hidden = false;
-    lab.style.transform = `translate(${p[0].toFixed(1)}px, ${p[1].toFixed(1)}px)`;
+    // near the right edge the label goes to the left of its corner, so it stays on screen
+    const flip = p[0] > w - (lab.offsetWidth || 60) - 16 ? " translateX(calc(-100% - 16px))" : "";
+    lab.style.transform = `translate(${p[0].toFixed(1)}px, ${p[1].toFixed(1)}px)${flip}`;
     lab.style.borderColor = SEAT_COLORS[e];
     const text = seatName(seats, e);
     if (lab.textContent !== text) lab.textContent = text;

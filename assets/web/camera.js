@@ -77,7 +77,10 @@ export class OrbitCamera {
 
   projection() {
     const near = Math.max(0.01, this.distance * 0.02);
-    return perspective(this.fovy, this.aspect, near, this.distance * 50);
+    // A portrait screen (a phone) keeps the horizontal field of view: the cloth still fits.
+    const fovy = this.aspect >= 1 ? this.fovy
+      : Math.min(1.9, 2 * Math.atan(Math.tan(this.fovy / 2) / this.aspect));
+    return perspective(fovy, this.aspect, near, this.distance * 50);
   }
 
   viewProjection() { return multiply(this.projection(), this.view()); }
