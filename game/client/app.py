@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import queue
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -125,7 +126,7 @@ class ClientWindow(pyglet.window.Window):
         while True:
             try:
                 at, msg = self.net.messages.get_nowait()
-            except Exception:  # queue.Empty
+            except queue.Empty:
                 break
             if msg.get("type") == "_status":
                 self.model.set_connection(msg["state"], msg.get("detail", ""))
@@ -178,6 +179,9 @@ class ClientWindow(pyglet.window.Window):
                 self.model.apply(reply, now)
                 self.buffer.reset()
                 self._camera_set_for = None
+                self.lobby.screen = "rooms"
+                if self.net is not None:
+                    self._track("refresh", self.net.list_rooms())
         self._pending = still
 
     def _make_frame(self, now: float) -> RenderFrame | None:
