@@ -11,6 +11,8 @@ import sys
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("clothball.game.bench", "measure time per substep (the paper's Table 1)"),
+    "accuracy": ("clothball.game.accuracy_cmd", "error against wall time per integrator, "
+                 "precision, step and grid size"),
     "scenes": ("clothball.game.scenes_cmd", "list the shipped scenes and their effects"),
     "falcon": ("clothball.game.falcon_cmd", "check a Novint Falcon and bench its 1 kHz loop"),
     "host": ("clothball.server.host", "run a game server (rooms, bots, spectators, replays)"),
