@@ -20,8 +20,8 @@ from .cloth import cuda_unavailable_reason
 from .integrators_ref import INTEGRATORS
 from .scene import Scene, SceneError
 
-DEFAULT_SIZES = (15, 30)
-QUICK_SIZES = (12,)
+DEFAULT_SIZES = (20, 40)
+QUICK_SIZES = (16,)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
