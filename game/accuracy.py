@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -50,9 +50,10 @@ from .integrators_ref import (
     kinetic_energy,
     potential_energy,
     static_equilibrium,
+    with_effects,
 )
 from .scene import INTEGRATORS as NATIVE_INTEGRATORS
-from .scene import SCHEMA, Scene
+from .scene import Scene
 from .stability import BALL_TRAVEL, SAFETY, auto_substeps
 
 PRECISIONS = ("float32", "float64")
@@ -119,18 +120,6 @@ def make_sim(
 
 
 # --- scenarios ----------------------------------------------------------------------------
-def with_effects(scene: Scene, drop: Iterable[str]) -> Scene:
-    """The scene without the effects in ``drop`` (and without the keys that belong to them)."""
-    gone = set(drop)
-    data = scene.to_dict()
-    for section, table in data.items():
-        for key in list(table):
-            if SCHEMA[section][key].effect in gone:
-                del table[key]
-    data.setdefault("sim", {})["effects"] = sorted(scene.effects - gone)
-    return Scene(data, name=scene.name)
-
-
 def undamped(scene: Scene) -> Scene:
     """The scene with the cloth's and the ball's damping off (energy is then conserved)."""
     s = with_effects(scene, ["damping"])
@@ -173,8 +162,11 @@ def impact_speed(scene: Scene, start: Start) -> float:
 
 
 def drop_energy(scene: Scene, start: Start) -> float:
-    """Kinetic energy the ball has when it reaches the cloth: the drift's yardstick."""
-    return 0.5 * scene["ball"]["mass"] * impact_speed(scene, start) ** 2
+    """The drift's yardstick: the ball's kinetic energy on reaching the resting cloth plus
+    the weight times its radius (what sinking into the cloth releases); never zero."""
+    g = float(np.linalg.norm(scene["sim"]["gravity"])) if "gravity" in scene.effects else 0.0
+    m, r = scene["ball"]["mass"], scene["ball"]["radius"]
+    return 0.5 * m * impact_speed(scene, start) ** 2 + m * max(g, 1e-9) * r
 
 
 def start_substeps(scene: Scene, integrator: str, ball_speed: float) -> int:

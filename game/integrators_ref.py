@@ -47,12 +47,12 @@ projection only costs some of the Newton step's accuracy in compressed contacts.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
 from .oracle import BEND_DIRS, CORNERS, SHEAR_DIRS, STRUCTURAL_DIRS, ReferenceCloth
-from .scene import Scene
+from .scene import SCHEMA, Scene
 
 INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "implicit_euler")
 ORDERS = {"semi_implicit_euler": 1, "velocity_verlet": 2, "implicit_euler": 1}
@@ -375,6 +375,18 @@ class IntegratingCloth(ReferenceCloth):
             self.ball_pos = self.ball_pos + dt * self.ball_vel
 
 
+def with_effects(scene: Scene, drop: Iterable[str]) -> Scene:
+    """The scene without the effects in ``drop`` (and without the keys that belong to them)."""
+    gone = set(drop)
+    data = scene.to_dict()
+    for section, table in data.items():
+        for key in list(table):
+            if SCHEMA[section][key].effect in gone:
+                del table[key]
+    data.setdefault("sim", {})["effects"] = sorted(scene.effects - gone)
+    return Scene(data, name=scene.name)
+
+
 def static_equilibrium(
     scene: Scene,
     hips: np.ndarray | None = None,
@@ -391,8 +403,8 @@ def static_equilibrium(
     the potential energy. Converged when every node's residual force is below ``tol``
     times its weight. Returns the positions and a summary (iterations, residual).
     """
-    fx = scene.effects - {"ball", "damping"}
-    s = scene.with_changes({"sim": {"effects": sorted(fx)}}) if fx != scene.effects else scene
+    s = with_effects(scene, ["ball", "damping"])
+    fx = s.effects
     ref = ReferenceCloth(s)
     if hips is not None:
         ref.hips = np.array(hips, dtype=np.float64)
