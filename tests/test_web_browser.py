@@ -256,6 +256,14 @@ def test_replay_plays_pauses_and_seeks(live: ServerThread, driver) -> None:
     t0_frame = js(driver, "return window.clothball.replay.frame0")
     dt = js(driver, "return window.clothball.replay.frameDt")
     assert (frame - t0_frame) * dt <= target + 1e-6
+    # between two 30 Hz frames the cloth is drawn as a blend of the two around the time
+    nxt = js(driver, """const r = window.clothball.replay;
+        const k = r.meshes.findIndex(m => m.frame === arguments[0]);
+        return r.meshes[Math.min(k + 1, r.meshes.length - 1)].frame""", frame)
+    alpha = js(driver, "return window.clothball.renderer.alpha")
+    now = js(driver, "return window.clothball.playback.time")
+    want = 0.0 if nxt == frame else (now / dt + t0_frame - frame) / (nxt - frame)
+    assert alpha == pytest.approx(want, abs=1e-6)
     # seek to the end: the score event is shown and the scoreboard has the final scores
     js(driver, """const s = document.getElementById('seek'); s.value = s.max;
                   s.dispatchEvent(new Event('input', {bubbles: true}));""")

@@ -437,15 +437,12 @@ async function startReplay(id, t0) {
   $("share").href = `${location.origin}${location.pathname}#/replay/${encodeURIComponent(id)}`;
   $("share-url").value = $("share").href;
   let shownEvents = -1;
-  let shownMesh = -1;
   app.playback = new Playback(replay.duration, (t) => {
-    const i = replay.meshIndexAt(t);
-    if (i !== shownMesh) {
-      const mesh = replay.mesh(i);
-      app.renderer.uploadMesh(mesh);
-      app.shownMesh = mesh;
-      shownMesh = i;
-    }
+    // the cloth between its 30 Hz frames: a blend of the two around t (smooth slow motion)
+    const { i, j, alpha } = replay.meshPairAt(t);
+    const mesh = replay.mesh(i);
+    app.renderer.showBlend(mesh, replay.mesh(j), alpha);
+    app.shownMesh = mesh;
     const tr = replay.trackAt(t);
     if (tr && app.renderer.ball) {
       app.renderer.ball = { position: tr.ballPosition, radius: app.renderer.ball.radius };

@@ -22,17 +22,24 @@ export function hexColor(hex) {
 const CLOTH_VS = `#version 300 es
 precision highp float;
 precision highp int;
-uniform highp usampler2D uPos;
+uniform highp usampler2D uPosA;  // the frame shown
+uniform highp usampler2D uPosB;  // the next frame (replays blend towards it by uAlpha)
 uniform int uN;
-uniform vec3 uLo;
-uniform vec3 uScale;
+uniform vec3 uLoA;
+uniform vec3 uScaleA;
+uniform vec3 uLoB;
+uniform vec3 uScaleB;
+uniform float uAlpha;
 uniform mat4 uVP;
 out vec3 vNormal;
 out vec3 vWorld;
 out vec2 vUV;
 vec3 node(ivec2 c) {
   c = clamp(c, ivec2(0), ivec2(uN - 1));
-  return uLo + vec3(texelFetch(uPos, c, 0).xyz) * uScale;
+  vec3 a = uLoA + vec3(texelFetch(uPosA, c, 0).xyz) * uScaleA;
+  if (uAlpha <= 0.0) return a;
+  vec3 b = uLoB + vec3(texelFetch(uPosB, c, 0).xyz) * uScaleB;
+  return mix(a, b, uAlpha);
 }
 void main() {
   ivec2 c = ivec2(gl_VertexID % uN, gl_VertexID / uN);  // x: column j, y: row i
@@ -206,7 +213,9 @@ export class Renderer {
     this.emptyVao = gl.createVertexArray();
     this.clothIdx = gl.createBuffer();
     this.indexCount = 0;
-    this.tex = null;
+    this.tex = [null, null]; // slot 0: the frame shown; slot 1: the next one (replays)
+    this.slotMesh = [null, null];
+    this.alpha = 0;
     this.n = 0;
 
     const sp = sphere();
@@ -241,8 +250,8 @@ export class Renderer {
 
     this.size = 1;
     this.floorY = 0;
-    this.lo = [0, 0, 0];
-    this.scale = [0, 0, 0];
+    this.lo = [[0, 0, 0], [0, 0, 0]];
+    this.scale = [[0, 0, 0], [0, 0, 0]];
     this.ball = null; // { position, radius }
     this.corners = null; // 4 x [x, y, z]
     this.hips = null;
@@ -271,14 +280,18 @@ export class Renderer {
     if (n === this.n) return;
     const gl = this.gl;
     this.n = n;
-    if (this.tex) gl.deleteTexture(this.tex);
-    this.tex = gl.createTexture();
-    gl.bindTexture(gl.TEXTURE_2D, this.tex);
-    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGB16UI, n, n);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    for (let k = 0; k < 2; k++) {
+      if (this.tex[k]) gl.deleteTexture(this.tex[k]);
+      const t = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, t);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGB16UI, n, n);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+      this.tex[k] = t;
+    }
+    this.slotMesh = [null, null];
     const idx = new Uint32Array((n - 1) * (n - 1) * 6);
     let k = 0;
     for (let i = 0; i < n - 1; i++) {
@@ -296,23 +309,47 @@ export class Renderer {
     this.hasMesh = false;
   }
 
-  /** Upload a decoded MESH frame (protocol.decodeMesh): one texture copy, no float work. */
-  uploadMesh(mesh) {
+  _upload(slot, mesh) {
     const gl = this.gl;
     const n = mesh.n;
-    this._ensureGrid(n);
-    gl.bindTexture(gl.TEXTURE_2D, this.tex);
+    gl.bindTexture(gl.TEXTURE_2D, this.tex[slot]);
     gl.pixelStorei(gl.UNPACK_ALIGNMENT, 2);
     gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, n, n, gl.RGB_INTEGER, gl.UNSIGNED_SHORT, mesh.q);
-    this.lo = mesh.lo;
-    this.scale = [0, 1, 2].map((c) => (mesh.hi[c] - mesh.lo[c]) / 65535);
-    const q = mesh.q;
-    this.corners = [[0, 0], [0, n - 1], [n - 1, n - 1], [n - 1, 0]].map(([i, j]) => {
-      const k = (i * n + j) * 3;
-      return [0, 1, 2].map((c) => this.lo[c] + q[k + c] * this.scale[c]);
-    });
+    this.lo[slot] = mesh.lo;
+    this.scale[slot] = [0, 1, 2].map((c) => (mesh.hi[c] - mesh.lo[c]) / 65535);
+    this.slotMesh[slot] = mesh;
+  }
+
+  _corners(mesh) {
+    const n = mesh.n;
+    return [[0, 0], [0, n - 1], [n - 1, n - 1], [n - 1, 0]].map(([i, j]) => this.node(mesh, i, j));
+  }
+
+  /** Upload a decoded MESH frame (protocol.decodeMesh): one texture copy, no float work. */
+  uploadMesh(mesh) {
+    this._ensureGrid(mesh.n);
+    this._upload(0, mesh);
+    this.alpha = 0;
+    this.corners = this._corners(mesh);
     this.ball = { position: mesh.ballPosition, radius: mesh.ballRadius };
     this.hips = mesh.hips;
+    this.hasMesh = true;
+  }
+
+  /** Show a blend of two frames (replays between 30 Hz frames): a, then b at alpha. Each
+   * frame is uploaded once, however many times it is shown. */
+  showBlend(a, b, alpha) {
+    this._ensureGrid(a.n);
+    if (this.slotMesh[0] !== a) this._upload(0, a);
+    const blend = b && b !== a && b.n === a.n && alpha > 0;
+    if (blend && this.slotMesh[1] !== b) this._upload(1, b);
+    this.alpha = blend ? Math.min(1, alpha) : 0;
+    const ca = this._corners(a);
+    this.corners = blend
+      ? ca.map((p, k) => { const q = this._corners(b)[k]; return p.map((v, c) => v + (q[c] - v) * this.alpha); })
+      : ca;
+    this.ball = { position: a.ballPosition, radius: a.ballRadius };
+    this.hips = a.hips;
     this.hasMesh = true;
   }
 
@@ -361,17 +398,24 @@ export class Renderer {
     const c = this.cloth;
     gl.useProgram(c.prog);
     gl.activeTexture(gl.TEXTURE0);
-    gl.bindTexture(gl.TEXTURE_2D, this.tex);
-    gl.uniform1i(c.u.uPos, 0);
+    gl.bindTexture(gl.TEXTURE_2D, this.tex[0]);
+    gl.activeTexture(gl.TEXTURE1);
+    gl.bindTexture(gl.TEXTURE_2D, this.tex[this.alpha > 0 ? 1 : 0]);
+    gl.activeTexture(gl.TEXTURE0);
+    gl.uniform1i(c.u.uPosA, 0);
+    gl.uniform1i(c.u.uPosB, 1);
     gl.uniform1i(c.u.uN, this.n);
-    gl.uniform3fv(c.u.uLo, this.lo);
-    gl.uniform3fv(c.u.uScale, this.scale);
+    gl.uniform3fv(c.u.uLoA, this.lo[0]);
+    gl.uniform3fv(c.u.uScaleA, this.scale[0]);
+    gl.uniform3fv(c.u.uLoB, this.lo[1]);
+    gl.uniform3fv(c.u.uScaleB, this.scale[1]);
+    gl.uniform1f(c.u.uAlpha, this.alpha);
     gl.uniformMatrix4fv(c.u.uVP, false, vp);
     gl.uniform3fv(c.u.uEye, eye);
     gl.uniform3fv(c.u.uLight, this.light);
     gl.uniform3fv(c.u.uColor, CLOTH_COLOR);
     gl.uniform4fv(c.u.uEdge, this.edges.flat());
-    gl.uniform1f(c.u.uBand, Math.max(1.6 / (this.n - 1), 0.035));
+    gl.uniform1f(c.u.uBand, Math.min(0.12, Math.max(1.6 / (this.n - 1), 0.035)));
     gl.bindVertexArray(this.emptyVao);
     gl.drawElements(gl.TRIANGLES, this.indexCount, gl.UNSIGNED_INT, 0);
 

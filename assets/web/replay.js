@@ -94,7 +94,7 @@ export class Replay {
     this.frame0 = Math.min(...frames);
     this.frame1 = Math.max(...frames);
     this.duration = (this.frame1 - this.frame0) * this.frameDt;
-    this._cache = { index: -1, mesh: null };
+    this._cache = new Map();
   }
 
   timeOf(frame) { return (frame - this.frame0) * this.frameDt; }
@@ -106,11 +106,23 @@ export class Replay {
     return Math.max(0, lastAtOrBefore(this.meshes, this.frameAt(t) + 1e-6, (m) => m.frame));
   }
 
+  /** The decoded mesh at an index (the last few decoded are kept). */
   mesh(index) {
-    if (this._cache.index !== index) {
-      this._cache = { index, mesh: decodeMesh(this.meshes[index].data) };
-    }
-    return this._cache.mesh;
+    const hit = this._cache.get(index);
+    if (hit) return hit;
+    const m = decodeMesh(this.meshes[index].data);
+    this._cache.set(index, m);
+    if (this._cache.size > 4) this._cache.delete(this._cache.keys().next().value);
+    return m;
+  }
+
+  /** The meshes around time t and how far t is from the first towards the second. */
+  meshPairAt(t) {
+    const i = this.meshIndexAt(t);
+    const j = Math.min(i + 1, this.meshes.length - 1);
+    const fa = this.meshes[i].frame, fb = this.meshes[j].frame;
+    const alpha = fb > fa ? Math.min(1, Math.max(0, (this.frameAt(t) - fa) / (fb - fa))) : 0;
+    return { i, j, alpha };
   }
 
   /** Ball and hands at time t, interpolated between tracks (null when there are none). */
