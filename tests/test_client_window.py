@@ -3,7 +3,7 @@
 The test starts Xvfb and a server on loopback, then runs the client in a subprocess (this
 file with ``--driver``: pyglet's global state stays out of the test process). Synthetic
 mouse events (``window.dispatch_event``) click through the lobby (room, corner) and move
-the player's corner; a spectator connected
+the player's corner, then add a bot, say ready (countdown) and leave; a spectator connected
 to the same server sees the hand arrive where the pointer is; the window's screenshot
 shows the cloth (its shaded colour in the middle of the picture, not a blank window).
 """
@@ -127,7 +127,8 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
     at_rest = [i for i, h in enumerate(hips) if np.allclose(h, start, atol=1e-5)]
     at_moved = [i for i, h in enumerate(hips) if np.allclose(h, moved, atol=1e-5)]
     assert at_rest, "the hand at rest was never seen"
-    assert at_moved, f"the moved hand was never seen: last {hips[-1]}, expected {moved}"
+    assert at_moved, (f"the moved hand was never seen: last {hips[-1]}, expected {moved}; "
+                      f"spectator connection {pump.statuses}; client {report}")
     assert at_rest[0] < at_moved[0]
     # and the cloth's corner followed the hand there (the coupling spring pulls it)
     corner_then = seen[max(i for i in at_rest if i < at_moved[0])][1]
@@ -147,6 +148,10 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
     bg = np.abs(img - np.array(BACKGROUND)).max(axis=-1) < 0.02
     assert 0.1 < bg.mean() < 0.9  # a scene on a background, not a blank window
     assert report["frames_drawn"] > 10
+    # then the room bar: a bot added by a click, R for ready starts the countdown (shown
+    # big), Esc leaves back to the room list and lets go of the device
+    assert report["countdown_shown"] in {"1", "2", "3"}
+    assert report["left"] and report["device_stopped"]
 
 
 # --- the client process --------------------------------------------------------------------
@@ -226,10 +231,28 @@ def driver(url: str, out: Path) -> int:
                 "frames_drawn": window.frames_drawn,
                 "connection": window.model.connection_text(),
             }
-            (out / "report.json").write_text(json.dumps(report))
+            state["report"] = report
             window.screenshot(out / "shot.png")
-            state["rc"] = 0
-            window.close()
+            state["phase"] = "room"
+        elif state["phase"] == "room":  # the room bar: a bot on corner 0, ready, countdown
+            if click(("add_bot", 0)):
+                state["phase"] = "ready"
+        elif state["phase"] == "ready":
+            if any(s.get("kind") == "bot" for s in window.model.seats):
+                window.dispatch_event("on_key_press", pyglet.window.key.R, 0)
+                state["phase"] = "countdown"
+        elif state["phase"] == "countdown":
+            if window.big.text.isdigit():  # the countdown, as last drawn
+                state["report"]["countdown_shown"] = window.big.text
+                window.dispatch_event("on_key_press", pyglet.window.key.ESCAPE, 0)
+                state["phase"] = "leaving"
+        elif state["phase"] == "leaving":
+            if window.model.room is None and window.lobby.screen == "rooms":
+                state["report"]["left"] = True
+                state["report"]["device_stopped"] = mouse.reach is None
+                (out / "report.json").write_text(json.dumps(state["report"]))
+                state["rc"] = 0
+                window.close()
 
     pyglet.clock.schedule_interval(step, 0.05)
     try:

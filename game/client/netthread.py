@@ -238,6 +238,13 @@ class NetThread:
             self._status("connected", "")
             if client.joined is not None and client.reach is not None:
                 await self._on_joined(client)
+            elif (client.joined is None and self._join_args is not None
+                  and self._join_args.get("role") == "spectator"):
+                try:  # a spectator has no seat to resume: it simply watches again
+                    await client.join(self._join_args["room"], "spectator", mesh=True)
+                except (ServerError, ConnectionError, TimeoutError) as e:
+                    self._join_args = None
+                    self._status("connected", f"could not watch again: {e}")
             pinger = asyncio.create_task(self._pinger(client))
             try:
                 await client.wait_closed(timeout=1e9)
@@ -248,8 +255,9 @@ class NetThread:
             if self._stopping:
                 return
             why = f"closed ({client.close_code} {client.close_reason})".strip()
+            log.info("connection %s", why)
             if client.close_code == 4000 or client.token is None:
-                # kicked, or never seated: nothing to resume
+                # kicked, or never seated: no seat to resume
                 self._status("closed", why)
                 if client.close_code == 4000:
                     return
