@@ -178,20 +178,26 @@ class ClockSync:
 class FrameBuffer:
     """The live mesh stream: push frames as they arrive, sample at the display's time.
 
-    ``sample(now)`` returns the scene at server time ``now - offset - delay``: the delay
-    is ``delay_frames`` frame intervals plus the jitter seen (bounded by ``max_delay``),
-    so at display rate the cloth moves between two real frames, never past the newest.
+    ``sample(now)`` returns the scene at about server time ``now - offset - delay``: the
+    delay is ``delay_frames`` frame intervals plus the jitter seen (bounded by
+    ``max_delay``), so at display rate the cloth moves between two real frames, never past
+    the newest; the shown time is slewed towards that target (``render_time``), so it never
+    steps back. Call ``sample`` once per displayed frame, with increasing times.
     """
 
     def __init__(self, capacity: int = 16, delay_frames: float = 1.5,
-                 min_delay: float = 0.01, max_delay: float = 0.25) -> None:
+                 min_delay: float = 0.01, max_delay: float = 0.25, slew: float = 0.1,
+                 snap: float = 0.25) -> None:
         self.timeline = Timeline(capacity=capacity)
         self.clock = ClockSync()
         self.delay_frames = delay_frames
         self.min_delay = min_delay
         self.max_delay = max_delay
+        self.slew = slew  # the shown clock may run this much fast or slow to catch up
+        self.snap = snap  # ...or jump ahead when it is this far behind (s)
         self.received = 0
         self.dropped = 0
+        self._last: tuple[float, float] | None = None  # (local time, shown server time)
 
     def push(self, f: MeshFrame, received_at: float) -> None:
         # A server restart (time going backwards by a lot) starts a fresh stream.
@@ -206,6 +212,7 @@ class FrameBuffer:
     def reset(self) -> None:
         self.timeline = Timeline(capacity=self.timeline.capacity)
         self.clock = ClockSync()
+        self._last = None
 
     def interval(self) -> float:
         """Median spacing of the buffered frames (s); 1/30 until there are two."""
@@ -219,9 +226,32 @@ class FrameBuffer:
         d = self.delay_frames * self.interval() + self.clock.jitter()
         return float(np.clip(d, self.min_delay, self.max_delay))
 
-    def render_time(self, local_now: float) -> float:
-        """The server time to show at local time ``local_now``."""
+    def target_time(self, local_now: float) -> float:
+        """The server time ideally shown at ``local_now``: ``delay`` behind the stream."""
         return self.clock.to_server(local_now) - self.delay
+
+    def render_time(self, local_now: float) -> float:
+        """The server time to show at local time ``local_now``.
+
+        The target moves in small steps whenever the clock offset or the delay is
+        re-estimated; the shown time follows it without jumps: it advances with the local
+        clock, at most ``slew`` faster or slower, never backwards, and jumps forward only
+        when it has fallen ``snap`` behind (after a stall)."""
+        target = self.target_time(local_now)
+        if self._last is None or local_now <= self._last[0]:
+            shown = target if self._last is None else self._last[1]
+        else:
+            last_local, last_shown = self._last
+            dt = local_now - last_local
+            predicted = last_shown + dt
+            err = target - predicted
+            if err > self.snap:
+                shown = target
+            else:
+                shown = predicted + float(np.clip(err, -self.slew * dt, self.slew * dt))
+            shown = max(shown, last_shown)
+        self._last = (local_now, shown)
+        return shown
 
     def sample(self, local_now: float) -> Sample | None:
         return self.timeline.sample(self.render_time(local_now))
