@@ -281,6 +281,7 @@ class ClientWindow(pyglet.window.Window):
                 else:
                     lines.append("watching")
             self._set(self.events_label, "\n".join(m.recent_events(now)))
+            self.events_label.y = 34 if m.room is not None else 96  # above the lobby buttons
             self._set(self.status, f"{m.server_url}  {m.connection_text()}  "
                                    f"[M wire mesh  Esc leave]")
         self._set(self.hud, "\n".join(lines))
