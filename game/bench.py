@@ -14,6 +14,7 @@ import json
 import statistics
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backends", default="auto", help="cpu,cuda or auto (every one present)")
     p.add_argument("--precisions", default="float32,float64", help="float32,float64")
     p.add_argument("--repeats", type=int, default=None, help="timed repeats (median taken)")
+    p.add_argument(
+        "--effects",
+        action="store_true",
+        help="time each effect alone and added one at a time (on --scene, default classic)",
+    )
     p.add_argument(
         "--server", action="store_true", help="benchmark the game server instead (see --help)"
     )
@@ -154,6 +160,105 @@ def run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
+# The order effects are added in by --effects: the paper's set first, then the rest.
+EFFECT_ORDER = (
+    "structural",
+    "gravity",
+    "damping",
+    "coupling",
+    "ball",
+    "shear",
+    "bend",
+    "wind",
+    "strain_limit",
+)
+
+
+def effect_cases(base: Scene) -> list[tuple[str, tuple[str, ...]]]:
+    """(label, effect set) rows: each effect alone, then added one at a time."""
+    cases = [(f"{e} alone", (e,)) for e in EFFECT_ORDER]
+    for k in range(1, len(EFFECT_ORDER) + 1):
+        label = EFFECT_ORDER[k - 1] if k == 1 else f"+ {EFFECT_ORDER[k - 1]}"
+        cases.append((label, EFFECT_ORDER[:k]))
+    cases.append((f"{base.name} as shipped", tuple(sorted(base.effects))))
+    return cases
+
+
+def run_effects(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Time per substep for each effect set of ``effect_cases`` on each backend.
+
+    Every set runs at the same substep count (the one the full set needs), so that the
+    rows differ only in the kernel. Each set is timed twice, in two separate passes over
+    the list, to show how far two measurements of one kernel lie apart.
+    """
+    from tqdm import tqdm  # noqa: PLC0415
+
+    base = Scene.load(args.scene)
+    n = int(_csv(args.sizes, "sizes")[0]) if args.sizes else base.n
+    full = base.with_changes({"cloth": {"n": n}, "sim": {"effects": list(EFFECT_ORDER)}})
+    substeps = auto_substeps(full)
+    precisions = _csv(args.precisions, "precisions", ("float32", "float64"))
+    backends = [b for b, _, _ in plan(args)]
+    backends = list(dict.fromkeys(backends))
+    repeats = args.repeats or (3 if args.quick else 7)
+    cases = effect_cases(base)
+    rows = []
+    jobs = [(b, p, c) for b in backends for p in precisions for c in cases]
+    timings: dict[tuple[str, str, tuple[str, ...]], list[float]] = {}
+    for _pass in range(2):
+        progress = tqdm(jobs, desc=f"effects pass {_pass + 1}", unit="set", file=sys.stderr)
+        for backend, precision, (_label, effects) in progress:
+            scene = base.with_changes(
+                {
+                    "cloth": {"n": n},
+                    "sim": {"effects": list(effects), "substeps": substeps, "allow_unstable": True},
+                }
+            )
+            with warnings.catch_warnings():  # every set runs at the full set's substeps
+                warnings.simplefilter("ignore")
+                cloth = Cloth(scene, backend=backend, precision=precision)
+            timings.setdefault((backend, precision, effects), []).append(
+                time_substep(cloth, repeats) * 1e6
+            )
+    for backend, precision, (label, effects) in jobs:
+        t = timings[(backend, precision, effects)]
+        rows.append(
+            {
+                "label": label,
+                "effects": list(effects),
+                "backend": backend,
+                "precision": precision,
+                "n": n,
+                "substeps_per_frame": substeps,
+                "substep_us": statistics.median(t),
+                "pass_us": t,
+                "pass_spread": abs(t[0] - t[1]) / min(t),
+            }
+        )
+    return rows
+
+
+def print_effects(rows: list[dict[str, Any]]) -> None:
+    head = f"{'effects':<28} {'backend':>7} {'precision':>9} {'us/substep':>11}"
+    print(f"{head} {'2-pass spread':>13}")
+    for r in rows:
+        print(
+            f"{r['label']:<28} {r['backend']:>7} {r['precision']:>9} {r['substep_us']:>11.2f} "
+            f"{r['pass_spread']:>12.1%}"
+        )
+    # What removing each effect saves, from the cumulative rows: T(with) - T(without).
+    by = {(r["backend"], r["precision"], tuple(r["effects"])): r["substep_us"] for r in rows}
+    print("\ncost of each effect on top of the ones before it (cumulative rows):")
+    for (backend, precision, effects), t in by.items():
+        k = len(effects)
+        if effects == EFFECT_ORDER[:k] and k > 1:
+            before = by[(backend, precision, EFFECT_ORDER[: k - 1])]
+            print(
+                f"  {backend:>4} {precision} {effects[-1]:<13} {t - before:+8.2f} us "
+                f"({(t - before) / before:+.0%})"
+            )
+
+
 def print_table(rows: list[dict[str, Any]], copy_gbs: float | None) -> None:
     print(f"{'n':>6} {'backend':>7} {'precision':>9} {'us/substep':>11} {'GB/s':>7}  paper (ms)")
     for r in rows:
@@ -177,6 +282,17 @@ def run(args: argparse.Namespace) -> int:
         from ..server import loadbench  # noqa: PLC0415
 
         return loadbench.run(args)
+    if args.effects:
+        try:
+            rows = run_effects(args)
+        except (ValueError, SceneError) as e:
+            print(f"clothball bench: {e}", file=sys.stderr)
+            return 2
+        print_effects(rows)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=2))
+            print(f"wrote {args.json}")
+        return 0
     try:
         rows = run_table(args)
     except (ValueError, SceneError) as e:

@@ -8,17 +8,20 @@ the substep count from the stability bound unless the scene fixes it.
 from __future__ import annotations
 
 import logging
+import math
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
 from .. import _native  # type: ignore[attr-defined]
-from .scene import Scene
-from .stability import auto_substeps
+from .scene import EFFECTS, Scene, SceneError
+from .stability import auto_substeps, stable_dt
 
 log = logging.getLogger("clothball")
 
 BACKENDS = ("auto", "cpu", "cuda")
+CPU_MAX_N = 4096  # largest cloth the CPU backend is built and tested for (16.8 M nodes)
 MAX_FRAMES_PER_CALL = 10_000_000
 
 
@@ -26,12 +29,16 @@ class SimulationError(RuntimeError):
     """The simulation state became non-finite; the cloth must be reset or dropped."""
 
 
+class UnstableSceneWarning(UserWarning):
+    """A scene fixes a substep beyond the stability bound and sets allow_unstable."""
+
+
 def cuda_unavailable_reason() -> str:
     """Empty when the CUDA backend can run here, else why not."""
     return _native.cuda_unavailable_reason()
 
 
-def native_config(scene: Scene) -> _native.Config:
+def native_config(scene: Scene, threads: int = 0) -> _native.Config:
     """The native engine's view of a scene."""
     c = _native.Config()
     cloth, ball = scene["cloth"], scene["ball"]
@@ -49,6 +56,13 @@ def native_config(scene: Scene) -> _native.Config:
     c.ball_k = ball["stiffness"]
     c.ball_damping = ball["damping"]
     c.coupling_k = scene["coupling"]["stiffness"]
+    wind = scene["wind"]
+    c.air_density = wind["air_density"]
+    c.drag = wind["drag"]
+    c.lift = wind["lift"]
+    c.max_strain = scene["strain_limit"]["max_strain"]
+    c.strain_iterations = scene["strain_limit"]["iterations"]
+    c.threads = threads
     c.effects = effect_bits(scene.effects)
     return c
 
@@ -59,6 +73,11 @@ def effect_bits(effects: frozenset[str] | Sequence[str]) -> int:
     for e in effects:
         bits |= _native.EFFECT_BITS[e]
     return bits
+
+
+def effect_names(bits: int) -> frozenset[str]:
+    """The effect names of a native bit mask."""
+    return frozenset(e for e in EFFECTS if bits & _native.EFFECT_BITS[e])
 
 
 def rest_positions(scene: Scene) -> np.ndarray:
@@ -98,10 +117,18 @@ class Cloth:
 
     ``backend="auto"`` picks CUDA when a GPU is present, else the CPU, and logs which
     (``backend_note`` says why). ``precision`` overrides the scene's ``sim.precision``.
+    ``threads`` caps the CPU backend's threads (default: all cores); a server that shares
+    the cores with its network loop may want 1.
     Not thread-safe: one thread steps it at a time (stepping releases the GIL).
     """
 
-    def __init__(self, scene: Scene, backend: str = "auto", precision: str | None = None) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        backend: str = "auto",
+        precision: str | None = None,
+        threads: int | None = None,
+    ) -> None:
         if not isinstance(scene, Scene):
             raise ValueError(f"scene: expected a Scene, got {type(scene).__name__}")
         if backend not in BACKENDS:
@@ -110,6 +137,10 @@ class Cloth:
             precision = scene["sim"]["precision"]
         if precision not in ("float32", "float64"):
             raise ValueError(f"precision: must be 'float32' or 'float64', got {precision!r}")
+        if threads is not None and (
+            isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= 1024
+        ):
+            raise ValueError(f"threads: must be a whole number in 1..1024, got {threads!r}")
         why_not = cuda_unavailable_reason()
         if backend == "auto":
             backend = "cuda" if not why_not else "cpu"
@@ -121,23 +152,71 @@ class Cloth:
             raise ValueError(f"backend: 'cuda' requested but {why_not}")
         else:
             self.backend_note = f"{backend} requested"
+        if backend == "cpu" and scene.n > CPU_MAX_N:
+            raise ValueError(
+                f"scene: n = {scene.n} is larger than the CPU backend supports "
+                f"(n <= {CPU_MAX_N}); use backend='cuda'"
+            )
         self.scene = scene
         self.backend = backend
         self.precision = precision
-        self._engine = _native.Engine(backend, precision == "float64", native_config(scene))
         self._fixed_substeps = scene["sim"]["substeps"]
         self._frame_dt = float(scene["sim"]["frame_dt"])
+        if self._fixed_substeps is not None:
+            self._check_fixed_dt(scene)
+        self._engine = _native.Engine(
+            backend, precision == "float64", native_config(scene, threads or 0)
+        )
         self._coupled = "coupling" in scene.effects
         self._has_ball = "ball" in scene.effects
         self._k = float(scene["coupling"]["stiffness"]) if self._coupled else 0.0
-        rest = rest_positions(scene)
+        wind = scene["wind"]
+        self._wind = np.array(wind["velocity"], dtype=np.float64)
+        self._gusts = "wind" in scene.effects and wind["gust_amplitude"] > 0.0
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the scene's start: cloth at rest, hands at the corners, ball placed."""
+        rest = rest_positions(self.scene)
         self._engine.set_state(rest, np.zeros_like(rest))
         self._hips = corners_of(rest)
         self._engine.set_hips(self._hips)
-        ball = scene["ball"]
+        ball = self.scene["ball"]
         self._engine.set_ball(np.array([*ball["position"], *ball["velocity"]], dtype=np.float64))
-        self._refresh_substeps()
         self.frame = 0
+        self._apply_wind()
+        self._refresh_substeps()
+
+    def _check_fixed_dt(self, scene: Scene) -> None:
+        dt = self._frame_dt / self._fixed_substeps
+        bound = stable_dt(scene)
+        if dt <= bound:
+            return
+        need = auto_substeps(scene)
+        msg = (
+            f"sim.substeps = {self._fixed_substeps} gives dt = {dt:.3g} s, beyond the stability "
+            f"bound {bound:.3g} s of this scene (use at least {need} substeps, or leave "
+            f"sim.substeps out for automatic substeps)"
+        )
+        if not scene["sim"]["allow_unstable"]:
+            raise SceneError(msg)
+        warnings.warn(
+            msg + "; accepted because sim.allow_unstable = true", UnstableSceneWarning, stacklevel=3
+        )
+
+    def wind_at(self, t: float) -> np.ndarray:
+        """The wind velocity at simulated time t (gusts: x (1 + a sin(2 pi t / T)))."""
+        wind = self.scene["wind"]
+        a, period = wind["gust_amplitude"], wind["gust_period"]
+        return self._wind * (1.0 + a * math.sin(2.0 * math.pi * t / period))
+
+    def _apply_wind(self) -> None:
+        self._engine.set_wind(self.wind_at(self.frame * self._frame_dt))
+
+    @property
+    def compiled_effects(self) -> frozenset[str]:
+        """The effect set the running kernels were compiled for."""
+        return effect_names(self._engine.compiled_effects())
 
     # --- stepping -------------------------------------------------------------------------
     def _refresh_substeps(self) -> None:
@@ -169,8 +248,12 @@ class Cloth:
             raise ValueError(f"frames: must be in 1..{MAX_FRAMES_PER_CALL}, got {frames}")
         remaining = int(frames)
         while remaining:
-            # Auto substeps follow the ball's speed, so re-check at least every 10 frames.
+            # Auto substeps follow the ball's speed, so re-check at least every 10 frames;
+            # gusts change the wind every frame.
             chunk = remaining if self._fixed_substeps is not None else min(remaining, 10)
+            if self._gusts:
+                chunk = 1
+                self._apply_wind()
             self._engine.step(chunk, self._substeps, self.dt)
             self.frame += chunk
             remaining -= chunk
@@ -179,9 +262,8 @@ class Cloth:
                 self._refresh_substeps()
 
     def _check_finite(self) -> None:
-        state = self._engine.corners()
         ball = self._engine.ball()
-        if not (np.all(np.isfinite(state)) and np.all(np.isfinite(ball))):
+        if not (self._engine.state_finite() and np.all(np.isfinite(ball))):
             raise SimulationError(
                 f"simulation state became non-finite by frame {self.frame} "
                 f"(backend {self.backend}, {self.precision}, {self._substeps} substeps)"
@@ -246,4 +328,3 @@ class Cloth:
             f"Cloth({self.scene.name!r}, n={self.scene.n}, backend={self.backend!r}, "
             f"precision={self.precision!r}, substeps={self.substeps})"
         )
-

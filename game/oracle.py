@@ -50,6 +50,69 @@ def ball_contact(pos: np.ndarray, centre: np.ndarray, radius: float, k: float) -
     return f
 
 
+def triangles(n: int) -> np.ndarray:
+    """Vertex indices (T, 3) of the grid's triangles: quad (a, b, c, d) = ((i,j), (i,j+1),
+    (i+1,j+1), (i+1,j)) split into (a, b, c) and (a, c, d)."""
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    a, b = i * n + j, i * n + j + 1
+    c, d = (i + 1) * n + j + 1, (i + 1) * n + j
+    t1 = np.stack([a, b, c], axis=-1).reshape(-1, 3)
+    t2 = np.stack([a, c, d], axis=-1).reshape(-1, 3)
+    return np.concatenate([t1, t2])
+
+
+def wind_forces(
+    pos: np.ndarray, vel: np.ndarray, wind: np.ndarray, rho: float, cd: float, cl: float
+) -> np.ndarray:
+    """Drag and lift on every triangle from the relative wind, a third to each vertex.
+
+    Per triangle with unit normal n turned to face the relative wind u = wind - mean vertex
+    velocity, area A and cos(theta) = u.n / |u|: drag 1/2 rho Cd A |u|^2 cos(theta) u/|u|,
+    lift 1/2 rho Cl A |u|^2 cos(theta) (cos(theta) u/|u| - n).
+    """
+    n = pos.shape[0]
+    P, V = pos.reshape(-1, 3), vel.reshape(-1, 3)
+    tri = triangles(n)
+    p0, p1, p2 = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
+    u = wind - (V[tri[:, 0]] + V[tri[:, 1]] + V[tri[:, 2]]) / 3.0
+    nrm = np.cross(p1 - p0, p2 - p0)
+    twice_area = np.linalg.norm(nrm, axis=1)
+    ulen = np.linalg.norm(u, axis=1)
+    ok = (twice_area > 1e-30) & (ulen > 1e-12)
+    nh = nrm / np.where(ok, twice_area, 1.0)[:, None]
+    un = np.einsum("ij,ij->i", u, nh)
+    nh = np.where((un < 0)[:, None], -nh, nh)
+    un = np.abs(un)
+    area = 0.5 * twice_area
+    cos = un / np.where(ok, ulen, 1.0)
+    u_hat = u / np.where(ok, ulen, 1.0)[:, None]
+    drag = 0.5 * rho * cd * (area * ulen**2 * cos)[:, None] * u_hat
+    lift = 0.5 * rho * cl * (area * ulen**2 * cos)[:, None] * (cos[:, None] * u_hat - nh)
+    f_tri = np.where(ok[:, None], drag + lift, 0.0)
+    out = np.zeros_like(P)
+    for k in range(3):
+        np.add.at(out, tri[:, k], f_tri / 3.0)
+    return out.reshape(pos.shape)
+
+
+def strain_limit_sweep(pos: np.ndarray, max_len: float) -> np.ndarray:
+    """One Jacobi sweep of Provot's strain limiting over the structural springs: each spring
+    longer than max_len moves each of its ends a quarter of the excess towards the other
+    (a quarter, not half, keeps simultaneous Jacobi updates convergent)."""
+    n = pos.shape[0]
+    corr = np.zeros_like(pos)
+    for di, dj in STRUCTURAL_DIRS:
+        rows = slice(max(0, -di), n - max(0, di))
+        cols = slice(max(0, -dj), n - max(0, dj))
+        nrows = slice(max(0, -di) + di, n - max(0, di) + di)
+        ncols = slice(max(0, -dj) + dj, n - max(0, dj) + dj)
+        d = pos[nrows, ncols] - pos[rows, cols]
+        length = np.linalg.norm(d, axis=-1, keepdims=True)
+        over = np.maximum(length - max_len, 0.0)
+        corr[rows, cols] += d * (0.25 * over / np.where(length > 1e-12, length, 1.0))
+    return pos + corr
+
+
 def grid_normals(pos: np.ndarray) -> np.ndarray:
     """Unit normals from the cross product of the grid tangents (central differences)."""
     tv = np.gradient(pos, axis=0)  # along i (+z at rest)
@@ -72,6 +135,7 @@ class ReferenceCloth:
         ball = scene["ball"]
         self.ball_pos = np.array(ball["position"], dtype=np.float64)
         self.ball_vel = np.array(ball["velocity"], dtype=np.float64)
+        self.wind = np.array(scene["wind"]["velocity"], dtype=np.float64)
 
     def forces(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Force on every node (eq. 1) and the summed contact force on the ball."""
@@ -99,6 +163,9 @@ class ReferenceCloth:
             K = s["coupling"]["stiffness"]
             for c, (i, j) in enumerate(CORNERS):
                 f[i, j] += K * (self.hips[c] - pos[i, j])
+        if "wind" in fx:
+            w = s["wind"]
+            f += wind_forces(pos, vel, self.wind, w["air_density"], w["drag"], w["lift"])
         return f, contact_sum
 
     def substep(self, dt: float) -> None:
@@ -113,6 +180,14 @@ class ReferenceCloth:
             self.ball_pos = self.ball_pos + self.ball_vel * dt
         self.vel = self.vel + f / self.scene.node_mass * dt
         self.pos = self.pos + self.vel * dt
+        if "strain_limit" in self.fx:
+            limit = self.scene["strain_limit"]
+            max_len = (1.0 + limit["max_strain"]) * self.scene.rest_length
+            sweeps = (limit["iterations"] + 1) // 2 * 2  # the engine runs an even number
+            for _ in range(sweeps):
+                new = strain_limit_sweep(self.pos, max_len)
+                self.vel = self.vel + (new - self.pos) / dt
+                self.pos = new
 
     def step(self, frames: int, substeps: int) -> None:
         dt = self.scene["sim"]["frame_dt"] / substeps

@@ -20,7 +20,17 @@ SCENES_DIR = ASSETS / "scenes"
 
 INTEGRATORS = ("semi_implicit_euler",)
 PRECISIONS = ("float32", "float64")
-EFFECTS = ("structural", "shear", "bend", "gravity", "damping", "ball", "coupling")
+EFFECTS = (
+    "structural",
+    "shear",
+    "bend",
+    "gravity",
+    "damping",
+    "ball",
+    "coupling",
+    "wind",
+    "strain_limit",
+)
 DEFAULT_EFFECTS = ("structural", "gravity", "damping", "ball", "coupling")
 
 
@@ -74,6 +84,26 @@ SCHEMA: dict[str, dict[str, Key]] = {
             1000.0, "float", 0.0, 1e7, effect="coupling", doc="corner-to-HIP spring K (eq. 7), N/m"
         ),
     },
+    "wind": {
+        "velocity": Key(
+            (3.0, 0.0, 0.0), "vec3", -100.0, 100.0, effect="wind", doc="mean wind, m/s"
+        ),
+        "air_density": Key(1.2, "float", 0.0, 100.0, effect="wind", doc="rho, kg/m^3"),
+        "drag": Key(1.0, "float", 0.0, 10.0, effect="wind", doc="drag coefficient C_d"),
+        "lift": Key(0.3, "float", 0.0, 10.0, effect="wind", doc="lift coefficient C_l"),
+        "gust_amplitude": Key(
+            0.0, "float", 0.0, 10.0, effect="wind", doc="gusts: wind x (1 + a sin(2 pi t / T))"
+        ),
+        "gust_period": Key(2.0, "float", 0.0, 1e4, lo_open=True, effect="wind", doc="T, s"),
+    },
+    "strain_limit": {
+        "max_strain": Key(
+            0.1, "float", 0.0, 10.0, effect="strain_limit", doc="longest spring: (1 + this) L"
+        ),
+        "iterations": Key(
+            10, "int", 1, 1000, effect="strain_limit", doc="Jacobi sweeps per substep (even)"
+        ),
+    },
     "sim": {
         "frame_dt": Key(0.001, "float", 0.0, 0.1, lo_open=True, doc="simulated time per frame, s"),
         "substeps": Key(None, "int", 1, 100000, doc="substeps per frame (default: automatic)"),
@@ -81,6 +111,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "precision": Key("float32", "str", choices=PRECISIONS),
         "gravity": Key((0.0, -9.81, 0.0), "vec3", -1e3, 1e3, effect="gravity", doc="m/s^2"),
         "effects": Key(DEFAULT_EFFECTS, "effects", doc="effects this scene simulates"),
+        "allow_unstable": Key(
+            False, "bool", doc="accept a fixed substep count beyond the stability bound (warns)"
+        ),
     },
 }
 

@@ -59,6 +59,12 @@ def stable_dt(scene: Scene, ball_speed: float = 0.0) -> float:
     """Largest substep dt, inside the stability bound with the SAFETY margin."""
     m = scene.node_mass
     gamma = scene["cloth"]["damping"] / m if "damping" in scene.effects else 0.0
+    if "wind" in scene.effects:
+        # Drag is a damping force: d|F|/d|v| <= rho Cd A |u| on a node's share A = L^2 of
+        # area, with |u| bounded by the wind's peak speed plus a generous node speed.
+        w = scene["wind"]
+        peak = math.hypot(*w["velocity"]) * (1.0 + w["gust_amplitude"]) + 10.0
+        gamma += w["air_density"] * w["drag"] * scene.rest_length**2 * peak / m
     dt = euler_dt_bound(node_stiffness(scene) / m, gamma)
     if "ball" in scene.effects:
         ball = scene["ball"]

@@ -21,6 +21,9 @@ class Engine {
   }
   void configure(const cb::Config& c) { impl_->configure(c); }
   void set_hips(Array h) { impl_->set_hips(checked(h, 12, "hips").data()); }
+  void set_wind(Array w) { impl_->set_wind(checked(w, 3, "wind").data()); }
+  bool state_finite() { return impl_->state_finite(); }
+  unsigned compiled_effects() const { return impl_->compiled_effects(); }
   void set_state(Array p, Array v) {
     impl_->set_state(checked(p, 3 * nodes(), "positions").data(),
                      checked(v, 3 * nodes(), "velocities").data());
@@ -84,6 +87,12 @@ PYBIND11_MODULE(_native, m) {
       .def_readwrite("ball_k", &cb::Config::ball_k)
       .def_readwrite("ball_damping", &cb::Config::ball_damping)
       .def_readwrite("coupling_k", &cb::Config::coupling_k)
+      .def_readwrite("air_density", &cb::Config::air_density)
+      .def_readwrite("drag", &cb::Config::drag)
+      .def_readwrite("lift", &cb::Config::lift)
+      .def_readwrite("max_strain", &cb::Config::max_strain)
+      .def_readwrite("strain_iterations", &cb::Config::strain_iterations)
+      .def_readwrite("threads", &cb::Config::threads)
       .def_readwrite("effects", &cb::Config::effects);
 
   py::class_<Engine>(m, "Engine")
@@ -91,6 +100,9 @@ PYBIND11_MODULE(_native, m) {
            py::arg("double_precision"), py::arg("config"))
       .def("configure", &Engine::configure)
       .def("set_hips", &Engine::set_hips)
+      .def("set_wind", &Engine::set_wind)
+      .def("state_finite", &Engine::state_finite)
+      .def("compiled_effects", &Engine::compiled_effects)
       .def("set_state", &Engine::set_state)
       .def("positions", &Engine::positions)
       .def("velocities", &Engine::velocities)
@@ -108,6 +120,8 @@ PYBIND11_MODULE(_native, m) {
   effects["damping"] = unsigned(cb::DAMPING);
   effects["ball"] = unsigned(cb::BALL);
   effects["coupling"] = unsigned(cb::COUPLING);
+  effects["wind"] = unsigned(cb::WIND);
+  effects["strain_limit"] = unsigned(cb::STRAIN_LIMIT);
   m.attr("EFFECT_BITS") = effects;
   m.def("cuda_unavailable_reason", &cb::cuda_unavailable_reason,
         "Empty string when a CUDA device can be used, else the reason it cannot.");

@@ -1,9 +1,10 @@
-// CPU backend: the shared core stepped by OpenMP threads over rows.
+// CPU backend: the shared core stepped by OpenMP threads over rows. Compiled once per real
+// type: CB_REAL is float or double (see native/CMakeLists.txt).
 #include <omp.h>
 
 #include <algorithm>
+#include <cmath>
 #include <stdexcept>
-#include <type_traits>
 #include <vector>
 
 #include "core/backend.hpp"
@@ -23,7 +24,7 @@ class CpuCloth final : public Backend {
  public:
   // Planes are spaced by a stride that is not a multiple of 4 KiB: at n = 64 the twelve
   // streams of a substep would otherwise fall into the same L1 sets and evict each other
-  // (measured: 10x slower).
+  // (measured: 10x slower). Buffer 2 is the strain limiter's scratch.
   explicit CpuCloth(const Config& c)
       : N_(c.n * c.n), stride_((size_t(N_) + 15) / 16 * 16 + 16) {
     for (auto& b : buf_) b.assign(6 * stride_ + 16 * 6, R(0));
@@ -35,11 +36,17 @@ class CpuCloth final : public Backend {
     cfg_ = c;
     p_ = Params<R>::from(c);
     frames_ = table()[c.effects & (kNumEffectSets - 1)];
+    strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
+    threads_ = c.threads > 0 ? c.threads : omp_get_max_threads();
+  }
+  unsigned compiled_effects() const override {
+    return (cfg_.effects & (kNumEffectSets - 1)) | (strain_sweeps_ ? STRAIN_LIMIT : 0u);
   }
 
   void set_hips(const double* h) override {
-    for (int k = 0; k < 4; ++k) hips_[k] = {R(h[3 * k]), R(h[3 * k + 1]), R(h[3 * k + 2])};
+    for (int k = 0; k < 4; ++k) fin_.hips[k] = {R(h[3 * k]), R(h[3 * k + 1]), R(h[3 * k + 2])};
   }
+  void set_wind(const double* w) override { fin_.wind = {R(w[0]), R(w[1]), R(w[2])}; }
 
   void set_state(const double* pos, const double* vel) override {
     Planes<R> P = pos_(cur_), V = vel_(cur_);
@@ -47,13 +54,14 @@ class CpuCloth final : public Backend {
       P.set(q, {R(pos[3 * q]), R(pos[3 * q + 1]), R(pos[3 * q + 2])});
       V.set(q, {R(vel[3 * q]), R(vel[3 * q + 1]), R(vel[3 * q + 2])});
     }
+    finite_ = true;
   }
   void get_positions(double* out) override { copy_out(pos_(cur_), out); }
   void get_velocities(double* out) override { copy_out(vel_(cur_), out); }
   void get_normals(double* out) override {
     Planes<R> P = pos_(cur_);
     const int n = p_.n;
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) num_threads(threads_)
     for (int i = 0; i < n; ++i)
       for (int j = 0; j < n; ++j) {
         V3<R> nr = node_normal(P, n, i, j);
@@ -77,6 +85,7 @@ class CpuCloth final : public Backend {
       std::copy(vals, vals + 6, out + 6 * k);
     }
   }
+  bool state_finite() override { return finite_; }
   void step(int frames, int substeps, double dt) override { frames_(*this, frames, substeps, R(dt)); }
 
   // One frame loop per effect set; threads live across all substeps of the call and meet
@@ -84,24 +93,27 @@ class CpuCloth final : public Backend {
   template <unsigned E>
   static void run_frames(CpuCloth& c, int frames, int substeps, R dt) {
     const int n = c.p_.n;
-    const int nthreads = omp_get_max_threads();
+    const int nthreads = c.threads_;
     std::vector<V3<R>> partial(size_t(nthreads) * 8);  // padded against false sharing
+    std::vector<R> checks(size_t(nthreads) * 16, R(0));
     const int total = frames * substeps;
-#pragma omp parallel
+    const int sweeps = c.strain_sweeps_;
+#pragma omp parallel num_threads(nthreads)
     {
       const int tid = omp_get_thread_num();
       const Params<R> p = c.p_;  // locals: the compiler need not reload them past stores
-      const V3<R>* hips = c.hips_;
+      const FrameInputs<R> fin = c.fin_;
+      R check = 0;  // stays 0 while every value this thread wrote is finite
       for (int s = 0; s < total; ++s) {
         const int cur = c.cur_;
         const Planes<R> P = c.pos_(cur), V = c.vel_(cur), P2 = c.pos_(1 - cur),
                         V2 = c.vel_(1 - cur);
         const V3<R> ball_p = c.ball_.p;
         R cx = 0, cy = 0, cz = 0;  // this thread's share of the contact sum (eq. 5)
-#define CB_NODE(INTERIOR)                                                                 \
-  {                                                                                       \
-    V3<R> ct = se_node_update<R, E, INTERIOR>(p, P, V, P2, V2, hips, ball_p, i, j, dt);   \
-    cx += ct.x; cy += ct.y; cz += ct.z;                                                   \
+#define CB_NODE(INTERIOR)                                                                  \
+  {                                                                                        \
+    V3<R> ct = se_node_update<R, E, INTERIOR>(p, P, V, P2, V2, fin, ball_p, i, j, dt, check); \
+    cx += ct.x; cy += ct.y; cz += ct.z;                                                    \
   }
 #pragma omp for schedule(static)
         for (int i = 0; i < n; ++i) {
@@ -109,12 +121,13 @@ class CpuCloth final : public Backend {
           const int j0 = inner_row ? 2 : n, j1 = inner_row ? n - 2 : n;
           for (int j = 0; j < j0; ++j) CB_NODE(false)
           // Every neighbour exists here: no bounds tests, and the loop vectorises.
-#pragma omp simd reduction(+ : cx, cy, cz)
+#pragma omp simd reduction(+ : cx, cy, cz, check)
           for (int j = j0; j < j1; ++j) CB_NODE(true)
           for (int j = j1 > j0 ? j1 : j0; j < n; ++j) CB_NODE(false)
         }
 #undef CB_NODE
         partial[size_t(tid) * 8] = {cx, cy, cz};
+        if (sweeps) c.strain_limit(p, P2, V2, dt);  // one copy for all effect sets
 #pragma omp barrier
 #pragma omp single
         {
@@ -126,10 +139,35 @@ class CpuCloth final : public Backend {
           c.cur_ = 1 - cur;
         }
       }
+      checks[size_t(tid) * 16] = check;
     }
+    R all = c.ball_.p.x + c.ball_.p.y + c.ball_.p.z + c.ball_.v.x + c.ball_.v.y + c.ball_.v.z;
+    all -= all;
+    for (int t = 0; t < nthreads; ++t) all += checks[size_t(t) * 16];
+    if (all != R(0)) c.finite_ = false;
   }
 
  private:
+  // Strain limiting, inside the threads' parallel region: an even number of Jacobi sweeps,
+  // P2 -> scratch -> P2, velocities corrected in place.
+  void strain_limit(const Params<R>& p, const Planes<R>& P2, const Planes<R>& V2, R dt) {
+    const int n = p.n;
+    const R inv_dt = R(1) / dt;
+    for (int k = 0; k < strain_sweeps_; ++k) {
+      const Planes<R> A = (k % 2 == 0) ? P2 : pos_(2), B = (k % 2 == 0) ? pos_(2) : P2;
+#pragma omp for schedule(static)
+      for (int i = 0; i < n; ++i) {
+        const bool inner_row = i >= 1 && i < n - 1;
+        const int j0 = inner_row ? 1 : n, j1 = inner_row ? n - 1 : n;
+        for (int j = 0; j < j0; ++j) strain_limit_node<R, false>(p, A, B, V2, i, j, inv_dt);
+#pragma omp simd
+        for (int j = j0; j < j1; ++j) strain_limit_node<R, true>(p, A, B, V2, i, j, inv_dt);
+        for (int j = j1 > j0 ? j1 : j0; j < n; ++j)
+          strain_limit_node<R, false>(p, A, B, V2, i, j, inv_dt);
+      }
+    }
+  }
+
   template <unsigned E>
   struct Entry {
     static constexpr FramesFn<R> fn = &CpuCloth::run_frames<E>;
@@ -140,7 +178,7 @@ class CpuCloth final : public Backend {
     return t;
   }
 
-  // Buffer 1 starts 16 values * 3 later than buffer 0 for the same reason.
+  // Buffer b starts 48 values later than buffer b-1, for the same reason as the stride.
   R* plane(int b, int k) { return buf_[b].data() + size_t(k) * stride_ + size_t(b) * 48; }
   Planes<R> pos_(int b) { return {plane(b, 0), plane(b, 1), plane(b, 2)}; }
   Planes<R> vel_(int b) { return {plane(b, 3), plane(b, 4), plane(b, 5)}; }
@@ -154,20 +192,21 @@ class CpuCloth final : public Backend {
   const size_t stride_;
   Config cfg_;
   Params<R> p_{};
-  std::vector<R> buf_[2];
+  std::vector<R> buf_[3];
   int cur_ = 0;
-  V3<R> hips_[4]{};
+  int strain_sweeps_ = 0;
+  int threads_ = 1;
+  bool finite_ = true;
+  FrameInputs<R> fin_{};
   Ball<R> ball_{};
   FramesFn<R> frames_ = nullptr;
 };
 
 }  // namespace
 
-std::unique_ptr<Backend> make_cpu_backend(const Config& c, bool dbl) {
-  if (dbl) return std::make_unique<CpuCloth<double>>(c);
-  return std::make_unique<CpuCloth<float>>(c);
+template <>
+std::unique_ptr<Backend> make_cpu_backend_t<CB_REAL>(const Config& c) {
+  return std::make_unique<CpuCloth<CB_REAL>>(c);
 }
-
-int cpu_threads() { return omp_get_max_threads(); }
 
 }  // namespace cb

@@ -1,3 +1,4 @@
+// Compiled once per real type: CB_REAL is float or double (see native/CMakeLists.txt).
 // CUDA backend: the shared core as one kernel per substep, the substeps of a frame captured
 // in a CUDA graph. Per frame only the 4 corners and the ball are copied back; the mesh is
 // copied only when asked for. This file never includes pybind11.
@@ -12,23 +13,17 @@
 #include <vector>
 
 #include "core/backend.hpp"
+#include "cuda_check.hpp"
 #include "core/forces.hpp"
 
 namespace cb {
 namespace {
 
-#define CB_CUDA(call)                                                                  \
-  do {                                                                                 \
-    cudaError_t err_ = (call);                                                         \
-    if (err_ != cudaSuccess)                                                           \
-      throw std::runtime_error(std::string("CUDA error in ") + #call + ": " +          \
-                               cudaGetErrorString(err_));                              \
-  } while (0)
 
 constexpr int kBlock = 256;
 
-// Per-frame readback: 4 corners (position, velocity) then the ball (position, velocity).
-constexpr int kReadback = 4 * 6 + 6;
+// Per-frame readback: 4 corners (position, velocity), the ball (position, velocity), a flag.
+constexpr int kReadback = 4 * 6 + 6 + 1;  // + the non-finite flag
 
 template <class R>
 struct DevBuf {
@@ -52,10 +47,10 @@ __device__ R warp_sum(R v) {
 // whole substep is a single launch.
 template <class R, unsigned E>
 __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, DevBuf<R> out,
-                                                     const V3<R>* __restrict__ hips,
+                                                     const FrameInputs<R>* __restrict__ fin,
                                                      const Ball<R>* __restrict__ ball_in,
                                                      Ball<R>* __restrict__ ball_out,
-                                                     BallAcc<R>* acc, R dt) {
+                                                     BallAcc<R>* acc, int* nonfinite, R dt) {
   const int n = p.n;
   V3<R> contact{R(0), R(0), R(0)};
   V3<R> ball_p{R(0), R(0), R(0)};
@@ -63,15 +58,13 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
   // Grid-stride loop over a grid sized to the machine, not to the cloth: a large cloth then
   // needs one ball-sum atomic per resident block rather than one per 256 nodes.
   const int first = blockIdx.x * blockDim.x + threadIdx.x;
+  R check = 0;
   for (int q = first; q < n * n; q += gridDim.x * blockDim.x) {
     const int i = q / n, j = q - i * n;
-    V3<R> x = in.pos.get(q), v = in.vel.get(q), c{R(0), R(0), R(0)};
-    V3<R> f = node_force<R, E>(p, in.pos, x, v, i, j, hips, ball_p, c);
-    contact += c;
-    euler_update(x, v, f, p.inv_mass, dt);
-    out.pos.set(q, x);
-    out.vel.set(q, v);
+    contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j, dt,
+                                    check);
   }
+  if (check != R(0)) *nonfinite = 1;  // sticky until the host resets the state
   const int q = first;
   if constexpr ((E & BALL) == 0) {
     if (q == 0) *ball_out = *ball_in;  // no ball in this scene: carry its state unchanged
@@ -108,7 +101,8 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
 }
 
 template <class R>
-__global__ void gather_corners(int n, DevBuf<R> s, const Ball<R>* ball, R* out) {
+__global__ void gather_corners(int n, DevBuf<R> s, const Ball<R>* ball, const int* nonfinite,
+                               R* out) {
   const int t = threadIdx.x;
   if (t < 4) {
     const int last = n - 1;
@@ -120,12 +114,22 @@ __global__ void gather_corners(int n, DevBuf<R> s, const Ball<R>* ball, R* out) 
     R* o = out + 24;
     o[0] = ball->p.x; o[1] = ball->p.y; o[2] = ball->p.z;
     o[3] = ball->v.x; o[4] = ball->v.y; o[5] = ball->v.z;
+    o[6] = R(*nonfinite);
   }
 }
 
 template <class R>
-__global__ void load_hips(const V3<R>* host_hips, V3<R>* dev_hips) {
-  if (threadIdx.x < 4) dev_hips[threadIdx.x] = host_hips[threadIdx.x];
+__global__ void load_inputs(const FrameInputs<R>* host, FrameInputs<R>* dev) {
+  if (threadIdx.x == 0) *dev = *host;
+}
+
+// One Jacobi sweep of strain limiting: positions A -> B, velocities corrected in place.
+template <class R>
+__global__ void __launch_bounds__(kBlock) strain_kernel(Params<R> p, Planes<R> A, Planes<R> B,
+                                                        Planes<R> V, R inv_dt) {
+  const int n = p.n;
+  for (int q = blockIdx.x * blockDim.x + threadIdx.x; q < n * n; q += gridDim.x * blockDim.x)
+    strain_limit_node<R>(p, A, B, V, q / n, q % n, inv_dt);
 }
 
 template <class R>
@@ -137,8 +141,8 @@ __global__ void normals_kernel(int n, Planes<R> pos, R* out) {
 }
 
 template <class R>
-using KernelFn = void (*)(Params<R>, DevBuf<R>, DevBuf<R>, const V3<R>*, const Ball<R>*,
-                          Ball<R>*, BallAcc<R>*, R);
+using KernelFn = void (*)(Params<R>, DevBuf<R>, DevBuf<R>, const FrameInputs<R>*,
+                          const Ball<R>*, Ball<R>*, BallAcc<R>*, int*, R);
 
 template <class R>
 struct KernelEntry {
@@ -168,26 +172,29 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaMemset(ball_, 0, sizeof(Ball<R>) * 2));
     CB_CUDA(cudaMalloc(&acc_, sizeof(BallAcc<R>)));
     CB_CUDA(cudaMemset(acc_, 0, sizeof(BallAcc<R>)));
-    CB_CUDA(cudaMalloc(&hips_dev_, sizeof(V3<R>) * 4));
-    CB_CUDA(cudaMemset(hips_dev_, 0, sizeof(V3<R>) * 4));
+    CB_CUDA(cudaMalloc(&fin_dev_, sizeof(FrameInputs<R>)));
+    CB_CUDA(cudaMemset(fin_dev_, 0, sizeof(FrameInputs<R>)));
+    CB_CUDA(cudaMalloc(&nonfinite_, sizeof(int)));
+    CB_CUDA(cudaMemset(nonfinite_, 0, sizeof(int)));
+    CB_CUDA(cudaMalloc(&scratch_, sizeof(R) * 3 * size_t(N_)));
     // Mapped pinned memory: kernels read the hands and write the per-frame read-back
     // directly, with no copy nodes in the frame's graph.
-    CB_CUDA(cudaHostAlloc(&hips_host_, sizeof(V3<R>) * 4, cudaHostAllocMapped));
+    CB_CUDA(cudaHostAlloc(&fin_host_, sizeof(FrameInputs<R>), cudaHostAllocMapped));
     CB_CUDA(cudaHostAlloc(&readback_host_, sizeof(R) * kReadback, cudaHostAllocMapped));
-    CB_CUDA(cudaHostGetDevicePointer(&hips_mapped_, hips_host_, 0));
+    CB_CUDA(cudaHostGetDevicePointer(&fin_mapped_, fin_host_, 0));
     CB_CUDA(cudaHostGetDevicePointer(&readback_mapped_, readback_host_, 0));
     int sms = 0;
     CB_CUDA(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, 0));
     max_blocks_ = sms * 8;
-    for (int k = 0; k < 4; ++k) hips_host_[k] = {R(0), R(0), R(0)};
+    *fin_host_ = FrameInputs<R>{};
     for (int k = 0; k < kReadback; ++k) readback_host_[k] = R(0);
     configure(c);
   }
 
   ~CudaCloth() override {
     drop_graphs();
-    cudaFree(state_); cudaFree(ball_); cudaFree(acc_); cudaFree(hips_dev_);
-    cudaFreeHost(hips_host_); cudaFreeHost(readback_host_);
+    cudaFree(state_); cudaFree(ball_); cudaFree(acc_); cudaFree(fin_dev_); cudaFree(nonfinite_);
+    cudaFree(scratch_); cudaFreeHost(fin_host_); cudaFreeHost(readback_host_);
     cudaStreamDestroy(stream_);
   }
 
@@ -195,12 +202,19 @@ class CudaCloth final : public Backend {
     if (c.n != n_) throw std::invalid_argument("configure: n cannot change");
     p_ = Params<R>::from(c);
     kernel_ = kernel_table<R>()[c.effects & (kNumEffectSets - 1)];
+    effects_ = c.effects & (kNumEffectSets - 1);
+    strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
     drop_graphs();
   }
+  unsigned compiled_effects() const override {
+    return effects_ | (strain_sweeps_ ? STRAIN_LIMIT : 0u);
+  }
+  bool state_finite() override { return readback_host_[30] == R(0); }
+  void set_wind(const double* w) override { fin_host_->wind = {R(w[0]), R(w[1]), R(w[2])}; }
 
   void set_hips(const double* h) override {
     // Mapped pinned memory: the graph's first kernel reads it at every launch.
-    for (int k = 0; k < 4; ++k) hips_host_[k] = {R(h[3 * k]), R(h[3 * k + 1]), R(h[3 * k + 2])};
+    for (int k = 0; k < 4; ++k) fin_host_->hips[k] = {R(h[3 * k]), R(h[3 * k + 1]), R(h[3 * k + 2])};
   }
 
   void set_state(const double* pos, const double* vel) override {
@@ -211,6 +225,7 @@ class CudaCloth final : public Backend {
         h[size_t(3 + d) * N_ + q] = R(vel[3 * q + d]);
       }
     CB_CUDA(cudaMemcpy(buf(cur_), h.data(), sizeof(R) * h.size(), cudaMemcpyHostToDevice));
+    CB_CUDA(cudaMemset(nonfinite_, 0, sizeof(int)));
     refresh_readback();
   }
   void get_positions(double* out) override { copy_out(buf(cur_), out); }
@@ -261,15 +276,21 @@ class CudaCloth final : public Backend {
   cudaGraphExec_t capture(int start, int substeps, R dt) {
     cudaGraph_t graph;
     CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
-    load_hips<R><<<1, 32, 0, stream_>>>(hips_mapped_, hips_dev_);
+    load_inputs<R><<<1, 32, 0, stream_>>>(fin_mapped_, fin_dev_);
     int b = start;
     const unsigned blocks = unsigned(std::min((N_ + kBlock - 1) / kBlock, max_blocks_));
     for (int s = 0; s < substeps; ++s) {
-      kernel_<<<blocks, kBlock, 0, stream_>>>(p_, dev(b), dev(1 - b), hips_dev_, ball_ + b,
-                                             ball_ + (1 - b), acc_, dt);
+      kernel_<<<blocks, kBlock, 0, stream_>>>(p_, dev(b), dev(1 - b), fin_dev_, ball_ + b,
+                                             ball_ + (1 - b), acc_, nonfinite_, dt);
       b = 1 - b;
+      // Strain limiting: an even number of Jacobi sweeps, buffer b -> scratch -> buffer b.
+      DevBuf<R> d = dev(b);
+      Planes<R> S{scratch_, scratch_ + N_, scratch_ + 2 * size_t(N_)};
+      for (int k = 0; k < strain_sweeps_; ++k)
+        strain_kernel<R><<<blocks, kBlock, 0, stream_>>>(p_, k % 2 ? S : d.pos, k % 2 ? d.pos : S,
+                                                         d.vel, R(1) / dt);
     }
-    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(b), ball_ + b, readback_mapped_);
+    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(b), ball_ + b, nonfinite_, readback_mapped_);
     CB_CUDA(cudaStreamEndCapture(stream_, &graph));
     cudaGraphExec_t exec;
     CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
@@ -284,7 +305,8 @@ class CudaCloth final : public Backend {
   }
 
   void refresh_readback() {
-    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(cur_), ball_ + cur_, readback_mapped_);
+    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(cur_), ball_ + cur_, nonfinite_,
+                                              readback_mapped_);
     CB_CUDA(cudaGetLastError());
     CB_CUDA(cudaStreamSynchronize(stream_));
   }
@@ -303,9 +325,13 @@ class CudaCloth final : public Backend {
   R* state_ = nullptr;  // two buffers of 6 planes: x y z vx vy vz
   Ball<R>* ball_ = nullptr;
   BallAcc<R>* acc_ = nullptr;
-  V3<R>* hips_dev_ = nullptr;
-  V3<R>* hips_host_ = nullptr;
-  V3<R>* hips_mapped_ = nullptr;  // device view of hips_host_
+  FrameInputs<R>* fin_dev_ = nullptr;
+  FrameInputs<R>* fin_host_ = nullptr;
+  FrameInputs<R>* fin_mapped_ = nullptr;  // device view of fin_host_
+  int* nonfinite_ = nullptr;
+  R* scratch_ = nullptr;  // strain limiting's second position buffer
+  unsigned effects_ = 0;
+  int strain_sweeps_ = 0;
   R* readback_host_ = nullptr;
   R* readback_mapped_ = nullptr;  // device view of readback_host_
   int max_blocks_ = 1;
@@ -316,46 +342,9 @@ class CudaCloth final : public Backend {
 
 }  // namespace
 
-std::string cuda_unavailable_reason() {
-  int count = 0;
-  cudaError_t err = cudaGetDeviceCount(&count);
-  if (err != cudaSuccess) {
-    cudaGetLastError();
-    return std::string("no usable CUDA device (") + cudaGetErrorString(err) + ")";
-  }
-  if (count == 0) return "no CUDA device found";
-  return "";
-}
-
-double cuda_copy_bandwidth_gbs(size_t bytes, int reps) {
-  std::string why = cuda_unavailable_reason();
-  if (!why.empty()) throw std::runtime_error("CUDA unavailable: " + why);
-  char *a = nullptr, *b = nullptr;
-  CB_CUDA(cudaMalloc(&a, bytes));
-  CB_CUDA(cudaMalloc(&b, bytes));
-  CB_CUDA(cudaMemset(a, 1, bytes));
-  cudaEvent_t t0, t1;
-  CB_CUDA(cudaEventCreate(&t0));
-  CB_CUDA(cudaEventCreate(&t1));
-  std::vector<float> ms;
-  for (int r = 0; r < reps + 2; ++r) {  // two warm-up copies
-    CB_CUDA(cudaEventRecord(t0));
-    CB_CUDA(cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice));
-    CB_CUDA(cudaEventRecord(t1));
-    CB_CUDA(cudaEventSynchronize(t1));
-    float m = 0;
-    CB_CUDA(cudaEventElapsedTime(&m, t0, t1));
-    if (r >= 2) ms.push_back(m);
-  }
-  cudaEventDestroy(t0); cudaEventDestroy(t1); cudaFree(a); cudaFree(b);
-  std::sort(ms.begin(), ms.end());
-  // Bytes read plus bytes written, over the median time.
-  return 2.0 * double(bytes) / (double(ms[ms.size() / 2]) * 1e-3) / 1e9;
-}
-
-std::unique_ptr<Backend> make_cuda_backend(const Config& c, bool dbl) {
-  if (dbl) return std::make_unique<CudaCloth<double>>(c);
-  return std::make_unique<CudaCloth<float>>(c);
+template <>
+std::unique_ptr<Backend> make_cuda_backend_t<CB_REAL>(const Config& c) {
+  return std::make_unique<CudaCloth<CB_REAL>>(c);
 }
 
 }  // namespace cb

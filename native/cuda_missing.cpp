@@ -14,7 +14,12 @@ double cuda_copy_bandwidth_gbs(size_t, int) {
   throw std::runtime_error("CUDA unavailable: " + cuda_unavailable_reason());
 }
 
-std::unique_ptr<Backend> make_cuda_backend(const Config&, bool) {
+template <>
+std::unique_ptr<Backend> make_cuda_backend_t<float>(const Config&) {
+  throw std::runtime_error("CUDA backend unavailable: " + cuda_unavailable_reason());
+}
+template <>
+std::unique_ptr<Backend> make_cuda_backend_t<double>(const Config&) {
   throw std::runtime_error("CUDA backend unavailable: " + cuda_unavailable_reason());
 }
 

@@ -41,6 +41,14 @@ CASES = {
         ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],
         {"ball": {"position": [0.0, 1.085, 0.0], "velocity": [0.0, -0.3, 0.0]}},
     ),
+    "wind": (
+        ["structural", "gravity", "wind"],
+        {"wind": {"velocity": [1.0, -0.8, 0.5], "lift": 0.5}},
+    ),
+    "strain_limit": (
+        ["structural", "gravity", "coupling", "strain_limit"],
+        {"strain_limit": {"max_strain": 0.002, "iterations": 4}},
+    ),
     # 1600 nodes: several GPU blocks, so the cross-block ball force sum is exercised.
     "all_large": (
         ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],

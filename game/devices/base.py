@@ -43,6 +43,8 @@ class CornerState:
     stiffness: float = 0.0  # coupling K, N/m
     frame: int = 0
     server_time: float = 0.0  # seconds, server clock
+    ball_position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    ball_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     received_at: float = 0.0  # seconds, local monotonic clock
 
 

@@ -16,6 +16,7 @@ class Backend {
   virtual ~Backend() = default;
   virtual void configure(const Config& c) = 0;  // same n; new parameters or effect set
   virtual void set_hips(const double* h) = 0;   // 4 x 3
+  virtual void set_wind(const double* w) = 0;   // 3: wind velocity for the next frames
   virtual void set_state(const double* pos, const double* vel) = 0;
   virtual void get_positions(double* out) = 0;
   virtual void get_velocities(double* out) = 0;
@@ -26,10 +27,33 @@ class Backend {
   // device every frame.
   virtual void get_corners(double* out) = 0;
   virtual void step(int frames, int substeps, double dt) = 0;
+  // False once any node's position or velocity became non-finite (sticky until set_state).
+  virtual bool state_finite() = 0;
+  // The effect set the running kernels were compiled for (Effect bits + STRAIN_LIMIT).
+  virtual unsigned compiled_effects() const = 0;
 };
 
-std::unique_ptr<Backend> make_cpu_backend(const Config& c, bool dbl);
-std::unique_ptr<Backend> make_cuda_backend(const Config& c, bool dbl);
+// Each backend is compiled once per real type, in its own translation unit (the effect-set
+// specialisations make these the long compiles; two units build in parallel).
+template <class R>
+std::unique_ptr<Backend> make_cpu_backend_t(const Config& c);
+template <class R>
+std::unique_ptr<Backend> make_cuda_backend_t(const Config& c);
+template <>
+std::unique_ptr<Backend> make_cpu_backend_t<float>(const Config& c);
+template <>
+std::unique_ptr<Backend> make_cpu_backend_t<double>(const Config& c);
+template <>
+std::unique_ptr<Backend> make_cuda_backend_t<float>(const Config& c);
+template <>
+std::unique_ptr<Backend> make_cuda_backend_t<double>(const Config& c);
+
+inline std::unique_ptr<Backend> make_cpu_backend(const Config& c, bool dbl) {
+  return dbl ? make_cpu_backend_t<double>(c) : make_cpu_backend_t<float>(c);
+}
+inline std::unique_ptr<Backend> make_cuda_backend(const Config& c, bool dbl) {
+  return dbl ? make_cuda_backend_t<double>(c) : make_cuda_backend_t<float>(c);
+}
 // Empty when a CUDA device can be used, else why not.
 std::string cuda_unavailable_reason();
 int cpu_threads();

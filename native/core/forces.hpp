@@ -35,6 +35,33 @@ CB_HD V3<R> ball_contact(V3<R> d, R radius, R k) {
   return f;
 }
 
+// Aerodynamic force on one vertex of triangle (p0, p1, p2) with vertex velocities v0..v2:
+// drag along the relative wind u and lift across it, both scaled by the area the wind
+// sees (cos theta = u.n / |u|, with n turned to face the wind). kd, kl are 1/2 rho C / 3,
+// the vertex's third share. Selects instead of branches, so CPU loops vectorise.
+template <class R>
+CB_HD V3<R> triangle_wind(V3<R> p0, V3<R> p1, V3<R> p2, V3<R> v0, V3<R> v1, V3<R> v2,
+                          V3<R> wind, R kd, R kl) {
+  V3<R> nrm = cross(p1 - p0, p2 - p0);
+  R twice_area = length(nrm);
+  V3<R> u = wind - (v0 + v1 + v2) * (R(1) / R(3));
+  R u2 = dot(u, u);
+  R ulen = sqrt(u2);
+  const bool ok = (twice_area > R(1e-30)) & (ulen > R(1e-12));
+  V3<R> nh = nrm * (R(1) / (ok ? twice_area : R(1)));
+  R un = dot(u, nh);
+  R flip = un < R(0) ? R(-1) : R(1);
+  nh = nh * flip;
+  un *= flip;
+  R area = R(0.5) * twice_area;
+  R inv_u = R(1) / (ok ? ulen : R(1));
+  R c = un * inv_u;                                   // cos theta
+  V3<R> drag = u * (kd * area * un);                  // 1/2 rho Cd A |u|^2 cos(th) u_hat
+  V3<R> lift = (u * (c * inv_u) - nh) * (kl * area * u2 * c);  // .. cos(th) (cos u_hat - n)
+  R on = ok ? R(1) : R(0);
+  return (drag + lift) * on;
+}
+
 // Which coupled corner (0..3) node (i, j) is, or -1. Order: (0,0), (0,n-1), (n-1,n-1), (n-1,0).
 CB_HD int corner_slot(int i, int j, int n) {
   int last = n - 1;
@@ -48,8 +75,9 @@ CB_HD int corner_slot(int i, int j, int n) {
 // Interior = true promises that every neighbour up to two nodes away exists and that the
 // node is no corner, so the bounds tests vanish (the CPU loop then vectorises).
 template <class R, unsigned E, bool Interior = false>
-CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, V3<R> pi, V3<R> vi, int i,
-                       int j, const V3<R>* hips, V3<R> ball_p, V3<R>& contact) {
+CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>& vel, V3<R> pi,
+                       V3<R> vi, int i, int j, const FrameInputs<R>& fin, V3<R> ball_p,
+                       V3<R>& contact) {
   const int n = p.n;
   const int q = i * n + j;
   V3<R> f{R(0), R(0), R(0)};
@@ -82,7 +110,27 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, V3<R> pi, V3<R>
   }
   if constexpr ((E & COUPLING) != 0 && !Interior) {
     int c = corner_slot(i, j, n);
-    if (c >= 0) f += (hips[c] - pi) * p.coupling_k;  // eq. (7), the node's side
+    if (c >= 0) f += (fin.hips[c] - pi) * p.coupling_k;  // eq. (7), the node's side
+  }
+  if constexpr ((E & WIND) != 0) {
+    // The (up to) six triangles around the node; quad (a, b, c, d) = ((i,j), (i,j+1),
+    // (i+1,j+1), (i+1,j)) is split into (a, b, c) and (a, c, d).
+    auto P = [&](int a, int b) { return pos.get(a * n + b); };
+    auto V = [&](int a, int b) { return vel.get(a * n + b); };
+    const V3<R> w = fin.wind;
+    const R kd = p.wind_drag, kl = p.wind_lift;
+    if (Interior || (i < n - 1 && j < n - 1)) {  // node is a of quad (i, j)
+      f += triangle_wind(pi, P(i, j + 1), P(i + 1, j + 1), vi, V(i, j + 1), V(i + 1, j + 1), w, kd, kl);
+      f += triangle_wind(pi, P(i + 1, j + 1), P(i + 1, j), vi, V(i + 1, j + 1), V(i + 1, j), w, kd, kl);
+    }
+    if (Interior || (i < n - 1 && j > 0))  // node is b of quad (i, j-1)
+      f += triangle_wind(P(i, j - 1), pi, P(i + 1, j), V(i, j - 1), vi, V(i + 1, j), w, kd, kl);
+    if (Interior || (i > 0 && j > 0)) {  // node is c of quad (i-1, j-1)
+      f += triangle_wind(P(i - 1, j - 1), P(i - 1, j), pi, V(i - 1, j - 1), V(i - 1, j), vi, w, kd, kl);
+      f += triangle_wind(P(i - 1, j - 1), pi, P(i, j - 1), V(i - 1, j - 1), vi, V(i, j - 1), w, kd, kl);
+    }
+    if (Interior || (i > 0 && j < n - 1))  // node is d of quad (i-1, j)
+      f += triangle_wind(P(i - 1, j), P(i, j + 1), pi, V(i - 1, j), V(i, j + 1), vi, w, kd, kl);
   }
   return f;
 }
@@ -96,17 +144,46 @@ CB_HD void euler_update(V3<R>& x, V3<R>& v, V3<R> f, R inv_mass, R dt) {
 
 // One node's semi-implicit Euler substep from buffer (P, V) into (P2, V2). Returns the
 // node's ball contact force, for the ball's sum.
+// `check` accumulates t - t of the new state: 0 while every value is finite, NaN after.
 template <class R, unsigned E, bool Interior = false>
 CB_HD V3<R> se_node_update(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
-                           const Planes<R>& P2, const Planes<R>& V2, const V3<R>* hips,
-                           V3<R> ball_p, int i, int j, R dt) {
+                           const Planes<R>& P2, const Planes<R>& V2, const FrameInputs<R>& fin,
+                           V3<R> ball_p, int i, int j, R dt, R& check) {
   const int q = i * p.n + j;
   V3<R> x = P.get(q), v = V.get(q), contact{R(0), R(0), R(0)};
-  V3<R> f = node_force<R, E, Interior>(p, P, x, v, i, j, hips, ball_p, contact);
+  V3<R> f = node_force<R, E, Interior>(p, P, V, x, v, i, j, fin, ball_p, contact);
   euler_update(x, v, f, p.inv_mass, dt);
   P2.set(q, x);
   V2.set(q, v);
+  R t = x.x + x.y + x.z + v.x + v.y + v.z;
+  check += t - t;
   return contact;
+}
+
+// Provot's strain limiting, one Jacobi sweep for node (i, j): each structural spring longer
+// than max_len pulls each of its ends a quarter of the excess back (reading P, writing the
+// result to Q); the velocity takes the same correction over dt. A quarter, not Provot's
+// half: a Jacobi sweep moves a node for all its springs at once, and with half the sweeps
+// diverge on a corner yanked far away (the grid Laplacian's top eigenvalue is 4 per axis).
+template <class R, bool Interior = false>
+CB_HD void strain_limit_node(const Params<R>& p, const Planes<R>& P, const Planes<R>& Q,
+                             const Planes<R>& V, int i, int j, R inv_dt) {
+  const int n = p.n, q = i * n + j;
+  const V3<R> x = P.get(q);
+  V3<R> corr{R(0), R(0), R(0)};
+  auto pull = [&](int r) {
+    V3<R> d = P.get(r) - x;
+    R len = length(d);
+    R over = len - p.max_len;
+    R s = (over > R(0) ? R(0.25) * over : R(0)) / (len > R(1e-12) ? len : R(1));
+    corr += d * s;
+  };
+  if (Interior || j > 0) pull(q - 1);
+  if (Interior || j < n - 1) pull(q + 1);
+  if (Interior || i > 0) pull(q - n);
+  if (Interior || i < n - 1) pull(q + n);
+  Q.set(q, x + corr);
+  V.set(q, V.get(q) + corr * inv_dt);
 }
 
 // Eqs. (5)-(6): the ball under gravity, minus the summed contact forces, minus damping.

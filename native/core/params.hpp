@@ -14,8 +14,11 @@ enum Effect : unsigned {
   DAMPING = 1u << 4,
   BALL = 1u << 5,
   COUPLING = 1u << 6,
+  WIND = 1u << 7,
 };
-constexpr unsigned kNumForceEffects = 7;
+constexpr unsigned kNumForceEffects = 8;
+// Strain limiting is a pass after the substep, not a force: launched or not, per scene.
+constexpr unsigned STRAIN_LIMIT = 1u << 8;
 constexpr unsigned kNumEffectSets = 1u << kNumForceEffects;
 
 // Host-side configuration, always in double; converted to Params<R> by each backend.
@@ -29,7 +32,11 @@ struct Config {
   double damping = 0;       // beta1, N s/m per node (eq. 1)
   double ball_radius = 0, ball_mass = 1, ball_k = 0, ball_damping = 0;
   double coupling_k = 0;    // K of eq. (7)
-  unsigned effects = 0;
+  double air_density = 1.2, drag = 1.0, lift = 0.3;  // wind on each triangle
+  double max_strain = 0.1;  // strain limiting: longest spring is (1 + max_strain) L
+  int strain_iterations = 10;
+  int threads = 0;          // CPU threads; 0: all
+  unsigned effects = 0;     // Effect bits, plus STRAIN_LIMIT
 };
 
 template <class R>
@@ -43,6 +50,8 @@ struct Params {
   R damping;
   R ball_radius, ball_inv_mass, ball_mass, ball_k, ball_damping;
   R coupling_k;
+  R wind_drag, wind_lift;  // 1/2 rho C / 3: each vertex's share of a triangle's force
+  R max_len;               // (1 + max_strain) L
 
   static Params from(const Config& c) {
     Params p{};
@@ -65,8 +74,18 @@ struct Params {
     p.ball_k = R(c.ball_k);
     p.ball_damping = R(c.ball_damping);
     p.coupling_k = R(c.coupling_k);
+    p.wind_drag = R(0.5 * c.air_density * c.drag / 3.0);
+    p.wind_lift = R(0.5 * c.air_density * c.lift / 3.0);
+    p.max_len = R((1.0 + c.max_strain) * c.rest_len);
     return p;
   }
+};
+
+// What the host may change every frame: the hands (eq. 7) and the wind (with its gusts).
+template <class R>
+struct FrameInputs {
+  V3<R> hips[4];
+  V3<R> wind;
 };
 
 // Ball state: position then velocity.

@@ -185,6 +185,7 @@ void bind(py::module_& m) {
       .def_readwrite("max_stiffness", &CouplingConfig::max_stiffness)
       .def_readwrite("max_damping", &CouplingConfig::max_damping)
       .def_readwrite("max_force", &CouplingConfig::max_force)
+      .def_readwrite("corner_velocity_cutoff_hz", &CouplingConfig::corner_velocity_cutoff_hz)
       .def_readwrite("passivity", &CouplingConfig::passivity)
       .def_readwrite("passivity_window", &CouplingConfig::passivity_window)
       .def_readwrite("max_passivity_damping", &CouplingConfig::max_passivity_damping);

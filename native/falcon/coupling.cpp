@@ -5,7 +5,22 @@
 
 namespace clothball_falcon {
 
+void Coupling::set_corner(const CornerSample& s) {
+  const double fc = cfg_.corner_velocity_cutoff_hz;
+  if (!have_cdot_ || !corner_.valid || fc <= 0) {
+    cdot_f_ = s.velocity;
+  } else {
+    const double dt = std::clamp(s.received_at - corner_.received_at, 0.0, 1.0);
+    const double tau = 1.0 / (2 * M_PI * fc);
+    const double beta = dt / (tau + dt);
+    for (int i = 0; i < 3; ++i) cdot_f_[i] += beta * (s.velocity[i] - cdot_f_[i]);
+  }
+  have_cdot_ = true;
+  corner_ = s;
+}
+
 void Coupling::reset() {
+  have_cdot_ = false;
   g_ = 0;
   prev_U_ = 0;
   have_prev_ = false;
@@ -36,9 +51,9 @@ CouplingOutput Coupling::compute(double now, const Vec3& h, const Vec3& hdot, do
     for (int i = 0; i < 3; ++i) {
       const double K = std::clamp(corner_.stiffness[i], 0.0, cfg_.max_stiffness) * g;
       const double B = std::clamp(corner_.damping[i], 0.0, cfg_.max_damping) * g;
-      const double c = corner_.position[i] + corner_.velocity[i] * te;
+      const double c = corner_.position[i] + cdot_f_[i] * te;
       out.corner[i] = c;
-      const double x = h[i] - c, xd = hdot[i] - corner_.velocity[i];
+      const double x = h[i] - c, xd = hdot[i] - cdot_f_[i];
       Fc[i] = -K * x - B * xd;
       if (!std::isfinite(Fc[i])) Fc[i] = 0;
       U += 0.5 * K * x * x;

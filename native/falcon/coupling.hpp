@@ -32,6 +32,11 @@ struct CouplingConfig {
   double max_stiffness = 3000.0;     // N/m, per axis (the Falcon's upper end at 1 kHz)
   double max_damping = 20.0;         // N s/m, per axis
   double max_force = 8.0;            // N, norm of the rendered force
+  // Optional low-pass on the received corner velocity (used by the extrapolation and the
+  // damper); 0 = off, the default. The server's corner velocity jitters (a light node
+  // pulled by HIPs that arrive at irregular times), but the filter's lag makes the
+  // delayed coupling less stable (tests/test_falcon_coupling.py), so it is opt-in.
+  double corner_velocity_cutoff_hz = 0.0;
   bool passivity = true;
   double passivity_window = 0.050;   // s
   double max_passivity_damping = 20.0;  // N s/m
@@ -57,7 +62,7 @@ struct CouplingOutput {
 class Coupling {
  public:
   explicit Coupling(const CouplingConfig& cfg = CouplingConfig()) : cfg_(cfg) {}
-  void set_corner(const CornerSample& s) { corner_ = s; }
+  void set_corner(const CornerSample& s);
   void clear_corner() { corner_.valid = false; }
   // One tick at time `now` with hand position/velocity; dt = time since the last tick.
   CouplingOutput compute(double now, const Vec3& h, const Vec3& hdot, double dt);
@@ -71,6 +76,8 @@ class Coupling {
  private:
   CouplingConfig cfg_;
   CornerSample corner_;
+  Vec3 cdot_f_{};        // low-passed corner velocity
+  bool have_cdot_ = false;
   double g_ = 0;        // fade state before smoothstep
   double prev_U_ = 0;
   bool have_prev_ = false;
