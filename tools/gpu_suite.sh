@@ -19,9 +19,12 @@ python3 -m pip install -q --no-build-isolation --no-deps -Cbuild-dir=/tmp/cb-bui
 cd /tmp  # import the installed package, not the source tree
 CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -c "$OLDPWD/setup.cfg" \
   --rootdir "$OLDPWD" "$OLDPWD/tests/test_engine_vs_oracle.py" "$OLDPWD/tests/test_cloth_api.py" \
-  "$OLDPWD/tests/test_scene.py" 2>&1 | tee "$OUT/gpu_tests.txt" | tail -5
+  "$OLDPWD/tests/test_scene.py" "$OLDPWD/tests/test_effects.py" "$OLDPWD/tests/test_hard_cases.py" \
+  2>&1 | tee "$OUT/gpu_tests.txt" | tail -5
 tests_rc=${PIPESTATUS[0]}
 cd "$OLDPWD"
 python3 -m clothball.game.cli bench --backends cuda --json "$OUT/bench_gpu.json" "$@" 2>"$OUT/bench_gpu.err" \
   | tee "$OUT/bench_gpu.txt"
+python3 -m clothball.game.cli bench --effects --backends cuda --json "$OUT/effects_gpu.json" \
+  2>>"$OUT/bench_gpu.err" | tee "$OUT/effects_gpu.txt"
 exit "$tests_rc"
