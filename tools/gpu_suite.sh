@@ -4,18 +4,8 @@
 # Usage (on a machine with an NVIDIA GPU and no network):
 #   OUT=results bash tools/gpu_suite.sh [bench args...]
 # Pure-Python wheels the machine lacks (tqdm) may be put in .whl/ beforehand.
-set -uo pipefail
 OUT=${OUT:-gpu-results}
-mkdir -p "$OUT"
-export PYTHONUNBUFFERED=1
-if compgen -G ".whl/*.whl" >/dev/null; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl || exit 1
-  export PYTHONPATH=/tmp/site
-fi
-nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv | tee "$OUT/gpu.txt"
-python3 -m pip install -q --no-build-isolation --no-deps -Cbuild-dir=/tmp/cb-build \
-  -Ccmake.define.CLOTHBALL_CUDA=ON -Ccmake.define.CMAKE_CUDA_ARCHITECTURES=90 . \
-  >"$OUT/build.log" 2>&1 || { tail -40 "$OUT/build.log"; exit 1; }
+source "$(dirname "$0")/gpu_build.sh"
 cd /tmp  # import the installed package, not the source tree
 CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -c "$OLDPWD/setup.cfg" \
   --rootdir "$OLDPWD" "$OLDPWD/tests/test_engine_vs_oracle.py" "$OLDPWD/tests/test_cloth_api.py" \
