@@ -57,23 +57,6 @@ class SimStats:
     meshes: int = 0
 
 
-def set_cpu_threads(n: int) -> bool:
-    """Limit the CPU backend's OpenMP threads *for the calling thread* (its own ICV).
-
-    A room steps on one thread by default: on a small machine a second OpenMP thread
-    competes with the event loop for the cores, and OpenMP's spinning barriers then cost
-    whole scheduler slices. (Needs an API in the native module; until then libgomp is
-    asked directly, and nothing happens where it is not the OpenMP runtime in use.)
-    """
-    try:
-        import ctypes
-
-        ctypes.CDLL("libgomp.so.1").omp_set_num_threads(int(n))
-        return True
-    except (OSError, AttributeError):
-        return False
-
-
 class RoomSim:
     """The simulation of one room, run on its own thread (see the module doc)."""
 
@@ -87,7 +70,9 @@ class RoomSim:
                  epoch: float | None = None, cpu_threads: int | None = 1) -> None:
         self.scene = scene
         self.cpu_threads = cpu_threads
-        self.cloth = Cloth(scene, backend=backend)
+        # One CPU thread by default: on a small machine a second OpenMP thread competes with
+        # the event loop for the cores, and its spinning barriers then cost whole slices.
+        self.cloth = Cloth(scene, backend=backend, threads=cpu_threads)
         self.frame_dt = self.cloth.frame_dt
         rest = rest_positions(scene)
         self.anchors = corners_of(rest)
@@ -152,8 +137,6 @@ class RoomSim:
 
     # --- thread side ----------------------------------------------------------------------
     def _run(self) -> None:
-        if self.cpu_threads:
-            set_cpu_threads(self.cpu_threads)
         try:
             self._loop_body()
         except Exception:  # pragma: no cover - logged, the room reports the sim as stopped
@@ -193,7 +176,7 @@ class RoomSim:
             except SimulationError as e:
                 sim_error = str(e)
                 log.warning("room simulation reset: %s", e)
-                self.cloth = cloth = Cloth(self.scene, backend=cloth.backend)
+                cloth.reset()
                 cloth.set_hips(hips)
             done += behind
             frame = cloth.frame
