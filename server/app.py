@@ -105,7 +105,7 @@ class GameServer:
         if self.default_room:
             settings = self.room_settings or RoomSettings(autoplay=True)
             self.main_room = self.lobby.create("main", public=True, settings=settings,
-                                               permanent=True)
+                                               permanent=True, room_id="main")
             for _ in range(self.bots):
                 self.main_room.add_bot(None, settings.bot_difficulty)
         self._spawn(self._housekeeping())

@@ -37,7 +37,9 @@ class Lobby:
 
     def create(self, name: str, scene: str | None = None, *, public: bool = True,
                settings: RoomSettings | None = None, owner: str | None = None,
-               permanent: bool = False) -> Room:
+               permanent: bool = False, room_id: str | None = None) -> Room:
+        """Create and start a room. ``room_id`` fixes its id (the host's permanent room is
+        "main", so a spectator's link survives a server restart); else a random one."""
         scene_name = scene or self.default_scene
         if scene_name not in self.scenes:
             raise ProtocolError(
@@ -46,7 +48,10 @@ class Lobby:
             )
         if len(self.rooms) >= self.max_rooms:
             raise ProtocolError("server_busy", f"this server already runs {self.max_rooms} rooms")
-        room_id = secrets.token_urlsafe(6)
+        if room_id is None:
+            room_id = secrets.token_urlsafe(6)
+        elif room_id in self.rooms:
+            raise ValueError(f"room id {room_id!r} is taken")
         room = self._room_factory(room_id, name, self.scenes[scene_name], self.host,
                                   backend=self.backend, public=public, settings=settings,
                                   owner=owner, epoch=self.epoch)

@@ -352,13 +352,13 @@ def test_reconnects_with_backoff_after_a_server_restart(tmp_path, driver) -> Non
         st = ServerThread(tmp_path, scene=SCENE, settings=SETTINGS, bots=0, port=port).start()
         wait_for(lambda: conn() == "open", 30, "the page to reconnect")
         assert not driver.find_element("id", "notice").is_displayed()
-        # the restarted server gave its room a new id: the page says so, clearly
-        wait_for(lambda: driver.find_element("id", "message").is_displayed(), 10,
-                 "the unknown-room message")
-        assert driver.find_element("id", "message-title").text == "No such room"
-        new = st.call(lambda s: s.main_room.id)
-        driver.find_element("css selector", f'#message-extra a[href="#/room/{new}"]').click()
-        wait_for(lambda: js(driver, "return window.clothball.room") == new, 10, "the new room")
+        # the restarted server's permanent room has the same id: the page resumes it
+        assert st.call(lambda s: s.main_room.id) == rid
+        before = js(driver, "return window.clothball.stats.meshFrames")
+        wait_for(lambda: js(driver, "return window.clothball.stats.meshFrames") > before, 20,
+                 "meshes from the restarted room")
+        assert js(driver, "return window.clothball.room") == rid
+        assert not driver.find_element("id", "message").is_displayed()
         errs = [e for e in console_errors(driver) if "WebSocket" not in e["message"]]
         assert errs == []  # only the failed reconnect attempts are logged
     finally:
