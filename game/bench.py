@@ -100,15 +100,20 @@ def time_substep(cloth: Cloth, repeats: int, min_time: float = 0.02) -> float:
     return statistics.median(samples)
 
 
-def plan(args: argparse.Namespace) -> list[tuple[str, str, int]]:
-    """The (backend, precision, n) cases to run, in order."""
+def select_backends(args: argparse.Namespace) -> list[str]:
+    """The backends --backends names ("auto": every one present here)."""
     cuda_missing = cuda_unavailable_reason()
     if args.backends == "auto":
-        backends = ["cpu"] + ([] if cuda_missing else ["cuda"])
-    else:
-        backends = _csv(args.backends, "backends", ("cpu", "cuda"))
-        if "cuda" in backends and cuda_missing:
-            raise ValueError(f"--backends: cuda requested but {cuda_missing}")
+        return ["cpu"] + ([] if cuda_missing else ["cuda"])
+    backends = _csv(args.backends, "backends", ("cpu", "cuda"))
+    if "cuda" in backends and cuda_missing:
+        raise ValueError(f"--backends: cuda requested but {cuda_missing}")
+    return backends
+
+
+def plan(args: argparse.Namespace) -> list[tuple[str, str, int]]:
+    """The (backend, precision, n) cases to run, in order."""
+    backends = select_backends(args)
     precisions = _csv(args.precisions, "precisions", ("float32", "float64"))
     if args.sizes:
         try:
@@ -198,8 +203,7 @@ def run_effects(args: argparse.Namespace) -> list[dict[str, Any]]:
     full = base.with_changes({"cloth": {"n": n}, "sim": {"effects": list(EFFECT_ORDER)}})
     substeps = auto_substeps(full)
     precisions = _csv(args.precisions, "precisions", ("float32", "float64"))
-    backends = [b for b, _, _ in plan(args)]
-    backends = list(dict.fromkeys(backends))
+    backends = select_backends(args)
     repeats = args.repeats or (3 if args.quick else 7)
     cases = effect_cases(base)
     rows = []
