@@ -6,18 +6,20 @@ HTTP (GET only):
 * ``/static/<path>`` files under ``assets/web/`` (no path traversal)
 * ``/healthz`` ``ok``
 * ``/api/rooms`` public rooms as JSON
-* ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=``)
-* ``/api/replays/<id>`` one replay file (see ``server.store``)
+* ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=&player=&code=``)
+* ``/api/replays/<id>`` one replay file (see ``server.store``; a private room's: ``?code=``)
 * ``/api/stats`` the server's own counters (frame lateness, messages, CPU time)
 
 The websocket protocol is in ``docs/protocol.md``; handlers below are thin: they parse,
 check and hand over to the lobby and the rooms, and every bad message gets a JSON error
-while the room runs on.
+while the room runs on. What a client may do is bounded by ``server.limits.Limits``
+(``docs/security.md``).
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import email.utils
 import http
 import json
@@ -25,6 +27,7 @@ import logging
 import math
 import mimetypes
 import os
+import sqlite3
 import time
 import urllib.parse
 from collections.abc import Callable
@@ -40,16 +43,16 @@ from websockets.http11 import Request, Response
 from ..game.scene import ASSETS, Scene
 from . import protocol as P
 from .conn import Conn
+from .limits import DEFAULT, Limits
 from .lobby import Lobby, parse_settings
 from .protocol import ProtocolError
 from .room import Room, RoomSettings
-from .store import ReplayStore
+from .store import ReplayStore, access_key
 
 log = logging.getLogger("clothball.server")
 
 WEB_DIR = ASSETS / "web"
-HELLO_TIMEOUT = 10.0
-MAX_CLIENTS = 512
+LOBBY_PUSH_S = 0.5  # how often lobby clients' room list is checked for changes
 
 PLACEHOLDER_PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>clothball</title></head>
@@ -67,7 +70,8 @@ class GameServer:
                  bots: int = 0, room_settings: RoomSettings | None = None,
                  default_room: bool = True, web_dir: Path | None = None,
                  bot_factory: Callable[..., Any] | None = None,
-                 hello_timeout: float = HELLO_TIMEOUT) -> None:
+                 hello_timeout: float | None = None, limits: Limits | None = None,
+                 origins: tuple[str, ...] | None = None) -> None:
         if scenes is None:
             scenes = {"classic": Scene.load("classic")}
         self.scenes = scenes
@@ -80,16 +84,30 @@ class GameServer:
         self.web_dir = web_dir or WEB_DIR
         self.data_dir = Path(data_dir)
         self.epoch = time.perf_counter()
-        self.store = ReplayStore(self.data_dir)
-        self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch)
+        self.limits = limits or DEFAULT
+        if hello_timeout is not None:
+            self.limits = self.limits.replace(hello_timeout=hello_timeout)
+        self.origins = origins  # websocket Origin allow-list (None: any)
+        # A data directory that cannot be written does not stop the game: matches go on
+        # without recording, and every place that would show replays says why.
+        self.store: ReplayStore | None = None
+        self.recording_error: str | None = None
+        try:
+            self.store = ReplayStore(self.data_dir)
+        except (OSError, sqlite3.Error) as e:
+            self.recording_error = f"data directory {str(self.data_dir)!r} is unusable: {e}"
+            log.error("recording is off: %s", self.recording_error)
+        self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
+                           max_rooms=self.limits.max_rooms)
         self.clients: set[Conn] = set()
+        self.per_address: collections.Counter[str] = collections.Counter()
         self._server: Server | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._saves: set[asyncio.Task[Any]] = set()
         self._bot_factory = bot_factory
-        self.hello_timeout = hello_timeout
         self.main_room: Room | None = None
-        self.stats = {"messages_in": 0, "messages_out": 0, "bad_messages": 0, "rounds_saved": 0}
+        self.stats = {"messages_in": 0, "messages_out": 0, "bad_messages": 0, "rounds_saved": 0,
+                      "rounds_not_saved": 0, "refused_connections": 0, "rooms_stopped": 0}
         self._cpu0 = time.process_time()
         self._wall0 = time.perf_counter()
 
@@ -97,8 +115,9 @@ class GameServer:
     async def start(self) -> tuple[str, int]:
         self._server = await serve(
             self._handler, self.host, self.port, process_request=self._process_request,
-            max_size=P.MAX_MESSAGE_BYTES, max_queue=64, compression=None,
-            ping_interval=20, ping_timeout=20, close_timeout=2,
+            max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
+            ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
+            close_timeout=2,
         )
         sock = next(iter(self._server.sockets))
         self.port = sock.getsockname()[1]
@@ -109,6 +128,7 @@ class GameServer:
             for _ in range(self.bots):
                 self.main_room.add_bot(None, settings.bot_difficulty)
         self._spawn(self._housekeeping())
+        self._spawn(self._push_room_lists())
         return self.host, self.port
 
     @property
@@ -134,7 +154,8 @@ class GameServer:
         await self.lobby.close()
         if self._saves:
             await asyncio.gather(*self._saves, return_exceptions=True)
-        self.store.close()
+        if self.store is not None:
+            self.store.close()
 
     def _spawn(self, coro: Any) -> asyncio.Task[Any]:
         t = asyncio.create_task(coro)
@@ -147,6 +168,23 @@ class GameServer:
             await asyncio.sleep(10.0)
             await self.lobby.close_idle(asyncio.get_running_loop().time())
 
+    async def _push_room_lists(self) -> None:
+        """Lobby clients get the public room list again whenever it changes (rooms opened or
+        closed, seats, phases, scores); the frame counter alone is not a change."""
+        last = None
+        while True:
+            await asyncio.sleep(LOBBY_PUSH_S)
+            rooms = self.lobby.listing()
+            key = json.dumps([{**r, "frame": 0} for r in rooms], sort_keys=True)
+            if key == last:
+                continue
+            changed, last = last is not None, key
+            if changed:
+                msg = {"type": "rooms", "rooms": rooms}
+                for c in self.clients:
+                    if c.role == "lobby" and c.hello_done:
+                        c.send_json(msg)
+
     # --- RoomHost -------------------------------------------------------------------------
     def spawn_bot(self, room: Room, seat: int, token: str, difficulty: float) -> None:
         factory = self._bot_factory
@@ -156,17 +194,46 @@ class GameServer:
             factory = run_bot
         self._spawn(factory(self.ws_url, room.id, token, difficulty))
 
+    def room_stopped(self, room: Room, reason: str) -> None:
+        """A room's simulation failed: it leaves the lobby; the other rooms run on."""
+        self.stats["rooms_stopped"] += 1
+        log.error("room %s stopped: %s", room.id, reason)
+        if self.lobby.rooms.get(room.id) is room:
+            self._spawn(self.lobby.remove(room.id))
+
     def save_round(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> None:
+        room = self.lobby.rooms.get(header["room_id"])
+        if room is not None and room.code is not None:
+            # A private room's rounds are listed and served only to holders of its code.
+            header = {**header, "access": access_key(room.id, room.code)}
+
+        def failed(reason: str) -> None:
+            self.stats["rounds_not_saved"] += 1
+            r = self.lobby.rooms.get(header["room_id"])
+            if r is not None:
+                r.event("replay_failed", id=header.get("id"), round=header.get("round"),
+                        reason=reason)
+
         async def save() -> None:
+            store = self.store
+            if store is None:
+                failed(f"recording is off: {self.recording_error}")
+                return
             try:
-                row = await asyncio.to_thread(self.store.save, header, records)
-            except Exception:
+                row = await asyncio.to_thread(store.save, header, records)
+            except (OSError, sqlite3.Error) as e:
+                # Disk full, read-only, gone: this round is lost, the match goes on.
+                log.error("could not save round %s: %s", header.get("id"), e)
+                failed(f"could not write the replay: {e}")
+                return
+            except Exception as e:  # pragma: no cover - a bug must not stop the match
                 log.exception("could not save round %s", header.get("id"))
+                failed(f"could not write the replay: {e}")
                 return
             self.stats["rounds_saved"] += 1
-            room = self.lobby.rooms.get(header["room_id"])
-            if room is not None:
-                room.event("replay_saved", id=row["id"], round=row["round"], bytes=row["bytes"])
+            r = self.lobby.rooms.get(header["room_id"])
+            if r is not None:
+                r.event("replay_saved", id=row["id"], round=row["round"], bytes=row["bytes"])
 
         t = asyncio.create_task(save())
         self._saves.add(t)
@@ -200,8 +267,15 @@ class GameServer:
         url = urllib.parse.urlsplit(request.path)
         path = url.path
         if path == "/ws":
-            if len(self.clients) >= MAX_CLIENTS:
-                return self._error(503, "server full")
+            origin = request.headers.get("Origin")
+            # Browsers always send Origin; other clients need not. The allow-list stops a
+            # page on another site from using a visitor's browser to play or watch here.
+            if self.origins is not None and origin is not None and origin not in self.origins:
+                self.stats["refused_connections"] += 1
+                return self._error(403, f"origin {origin[:100]!r} is not allowed here")
+            if len(self.clients) >= self.limits.max_clients:
+                self.stats["refused_connections"] += 1
+                return self._error(503, f"server full ({self.limits.max_clients} connections)")
             return None
         try:
             if path == "/api/rooms":  # live state: read on the loop that changes it
@@ -225,28 +299,43 @@ class GameServer:
             return self._response(200, PLACEHOLDER_PAGE.encode(), "text/html; charset=utf-8")
         if path == "/healthz":
             return self._response(200, b"ok\n", "text/plain; charset=utf-8")
-        if path == "/api/replays":
-            try:
-                limit = min(1000, max(1, int(query.get("limit", ["100"])[0])))
-                offset = max(0, int(query.get("offset", ["0"])[0]))
-            except ValueError:
-                return self._error(400, "limit and offset must be whole numbers")
-            room = query.get("room", [None])[0]
-            return self._json({"replays": self.store.list(limit, offset, room),
-                               "total": self.store.count()})
-        if path.startswith("/api/replays/"):
-            rid = path[len("/api/replays/"):]
-            if rid.endswith(".cbr"):
-                rid = rid[:-4]
-            p = self.store.path_of(rid)
-            if p is None:
-                return self._error(404, f"no replay {rid!r}")
-            return self._response(200, p.read_bytes(), "application/octet-stream", {
-                "Content-Disposition": f'attachment; filename="{rid}.cbr"',
-            })
+        if path == "/api/replays" or path.startswith("/api/replays/"):
+            return self._replays(path, query)
         if path.startswith("/static/"):
             return self._static(path[len("/static/"):])
-        return self._error(404, f"no such path {path!r}")
+        return self._error(404, f"no such path {path[:200]!r}")
+
+    def _replays(self, path: str, query: dict[str, list[str]]) -> Response:
+        if self.store is None:
+            return self._error(503, f"recording is off: {self.recording_error}")
+
+        def one(key: str, max_len: int = 64) -> str | None:
+            v = query.get(key, [None])[0]
+            if v is not None and (len(v) > max_len or not v.isprintable()):
+                raise ValueError(f"{key}: at most {max_len} printable characters")
+            return v
+
+        try:
+            room, player, code = one("room"), one("player", 32), one("code")
+            limit = min(1000, max(1, int(query.get("limit", ["100"])[0])))
+            offset = min(2**62, max(0, int(query.get("offset", ["0"])[0])))
+        except ValueError as e:
+            msg = str(e) if ":" in str(e) else "limit and offset must be whole numbers"
+            return self._error(400, msg)
+        if path == "/api/replays":
+            return self._json({
+                "replays": self.store.list(limit, offset, room, player=player, code=code),
+                "total": self.store.count(room, player=player, code=code),
+            })
+        rid = path[len("/api/replays/"):]
+        if rid.endswith(".cbr"):
+            rid = rid[:-4]
+        p = self.store.path_of(rid, code=code)
+        if p is None:
+            return self._error(404, f"no replay {rid[:100]!r}")
+        return self._response(200, p.read_bytes(), "application/octet-stream", {
+            "Content-Disposition": f'attachment; filename="{rid}.cbr"',
+        })
 
     def _static(self, rel: str) -> Response:
         rel = urllib.parse.unquote(rel)
@@ -277,6 +366,7 @@ class GameServer:
             }
         return {
             "uptime_s": time.perf_counter() - self._wall0,
+            "recording": "on" if self.store is not None else f"off: {self.recording_error}",
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),
             **self.stats,
@@ -286,13 +376,20 @@ class GameServer:
 
     # --- websocket ------------------------------------------------------------------------
     async def _handler(self, ws: ServerConnection) -> None:
-        conn = Conn(ws)
+        conn = Conn(ws, self.limits)
         self.clients.add(conn)
+        self.per_address[conn.address] += 1
         try:
+            if self.per_address[conn.address] > self.limits.conns_per_address:
+                self.stats["refused_connections"] += 1
+                await ws.close(1008, f"too many connections from {conn.address} (limit "
+                                     f"{self.limits.conns_per_address})")
+                return
+            timeout = self.limits.hello_timeout
             try:
-                first = await asyncio.wait_for(ws.recv(), self.hello_timeout)
+                first = await asyncio.wait_for(ws.recv(), timeout)
             except TimeoutError:
-                conn.error("bad_message", f"no hello within {self.hello_timeout:g} s")
+                conn.error("bad_message", f"no hello within {timeout:g} s")
                 await asyncio.sleep(0.05)
                 await ws.close(1008, "no hello")
                 return
@@ -313,6 +410,9 @@ class GameServer:
             pass
         finally:
             self.clients.discard(conn)
+            self.per_address[conn.address] -= 1
+            if self.per_address[conn.address] <= 0:
+                del self.per_address[conn.address]
             if conn.room is not None:
                 conn.room.disconnected(conn)
             self.stats["messages_out"] += conn.sent
@@ -323,7 +423,7 @@ class GameServer:
         try:
             if isinstance(first, bytes):
                 raise ProtocolError("bad_message", "the first message must be a JSON hello")
-            msg = P.decode_json(first)
+            msg = P.decode_json(first, self.limits.max_control_bytes)
             if msg["type"] != "hello":
                 raise ProtocolError("bad_message",
                                     f"the first message must be a hello, got {msg['type']!r}")
@@ -365,7 +465,7 @@ class GameServer:
                 conn.drop("too many messages")
             return
         try:
-            msg = P.decode_json(text)
+            msg = P.decode_json(text, self.limits.max_control_bytes)
         except ProtocolError as e:
             self.stats["bad_messages"] += 1
             conn.error(e)
@@ -425,7 +525,12 @@ class GameServer:
         scene = P.field_str(msg, "scene", None, max_len=64)
         public = P.field_bool(msg, "public", True)
         settings = parse_settings(msg)
-        room = self.lobby.create(name, scene, public=public, settings=settings, owner=conn.id)
+        mine = self.lobby.rooms_of(conn.address)
+        if mine >= self.limits.rooms_per_address:
+            raise ProtocolError("too_many_rooms", f"{conn.address} already has {mine} open rooms "
+                                f"(limit {self.limits.rooms_per_address}); close one first")
+        room = self.lobby.create(name, scene, public=public, settings=settings, owner=conn.id,
+                                 address=conn.address)
         return {"type": "room_created", "room": room.id, "code": room.code, "state": room.info()}
 
     def _room_options(self, conn: Conn, msg: dict[str, Any]) -> None:
@@ -455,6 +560,10 @@ class GameServer:
             seat = P.field_int(msg, "seat", None, -(2**31), 2**31)  # the room names bad seats
             return room.join_player(conn, seat, conn.name, code)
         if role == "spectator":
+            room.check_code(code)  # a private room's size is its own business
+            if len(room.spectators) >= self.limits.spectators_per_room:
+                raise ProtocolError("room_full", f"room {room.id} already has "
+                                    f"{len(room.spectators)} spectators (the limit)")
             return room.join_spectator(conn, code)
         raise ProtocolError("bad_message", f"role must be 'player' or 'spectator', got {role!r}")
 

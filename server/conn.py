@@ -3,12 +3,13 @@
 Outgoing data waits in three places, never in a growing queue of state:
 
 * control messages (JSON: replies, room state, events) in a bounded FIFO; a client that
-  lets it fill up (``MAX_CONTROL_QUEUE``) is too slow and is dropped;
+  lets it fill up (``Limits.max_control_queue``) is too slow and is dropped;
 * the newest CORNER message (one slot: a newer frame replaces an unsent one);
 * the newest MESH message (one slot, likewise).
 
 A single sender task writes them in that order, waiting for the socket to drain. A client
-whose socket stays backed up for ``SLOW_DROP_S`` seconds is dropped.
+whose socket stays backed up for ``Limits.slow_drop_s`` seconds is dropped. Every number
+here is a ``server.limits.Limits`` field (``docs/security.md``).
 """
 
 from __future__ import annotations
@@ -24,19 +25,12 @@ from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
 from . import protocol as P
+from .limits import DEFAULT, Limits
 
 if TYPE_CHECKING:
     from .room import Room
 
 log = logging.getLogger("clothball.server")
-
-MAX_CONTROL_QUEUE = 512
-SLOW_DROP_S = 5.0
-CONTROL_RATE = (20.0, 40.0)  # control messages per second, burst
-BINARY_RATE = (1200.0, 400.0)  # HIP messages per second, burst
-ERROR_RATE = (5.0, 20.0)  # error replies per second, burst (the rest are counted, not sent)
-ABUSE_DROPS = 5000  # messages dropped for rate within ABUSE_WINDOW s: the connection is closed
-ABUSE_WINDOW = 2.0
 
 
 class TokenBucket:
@@ -58,9 +52,12 @@ class TokenBucket:
 class Conn:
     """A websocket client of the server (lobby, player or spectator)."""
 
-    def __init__(self, ws: ServerConnection) -> None:
+    def __init__(self, ws: ServerConnection, limits: Limits = DEFAULT) -> None:
         self.id = secrets.token_urlsafe(6)
         self.ws = ws
+        self.limits = limits
+        addr = ws.remote_address
+        self.address: str = str(addr[0]) if addr else "?"
         self.role = "lobby"  # "lobby", "player", "spectator"
         self.room: Room | None = None
         self.seat: int | None = None
@@ -74,9 +71,9 @@ class Conn:
         self._mesh: bytes | None = None
         self._last_corner_time = -1e9
         self._wake = asyncio.Event()
-        self.control_bucket = TokenBucket(*CONTROL_RATE)
-        self.binary_bucket = TokenBucket(*BINARY_RATE)
-        self.error_bucket = TokenBucket(*ERROR_RATE)
+        self.control_bucket = TokenBucket(limits.control_rate, limits.control_burst)
+        self.binary_bucket = TokenBucket(limits.binary_rate, limits.binary_burst)
+        self.error_bucket = TokenBucket(limits.error_rate, limits.error_burst)
         self.errors_suppressed = 0
         self.rate_drops: collections.deque[float] = collections.deque()
         self.sent = 0
@@ -90,7 +87,7 @@ class Conn:
     def send_json(self, msg: dict[str, Any]) -> None:
         if self.closed:
             return
-        if len(self._control) >= MAX_CONTROL_QUEUE:
+        if len(self._control) >= self.limits.max_control_queue:
             self.drop("too slow: control messages are not being read")
             return
         self._control.append(P.encode_json(msg))
@@ -98,7 +95,7 @@ class Conn:
 
     def _stuck(self) -> bool:
         since = self._sending_since
-        if since is not None and time.monotonic() - since > SLOW_DROP_S:
+        if since is not None and time.monotonic() - since > self.limits.slow_drop_s:
             self.drop("too slow: one message has waited for the socket too long")
             return True
         return False
@@ -139,9 +136,9 @@ class Conn:
         """Count a message dropped for rate; True when the client should be disconnected."""
         now = time.monotonic()
         self.rate_drops.append(now)
-        while self.rate_drops and self.rate_drops[0] < now - ABUSE_WINDOW:
+        while self.rate_drops and self.rate_drops[0] < now - self.limits.abuse_window:
             self.rate_drops.popleft()
-        return len(self.rate_drops) > ABUSE_DROPS
+        return len(self.rate_drops) > self.limits.abuse_drops
 
     # --- sending --------------------------------------------------------------------------
     async def _send_loop(self) -> None:
@@ -176,11 +173,11 @@ class Conn:
         transport = self.ws.transport
         if transport is None:
             return
-        if transport.get_write_buffer_size() > 256 * 1024:
+        if transport.get_write_buffer_size() > self.limits.max_write_buffer:
             now = time.monotonic()
             if self._backed_up_since is None:
                 self._backed_up_since = now
-            elif now - self._backed_up_since > SLOW_DROP_S:
+            elif now - self._backed_up_since > self.limits.slow_drop_s:
                 self.drop("too slow: the connection has been backed up too long")
         else:
             self._backed_up_since = None

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from ..game.scene import Scene, SceneError, available
 from .app import GameServer, default_data_dir
+from .limits import Limits, parse_origins
 
 log = logging.getLogger("clothball.server")
 
@@ -30,6 +31,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help=f"data directory for recorded rounds (default: {default_data_dir()})")
     parser.add_argument("--first-to", type=int, default=5, metavar="N",
                         help="points to win a match in the main room (default %(default)s)")
+    parser.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
+                        help="change a limit on clients, e.g. conns_per_address=8; repeatable "
+                             "(the limits and defaults: docs/security.md)")
+    parser.add_argument("--origin", action="append", default=None, metavar="URL",
+                        help="allow browser pages from this origin only (e.g. "
+                             "https://example.org); repeatable; default: any origin")
 
 
 async def serve(args: argparse.Namespace) -> int:
@@ -51,19 +58,32 @@ async def serve(args: argparse.Namespace) -> int:
         scenes[scene.name] = scene
     data = args.data or default_data_dir()
     settings = RoomSettings(first_to=max(1, min(99, args.first_to)), autoplay=True)
+    try:
+        limits = Limits()
+        for text in args.limit:
+            limits = limits.with_setting(text)
+        origins = parse_origins(args.origin)
+    except ValueError as e:
+        print(f"clothball host: {e}")
+        return 2
     server = GameServer(data, scenes=scenes, backend=args.backend, host=args.host,
-                        port=args.port, bots=args.bots, room_settings=settings)
+                        port=args.port, bots=args.bots, room_settings=settings, limits=limits,
+                        origins=origins)
     try:
         await server.start()
     except OSError as e:
         print(f"clothball host: cannot listen on {args.host}:{args.port}: {e.strerror}")
-        server.store.close()
+        if server.store is not None:
+            server.store.close()
         return 1
     room = server.main_room
     backend = room.sim.cloth.backend if room is not None else args.backend
     print(f"clothball server on {server.ws_url}  (scene {', '.join(scenes)}, backend {backend})")
     print(f"spectate in a browser: {server.http_url}")
-    print(f"recorded rounds in {Path(data).resolve()}  ({server.http_url}api/replays)")
+    if server.store is None:
+        print(f"NOT recording rounds: {server.recording_error}")
+    else:
+        print(f"recorded rounds in {Path(data).resolve()}  ({server.http_url}api/replays)")
     if args.host in ("127.0.0.1", "localhost", "::1"):
         print("(only this machine can connect; --host 0.0.0.0 to let others in)")
     stop = asyncio.Event()

@@ -15,7 +15,7 @@ from .room import Room, RoomHost, RoomSettings
 
 log = logging.getLogger("clothball.server")
 
-MAX_ROOMS = 32
+MAX_ROOMS = 32  # the default of Limits.max_rooms
 IDLE_CLOSE_S = 60.0  # a client-created room with nobody in it closes after this long
 
 
@@ -32,12 +32,14 @@ class Lobby:
         self.max_rooms = max_rooms
         self.rooms: dict[str, Room] = {}
         self.permanent: set[str] = set()
+        self.addresses: dict[str, str] = {}  # room id -> the address that created it
         self._room_factory = room_factory
         self.epoch = epoch
 
     def create(self, name: str, scene: str | None = None, *, public: bool = True,
                settings: RoomSettings | None = None, owner: str | None = None,
-               permanent: bool = False, room_id: str | None = None) -> Room:
+               permanent: bool = False, room_id: str | None = None,
+               address: str | None = None) -> Room:
         """Create and start a room. ``room_id`` fixes its id (the host's permanent room is
         "main", so a spectator's link survives a server restart); else a random one."""
         scene_name = scene or self.default_scene
@@ -56,6 +58,8 @@ class Lobby:
                                   backend=self.backend, public=public, settings=settings,
                                   owner=owner, epoch=self.epoch)
         self.rooms[room_id] = room
+        if address is not None:
+            self.addresses[room_id] = address
         if permanent:
             self.permanent.add(room_id)
         room.start()
@@ -67,6 +71,18 @@ class Lobby:
         if not isinstance(room_id, str) or room_id not in self.rooms:
             raise ProtocolError("unknown_room", f"no room {room_id!r}")
         return self.rooms[room_id]
+
+    def rooms_of(self, address: str) -> int:
+        """How many open rooms were created from ``address``."""
+        return sum(1 for a in self.addresses.values() if a == address)
+
+    async def remove(self, room_id: str) -> None:
+        """Take a room out of the lobby and close it."""
+        room = self.rooms.pop(room_id, None)
+        self.addresses.pop(room_id, None)
+        self.permanent.discard(room_id)
+        if room is not None:
+            await room.close()
 
     def listing(self) -> list[dict[str, Any]]:
         """The public rooms (private ones are joined by id and code)."""
@@ -80,11 +96,11 @@ class Lobby:
                 if any(s.kind == "bot" for s in room.seats) and room.spectators:
                     continue
                 log.info("closing idle room %s", rid)
-                del self.rooms[rid]
-                await room.close()
+                await self.remove(rid)
 
     async def close(self) -> None:
         rooms, self.rooms = list(self.rooms.values()), {}
+        self.addresses.clear()
         await asyncio.gather(*(r.close() for r in rooms))
 
 

@@ -68,7 +68,9 @@ ERROR_CODES = (
     "bad_token",  # reconnect token unknown or expired
     "room_full",
     "illegal_move",  # the game rules refuse it (e.g. start while playing)
-    "server_busy",
+    "server_busy",  # too many rooms on the server
+    "too_many_rooms",  # too many open rooms created from this address
+    "room_stopped",  # the room's simulation failed; it is closed, the client is back in the lobby
 )
 
 

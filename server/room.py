@@ -41,6 +41,8 @@ class RoomHost(Protocol):
 
     def save_round(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> None: ...
 
+    def room_stopped(self, room: Room, reason: str) -> None: ...
+
 
 @dataclass
 class RoomSettings:
@@ -484,9 +486,32 @@ class Room:
             for c in self.conns():
                 c.offer_mesh(result.mesh)
         if result.sim_error is not None:
-            self.event("sim_reset", reason=result.sim_error)
+            self._stop_on_error(result.sim_error)
+            return
         if result.exit is not None:
             self._on_exit(*result.exit)
+
+    def _stop_on_error(self, reason: str) -> None:
+        """The simulation failed (non-finite state): this room stops, says why, and sends
+        its clients back to the lobby; the server's other rooms run on."""
+        if self._closed:
+            return
+        if self.match.state in ("countdown", "playing"):
+            self._abort("the simulation stopped")
+        self.event("room_stopped", reason=reason)
+        for c in self.conns():
+            c.error("room_stopped", f"room {self.id} stopped: {reason}")
+        for s in self.seats:
+            if s.conn is not None:
+                s.conn.room, s.conn.seat, s.conn.role = None, None, "lobby"
+                if s.kind == "bot":
+                    s.conn.kicked("room stopped")
+                s.conn = None
+        for c in self.spectators:
+            c.room, c.role = None, "lobby"
+        self.spectators.clear()
+        self._closed = True
+        self.host.room_stopped(self, reason)
 
     def on_hip(self, conn: Conn, hip: P.Hip) -> None:
         seat = conn.seat

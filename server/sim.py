@@ -139,8 +139,9 @@ class RoomSim:
     def _run(self) -> None:
         try:
             self._loop_body()
-        except Exception:  # pragma: no cover - logged, the room reports the sim as stopped
+        except Exception as e:  # pragma: no cover - a bug: the room stops, like a NaN
             log.exception("room simulation thread failed")
+            self._publish(FrameResult(-1, self.now(), [], sim_error=f"internal error: {e}"))
 
     def _loop_body(self) -> None:
         cloth, dt = self.cloth, self.frame_dt
@@ -170,14 +171,16 @@ class RoomSim:
                     hips[s] = slot[0]
                     self._applied[s] = (slot[1], slot[2])
             cloth.set_hips(hips)
-            sim_error = None
             try:
                 cloth.step(behind)
             except SimulationError as e:
-                sim_error = str(e)
-                log.warning("room simulation reset: %s", e)
-                cloth.reset()
-                cloth.set_hips(hips)
+                # The room stops (the server tells its clients and closes it); resetting
+                # would hide a scene or engine fault behind a game that silently restarts.
+                log.error("room simulation stopped: %s", e)
+                self._stop.set()
+                self._mesh_ready.set()
+                self._publish(FrameResult(cloth.frame, self.now(), [], sim_error=str(e)))
+                return
             done += behind
             frame = cloth.frame
             stats.frames += behind
@@ -201,7 +204,7 @@ class RoomSim:
                                 self._applied[s][0], self._applied[s][1], server_time)
                 for s in range(4)
             ]
-            result = FrameResult(frame, server_time, corners, sim_error=sim_error)
+            result = FrameResult(frame, server_time, corners)
             if self.has_ball:
                 if self._armed:
                     edge = exit_edge(bp, pos, self.floor_y)

@@ -16,11 +16,15 @@ All integers little-endian. A file is written to ``<id>.cbr.tmp``, flushed to di
 renamed, and only then indexed (SQLite in WAL mode), so a crash loses at most the round
 being written: never the index or an earlier round. At start-up, leftover ``.tmp`` files
 are deleted and any finished file the index lacks is indexed from its own header.
+
+A private room's rounds carry ``access`` (``access_key(room, code)``) in their header and
+index row: they are listed and served only to a request that names the room's code.
 """
 
 from __future__ import annotations
 
 import gzip
+import hashlib
 import json
 import logging
 import os
@@ -55,13 +59,21 @@ CREATE TABLE IF NOT EXISTS rounds (
     ended_at REAL NOT NULL,
     duration_s REAL NOT NULL,
     file TEXT NOT NULL,
-    bytes INTEGER NOT NULL
+    bytes INTEGER NOT NULL,
+    access TEXT
 );
 CREATE INDEX IF NOT EXISTS rounds_ended ON rounds (ended_at);
 """
 
 COLUMNS = ("id", "room_id", "room_name", "scene", "round", "players", "conceded_edge",
-           "conceded_by", "scores", "started_at", "ended_at", "duration_s", "file", "bytes")
+           "conceded_by", "scores", "started_at", "ended_at", "duration_s", "file", "bytes",
+           "access")
+
+
+def access_key(room_id: str, code: str) -> str:
+    """What a private room's rounds are locked with: a hash of its id and join code (the
+    code itself is never stored)."""
+    return hashlib.sha256(f"clothball-replay:{room_id}:{code}".encode()).hexdigest()
 
 
 class ReplayError(ValueError):
@@ -157,6 +169,9 @@ class ReplayStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(SCHEMA)
+        have = {r[1] for r in self._db.execute("PRAGMA table_info(rounds)")}
+        if "access" not in have:  # an index from before private rounds were locked
+            self._db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
         self._recover()
 
     def _recover(self) -> None:
@@ -181,7 +196,7 @@ class ReplayStore:
             int(header["round"]), json.dumps(header["players"]), header.get("conceded_edge"),
             header.get("conceded_by"), json.dumps(header["scores"]), float(header["started_at"]),
             float(header["ended_at"]), float(header["duration_s"]), path.name,
-            path.stat().st_size,
+            path.stat().st_size, header.get("access"),
         )
         with self._lock:
             self._db.execute(
@@ -202,34 +217,66 @@ class ReplayStore:
         assert row is not None
         return row
 
-    def list(self, limit: int = 100, offset: int = 0, room_id: str | None = None
-             ) -> list[dict[str, Any]]:
-        q = f"SELECT {', '.join(COLUMNS)} FROM rounds"
-        args: list[Any] = []
-        if room_id is not None:
-            q += " WHERE room_id = ?"
-            args.append(room_id)
+    @staticmethod
+    def _where(room_id: str | None, player: str | None, code: str | None
+               ) -> tuple[str, list[Any]]:
+        """The rounds a request may see: public ones, plus a private room's when the request
+        names that room and its code."""
+        if room_id is not None and code is not None:
+            q, args = " WHERE room_id = ? AND (access IS NULL OR access = ?)", [
+                room_id, access_key(room_id, code)]
+        elif room_id is not None:
+            q, args = " WHERE room_id = ? AND access IS NULL", [room_id]
+        else:
+            q, args = " WHERE access IS NULL", []
+        if player is not None:
+            q += (" AND EXISTS (SELECT 1 FROM json_each(rounds.players)"
+                  " WHERE json_extract(value, '$.name') = ?)")
+            args.append(player)
+        return q, args
+
+    def list(self, limit: int = 100, offset: int = 0, room_id: str | None = None, *,
+             player: str | None = None, code: str | None = None) -> list[dict[str, Any]]:
+        """Newest first. ``player``: only rounds where a seat had that name; ``code``: a
+        private room's code (with ``room_id``) to see its rounds too."""
+        where, args = self._where(room_id, player, code)
+        q = f"SELECT {', '.join(COLUMNS)} FROM rounds{where}"
         q += " ORDER BY ended_at DESC, id LIMIT ? OFFSET ?"
         args += [limit, offset]
         with self._lock:
             rows = self._db.execute(q, args).fetchall()
         return [self._row(r) for r in rows]
 
-    def count(self) -> int:
+    def count(self, room_id: str | None = None, *, player: str | None = None,
+              code: str | None = None) -> int:
+        """How many rounds ``list`` with the same filters would page through."""
+        where, args = self._where(room_id, player, code)
         with self._lock:
-            return int(self._db.execute("SELECT COUNT(*) FROM rounds").fetchone()[0])
+            return int(self._db.execute(f"SELECT COUNT(*) FROM rounds{where}", args)
+                       .fetchone()[0])
 
-    def get(self, rid: str) -> dict[str, Any] | None:
+    def _get(self, rid: str) -> dict[str, Any] | None:
         if not ID_RE.match(rid):
             return None
         with self._lock:
             r = self._db.execute(
                 f"SELECT {', '.join(COLUMNS)} FROM rounds WHERE id = ?", (rid,)
             ).fetchone()
-        return None if r is None else self._row(r)
+        return None if r is None else dict(zip(COLUMNS, r, strict=True))
 
-    def path_of(self, rid: str) -> Path | None:
-        if self.get(rid) is None:
+    def get(self, rid: str) -> dict[str, Any] | None:
+        r = self._get(rid)
+        return None if r is None else self._row(tuple(r.values()))
+
+    def path_of(self, rid: str, code: str | None = None) -> Path | None:
+        """The round's file, if it exists and the caller may have it (a private room's
+        round only with that room's code)."""
+        r = self._get(rid)
+        if r is None:
+            return None
+        if r["access"] is not None and (
+            code is None or access_key(r["room_id"], code) != r["access"]
+        ):
             return None
         path = self.replays / f"{rid}.cbr"
         return path if path.is_file() else None
@@ -239,6 +286,7 @@ class ReplayStore:
         d = dict(zip(COLUMNS, r, strict=True))
         d["players"] = json.loads(d["players"])
         d["scores"] = json.loads(d["scores"])
+        d["private"] = d.pop("access") is not None
         del d["file"]
         return d
 

@@ -283,7 +283,8 @@ function eventText(ev, seats) {
       return `${ev.name || ev.kind} ${ev.resumed ? "is back in" : "took"} the ${place}`;
     }
     case "replay_saved": return `round ${ev.round} saved as a replay`;
-    case "sim_reset": return `simulation reset: ${ev.reason}`;
+    case "replay_failed": return `round ${ev.round} not recorded: ${ev.reason}`;
+    case "room_stopped": return `room stopped: ${ev.reason}`;
     default: return ev.event;
   }
 }

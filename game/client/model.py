@@ -218,8 +218,10 @@ class ClientModel:
             if isinstance(rid, str):
                 self.replay_ids.append(rid)
             text = f"round {msg.get('round')} saved: clothball replay {rid}"
-        elif ev == "sim_reset":
-            text = f"simulation reset: {msg.get('reason')}"
+        elif ev == "room_stopped":
+            text = f"room stopped: {msg.get('reason')}"
+        elif ev == "replay_failed":
+            text = f"round {msg.get('round')} not recorded: {msg.get('reason')}"
         else:
             text = str(ev)
         if text:

@@ -1,0 +1,80 @@
+"""Every limit the server puts on what a client may do, in one place.
+
+``docs/security.md`` documents each one (what it bounds, its default, how a client is
+told). A host changes them with ``clothball host --limit NAME=VALUE`` (repeatable) and
+restricts browser origins with ``--origin URL``; in Python, ``GameServer(limits=...)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, fields
+
+
+@dataclass(frozen=True)
+class Limits:
+    # --- message size (a larger websocket message closes the connection, 1009) ---------------
+    max_message_bytes: int = 65536
+    max_control_bytes: int = 4096  # a larger JSON control message is refused (too_big)
+    # --- rates, per connection (token buckets: rate per second, burst) -----------------------
+    control_rate: float = 20.0
+    control_burst: float = 40.0
+    binary_rate: float = 1200.0  # HIP messages
+    binary_burst: float = 400.0
+    error_rate: float = 5.0  # error replies sent; the rest are counted in 'suppressed'
+    error_burst: float = 20.0
+    abuse_drops: int = 5000  # messages dropped for rate within abuse_window s: closed 1008
+    abuse_window: float = 2.0
+    # --- connections and rooms ---------------------------------------------------------------
+    max_clients: int = 512  # websocket connections in all (more: HTTP 503)
+    conns_per_address: int = 32  # from one IP address (more: closed 1008)
+    max_rooms: int = 32  # rooms in all (more: server_busy)
+    rooms_per_address: int = 4  # rooms created from one IP address and still open
+    spectators_per_room: int = 64  # (more: room_full)
+    # --- time and slow clients -----------------------------------------------------------------
+    hello_timeout: float = 10.0  # s to send the hello (else closed 1008)
+    slow_drop_s: float = 5.0  # s a client may leave its socket backed up (else closed 1008)
+    max_control_queue: int = 512  # unsent control messages (more: closed 1008)
+    max_write_buffer: int = 256 * 1024  # bytes waiting in the socket that count as backed up
+    ping_interval: float = 20.0  # s between keep-alive pings
+    ping_timeout: float = 20.0  # s without a pong: the client is gone (closed 1011)
+
+    def replace(self, **changes: float | int) -> Limits:
+        return dataclasses.replace(self, **changes)
+
+    def with_setting(self, text: str) -> Limits:
+        """``NAME=VALUE`` (as on the command line) applied; ``ValueError`` naming what is
+        wrong otherwise. Every limit is a finite positive number."""
+        name, sep, value = text.partition("=")
+        name = name.strip().replace("-", "_")
+        known = {f.name: f for f in fields(self)}
+        if not sep or name not in known:
+            raise ValueError(f"--limit {text!r}: expected NAME=VALUE with NAME one of "
+                             f"{', '.join(known)}")
+        kind = known[name].type
+        try:
+            v: float | int = int(value) if kind in (int, "int") else float(value)
+        except ValueError:
+            raise ValueError(f"--limit {name}: {value!r} is not a number") from None
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"--limit {name}: must be a finite number > 0, got {value!r}")
+        return self.replace(**{name: v})
+
+
+def parse_origins(origins: list[str] | None) -> tuple[str, ...] | None:
+    """The websocket origin allow-list from ``--origin`` values (None: any origin)."""
+    if not origins:
+        return None
+    out = []
+    for o in origins:
+        o = o.strip().rstrip("/")
+        if not o.startswith(("http://", "https://")) or any(c in o for c in " \t\r\n"):
+            raise ValueError(f"--origin {o!r}: expected an origin such as https://example.org")
+        out.append(o)
+    return tuple(out)
+
+
+DEFAULT = Limits()
+
+__all__ = ["DEFAULT", "Limits", "parse_origins"]
