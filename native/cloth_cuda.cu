@@ -105,8 +105,7 @@ __global__ void gather_corners(int n, DevBuf<R> s, const Ball<R>* ball, const in
                                R* out) {
   const int t = threadIdx.x;
   if (t < 4) {
-    const int last = n - 1;
-    const int q = t == 0 ? 0 : t == 1 ? last : t == 2 ? n * n - 1 : last * n;
+    const int q = corner_node(t, n);
     V3<R> x = s.pos.get(q), v = s.vel.get(q);
     R* o = out + 6 * t;
     o[0] = x.x; o[1] = x.y; o[2] = x.z; o[3] = v.x; o[4] = v.y; o[5] = v.z;

@@ -70,6 +70,12 @@ CB_HD int corner_slot(int i, int j, int n) {
   return -1;
 }
 
+// Node index of coupled corner c (0..3), in the order of corner_slot.
+CB_HD int corner_node(int c, int n) {
+  const int last = n - 1;
+  return c == 0 ? 0 : c == 1 ? last : c == 2 ? n * n - 1 : last * n;
+}
+
 // Total force on node (i, j) from the state `pos`/`vel` at the substep's start (eq. 1).
 // `contact` receives this node's ball contact force (eq. 4) for the ball's sum (eq. 5).
 // Interior = true promises that every neighbour up to two nodes away exists and that the
