@@ -264,8 +264,8 @@ class GameServer:
 
     async def _process_request(self, connection: ServerConnection, request: Request
                                ) -> Response | None:
-        url = urllib.parse.urlsplit(request.path)
-        path = url.path
+        # Split by hand: urlsplit reads "//host" as an authority and raises on "//[".
+        path, _, query = request.path.partition("#")[0].partition("?")
         if path == "/ws":
             origin = request.headers.get("Origin")
             # Browsers always send Origin; other clients need not. The allow-list stops a
@@ -281,12 +281,12 @@ class GameServer:
             if path == "/api/rooms":  # live state: read on the loop that changes it
                 return self._json({"rooms": self.lobby.listing()})
             if path == "/api/stats":
-                if urllib.parse.parse_qs(url.query).get("reset") == ["1"]:
+                if urllib.parse.parse_qs(query).get("reset") == ["1"]:
                     for room in self.lobby.rooms.values():
                         room.sim.stats.lateness.clear()
                 return self._json(self.stats_snapshot())
             # Files and the index are read on a worker thread: the room loops go on.
-            return await asyncio.to_thread(self._route, path, urllib.parse.parse_qs(url.query))
+            return await asyncio.to_thread(self._route, path, urllib.parse.parse_qs(query))
         except Exception:  # pragma: no cover - never take the server down on a request
             log.exception("HTTP %s failed", path)
             return self._error(500, "internal error")
