@@ -84,14 +84,18 @@ def write_replay(path: Path, header: dict[str, Any], records: Iterable[tuple[int
     """Write a replay file crash-safely (temp file, fsync, rename). Returns its size."""
     tmp = path.with_name(path.name + ".tmp")
     head = json.dumps(header, separators=(",", ":"), allow_nan=False).encode()
-    with open(tmp, "wb") as raw:
-        with gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=6, mtime=0) as gz:
-            gz.write(MAGIC + struct.pack("<II", REPLAY_VERSION, len(head)) + head)
-            for kind, data in records:
-                gz.write(RECORD.pack(kind, len(data)))
-                gz.write(data)
-        raw.flush()
-        os.fsync(raw.fileno())
+    try:
+        with open(tmp, "wb") as raw:
+            with gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=6, mtime=0) as gz:
+                gz.write(MAGIC + struct.pack("<II", REPLAY_VERSION, len(head)) + head)
+                for kind, data in records:
+                    gz.write(RECORD.pack(kind, len(data)))
+                    gz.write(data)
+            raw.flush()
+            os.fsync(raw.fileno())
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a full disk keeps no half-written file
+        raise
     os.replace(tmp, path)
     _fsync_dir(path.parent)
     return path.stat().st_size
