@@ -60,6 +60,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--server", action="store_true", help="benchmark the game server instead (see --help)"
     )
+    p.add_argument(
+        "--load", action="store_true",
+        help="how many rooms (4 players at 1 kHz + spectators) the server holds within target",
+    )
     try:
         from ..server import loadbench  # noqa: PLC0415
 
@@ -282,10 +286,10 @@ def print_table(rows: list[dict[str, Any]], copy_gbs: float | None) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.server:
+    if args.server or args.load:
         from ..server import loadbench  # noqa: PLC0415
 
-        return loadbench.run(args)
+        return loadbench.run_load(args) if args.load else loadbench.run(args)
     if args.effects:
         try:
             rows = run_effects(args)

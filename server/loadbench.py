@@ -8,8 +8,15 @@ deadline each frame's state was ready, from the server's own counters), HIP-to-c
 latency p50/p99 (client clock, send -> receipt of the CORNER that applied it), messages per
 second in and out of the server, spectator mesh rates, and CPU use of each process.
 
-Run ``python -m clothball.server.loadbench --role server|spectators ...`` only through the
-bench; ``run(args)`` starts the others itself.
+``clothball bench --load``: how many rooms the server holds. Rooms of 4 player clients
+(HIP at 1 kHz, playing a match) plus ``--load-spectators`` spectators each are added one at
+a time (each room's clients in a process of their own) and measured for ``--load-seconds``,
+until a target is missed: frame lateness p99 <= 5 ms in every room, no frame skipped, and
+the server taking in at least 90 % of the HIPs offered. Reported per step: rooms, clients,
+messages a second in and out, lateness, CPU, the load average.
+
+Run ``python -m clothball.server.loadbench --role server|spectators|room-clients ...`` only
+through the bench; ``run(args)`` and ``run_load(args)`` start the others themselves.
 """
 
 from __future__ import annotations
@@ -49,15 +56,23 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                    help="cloth nodes per side in the bench room (default %(default)s)")
     g.add_argument("--server-backend", default="cpu", choices=("auto", "cpu", "cuda"),
                    help="cloth backend of the bench room (default %(default)s)")
+    g.add_argument("--load-seconds", type=float, default=10.0,
+                   help="--load: measured seconds per number of rooms (default %(default)s)")
+    g.add_argument("--load-spectators", type=int, default=4,
+                   help="--load: spectators per room (default %(default)s)")
+    g.add_argument("--load-max-rooms", type=int, default=32,
+                   help="--load: stop growing at this many rooms (default %(default)s)")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Stand-alone use (``python -m clothball.server.loadbench``)."""
     configure_server_flags(parser)
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
-    parser.add_argument("--role", choices=("bench", "server", "spectators"), default="bench",
-                        help=argparse.SUPPRESS)
+    parser.add_argument("--load", action="store_true", help="how many rooms the server holds")
+    parser.add_argument("--role", choices=("bench", "server", "spectators", "room-clients"),
+                        default="bench", help=argparse.SUPPRESS)
     parser.add_argument("--url", default="", help=argparse.SUPPRESS)
+    parser.add_argument("--no-room", action="store_true", help=argparse.SUPPRESS)
 
 
 # --- the server process ------------------------------------------------------------------------
@@ -66,21 +81,29 @@ def configure(parser: argparse.ArgumentParser) -> None:
 async def _serve(args: argparse.Namespace) -> None:
     from ..game.scene import Scene
     from .app import GameServer
+    from .limits import Limits
     from .room import RoomSettings
 
     sys.setswitchinterval(0.0005)
     scene = Scene.load("classic").with_changes({"cloth": {"n": args.server_n}})
     scene.name = "bench"
     with tempfile.TemporaryDirectory() as data:
+        # Every client comes from 127.0.0.1: the per-address limits would stop the bench.
+        limits = Limits(conns_per_address=100_000, rooms_per_address=100_000, max_rooms=1000,
+                        max_clients=100_000, spectators_per_room=100_000)
         srv = GameServer(data, scenes={"bench": scene}, backend=args.server_backend,
-                         host="127.0.0.1", port=0,
-                         room_settings=RoomSettings(first_to=99, bots_allowed=False))
+                         host="127.0.0.1", port=0, default_room=not args.no_room,
+                         room_settings=RoomSettings(first_to=99, bots_allowed=False),
+                         limits=limits)
         await srv.start()
         room = srv.main_room
-        assert room is not None
-        print(json.dumps({"port": srv.port, "room": room.id,
-                          "backend": room.sim.cloth.backend,
-                          "substeps": room.sim.cloth.substeps}), flush=True)
+        probe = room.sim.cloth if room is not None else None
+        if probe is None:  # no room yet: a throw-away cloth says what a room will run
+            from ..game.cloth import Cloth
+
+            probe = Cloth(scene, backend=args.server_backend, threads=1)
+        print(json.dumps({"port": srv.port, "room": room.id if room is not None else None,
+                          "backend": probe.backend, "substeps": probe.substeps}), flush=True)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, stop.set)
@@ -117,6 +140,27 @@ async def _spectate(args: argparse.Namespace) -> None:
 # --- players (this process) --------------------------------------------------------------------
 
 
+async def _drive(i: int, p: Any, rate: float, stop_at: list[float], sent: list[int]) -> None:
+    """Player ``i`` sends HIPs at ``rate`` Hz (a slow sine up and down its reach) until the
+    loop time passes ``stop_at[0]``, counting them in ``sent[i]``."""
+    reach = p.reach
+    assert reach is not None
+    loop = asyncio.get_running_loop()
+    period = 1.0 / rate
+    nxt = loop.time()
+    phase = i * math.pi / 2
+    while loop.time() < stop_at[0]:
+        t = loop.time()
+        h = reach.from_unit(np.array([0.0, 0.3 * math.sin(2 * math.pi * 0.5 * t + phase), 0.0]))
+        await p.send_hip(h)
+        sent[i] += 1
+        nxt += period
+        delay = nxt - loop.time()
+        if delay < -0.05:  # far behind: do not burst to catch up
+            nxt = loop.time()
+        await asyncio.sleep(max(0.0, delay))
+
+
 async def _play(ws_url: str, room: str, n_players: int, rate: float, seconds: float,
                 reset_stats: Any) -> dict[str, Any]:
     from ..game.net_client import NetClient
@@ -127,30 +171,10 @@ async def _play(ws_url: str, room: str, n_players: int, rate: float, seconds: fl
     for p in players:
         await p.request("ready", ready=True)
     sent = [0] * n_players
-    stop_at = [math.inf]
-
-    async def drive(i: int, p: NetClient) -> None:
-        reach = p.reach
-        assert reach is not None
-        loop = asyncio.get_running_loop()
-        period = 1.0 / rate
-        nxt = loop.time()
-        phase = i * math.pi / 2
-        while loop.time() < stop_at[0]:
-            t = loop.time()
-            h = reach.from_unit(np.array([0.0, 0.3 * math.sin(2 * math.pi * 0.5 * t + phase),
-                                          0.0]))
-            await p.send_hip(h)
-            sent[i] += 1
-            nxt += period
-            delay = nxt - loop.time()
-            if delay < -0.05:  # far behind: do not burst to catch up
-                nxt = loop.time()
-            await asyncio.sleep(max(0.0, delay))
-
     loop = asyncio.get_running_loop()
-    stop_at[0] = loop.time() + 1.0 + seconds
-    tasks = [asyncio.create_task(drive(i, p)) for i, p in enumerate(players)]
+    stop_at = [loop.time() + 1.0 + seconds]
+    tasks = [asyncio.create_task(_drive(i, p, rate, stop_at, sent))
+             for i, p in enumerate(players)]
     await asyncio.sleep(1.0)  # settle, then measure
     for p in players:
         p.latencies.clear()
@@ -197,6 +221,11 @@ def run(args: argparse.Namespace) -> int:
     if role == "spectators":
         asyncio.run(_spectate(args))
         return 0
+    if role == "room-clients":
+        asyncio.run(_room_clients(args))
+        return 0
+    if getattr(args, "load", False):
+        return run_load(args)
     seconds = float(args.seconds)
     base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
             "--server-backend", args.server_backend, "--seconds", str(seconds),
@@ -309,6 +338,156 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m clothball.server.loadbench")
     configure(parser)
     return run(parser.parse_args(argv))
+
+
+
+# --- clothball bench --load ---------------------------------------------------------------------
+
+
+async def _room_clients(args: argparse.Namespace) -> None:
+    """One room's clients: 4 players (ready, HIP at --hip-rate) and --load-spectators
+    spectators, until stdin closes."""
+    from ..game.net_client import NetClient
+
+    where = json.loads(args.url)
+    ws, room = where["ws"], where["room"]
+    players = [await NetClient.connect(ws, name=f"p{i}", role="player", room=room, seat=i,
+                                       mesh=False) for i in range(4)]
+    spectators = [await NetClient.connect(ws, role="spectator", room=room, decode_mesh=False)
+                  for _ in range(args.load_spectators)]
+    for p in players:
+        await p.request("ready", ready=True)
+    sent = [0] * 4
+    stop_at = [math.inf]
+    tasks = [asyncio.create_task(_drive(i, p, args.hip_rate, stop_at, sent))
+             for i, p in enumerate(players)]
+    print(json.dumps({"ready": True}), flush=True)
+    await asyncio.to_thread(sys.stdin.read)
+    stop_at[0] = -math.inf
+    await asyncio.gather(*tasks)
+    for c in [*players, *spectators]:
+        await c.close()
+
+
+async def _create_room(ws: str) -> str:
+    from ..game.net_client import NetClient
+
+    c = await NetClient.connect(ws, name="load")
+    try:
+        made = await c.request("create_room", name="load", bots_allowed=False, first_to=99)
+    finally:
+        await c.close()
+    return str(made["room"])
+
+
+def run_load(args: argparse.Namespace) -> int:
+    """Add rooms one at a time until a target is missed; print (or --json) every step."""
+    seconds = float(args.load_seconds)
+    base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
+            "--server-backend", args.server_backend, "--hip-rate", str(args.hip_rate),
+            "--load-spectators", str(args.load_spectators)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    load_before = os.getloadavg()
+    server = subprocess.Popen([*base, "--role", "server", "--no-room"], stdout=subprocess.PIPE,
+                              text=True, env=env)
+    clients: list[subprocess.Popen[str]] = []
+    steps: list[dict[str, Any]] = []
+    try:
+        assert server.stdout is not None
+        info = json.loads(server.stdout.readline())
+        http = f"http://127.0.0.1:{info['port']}"
+        ws = f"ws://127.0.0.1:{info['port']}/ws"
+        print(f"load bench: rooms of 4 players x {args.hip_rate:g} Hz HIP + "
+              f"{args.load_spectators} spectators, {seconds:g} s a step, n={args.server_n}, "
+              f"backend {info['backend']} ({info['substeps']} substeps/frame), "
+              f"{os.cpu_count()} CPUs, load average {load_before[0]:.2f}", file=sys.stderr)
+        for rooms in range(1, args.load_max_rooms + 1):
+            room = asyncio.run(_create_room(ws))
+            proc = subprocess.Popen([*base, "--role", "room-clients", "--url",
+                                     json.dumps({"ws": ws, "room": room})],
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                    env=env)
+            clients.append(proc)
+            assert proc.stdout is not None
+            if not proc.stdout.readline():
+                raise RuntimeError("a room's clients did not connect")
+            time.sleep(1.0)  # settle
+            s0 = _get(f"{http}/api/stats?reset=1")
+            time.sleep(seconds)
+            s1 = _get(f"{http}/api/stats")
+            step = _load_step(rooms, s0, s1, args)
+            steps.append(step)
+            print(_load_line(step), file=sys.stderr, flush=True)
+            if not step["met"]:
+                break
+    finally:
+        for proc in clients:
+            if proc.stdin is not None:
+                proc.stdin.close()
+        for proc in clients:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            server.kill()
+    held = [s for s in steps if s["met"]]
+    result = {
+        "n": args.server_n, "backend": info["backend"], "substeps": info["substeps"],
+        "cpus": os.cpu_count(), "hip_rate_hz": args.hip_rate,
+        "spectators_per_room": args.load_spectators, "seconds_per_step": seconds,
+        "load_average_before": list(load_before),
+        "held": held[-1] if held else None,
+        "first_missed": next((s for s in steps if not s["met"]), None),
+        "steps": steps,
+    }
+    if getattr(args, "json", False):
+        print(json.dumps(result, indent=2))
+    else:
+        h = result["held"]
+        print("held: " + (f"{h['rooms']} rooms, {h['clients']} clients, "
+                          f"{h['messages_in_per_s']:.0f} msgs/s in, "
+                          f"{h['messages_out_per_s']:.0f} out, lateness p99 "
+                          f"{h['lateness_p99_ms']:.2f} ms" if h else "not even one room"))
+    return 0
+
+
+def _load_step(rooms: int, s0: dict[str, Any], s1: dict[str, Any], args: argparse.Namespace
+               ) -> dict[str, Any]:
+    dt = s1["uptime_s"] - s0["uptime_s"]
+    per_room = s1["rooms"].values()
+    p99 = max((r["lateness_ms"].get("p99", math.inf) for r in per_room), default=math.inf)
+    p50 = max((r["lateness_ms"].get("p50", math.inf) for r in per_room), default=math.inf)
+    skipped = sum(r["skipped_frames"] - s0["rooms"].get(k, {}).get("skipped_frames", 0)
+                  for k, r in s1["rooms"].items())
+    msgs_in = (s1["messages_in"] - s0["messages_in"]) / dt
+    offered = 4 * args.hip_rate * rooms
+    step = {
+        "rooms": rooms,
+        "clients": rooms * (4 + args.load_spectators),
+        "messages_in_per_s": msgs_in,
+        "messages_out_per_s": (s1["messages_out"] - s0["messages_out"]) / dt,
+        "hip_offered_per_s": offered,
+        "lateness_p50_ms": p50,
+        "lateness_p99_ms": p99,
+        "skipped_frames": skipped,
+        "server_cpu_cores": (s1["cpu_s"] - s0["cpu_s"]) / dt,
+        "load_average": os.getloadavg()[0],
+    }
+    step["met"] = bool(p99 <= TARGET_LATENESS_P99_MS and skipped == 0
+                       and msgs_in >= 0.9 * offered)
+    return step
+
+
+def _load_line(s: dict[str, Any]) -> str:
+    return (f"{s['rooms']:3d} rooms {s['clients']:4d} clients  in {s['messages_in_per_s']:7.0f}/s"
+            f" (of {s['hip_offered_per_s']:.0f})  out {s['messages_out_per_s']:7.0f}/s  lateness "
+            f"p50 {s['lateness_p50_ms']:.2f} p99 {s['lateness_p99_ms']:.2f} ms  skipped "
+            f"{s['skipped_frames']}  server {s['server_cpu_cores']:.2f} cores  load "
+            f"{s['load_average']:.1f}  {'ok' if s['met'] else 'MISSED'}")
 
 
 if __name__ == "__main__":
