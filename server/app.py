@@ -171,19 +171,21 @@ class GameServer:
     async def _push_room_lists(self) -> None:
         """Lobby clients get the public room list again whenever it changes (rooms opened or
         closed, seats, phases, scores); the frame counter alone is not a change."""
-        last = None
+        def key(rooms: list[dict[str, Any]]) -> str:
+            return json.dumps([{**r, "frame": 0} for r in rooms], sort_keys=True)
+
+        last = key(self.lobby.listing())
         while True:
             await asyncio.sleep(LOBBY_PUSH_S)
             rooms = self.lobby.listing()
-            key = json.dumps([{**r, "frame": 0} for r in rooms], sort_keys=True)
-            if key == last:
+            now = key(rooms)
+            if now == last:
                 continue
-            changed, last = last is not None, key
-            if changed:
-                msg = {"type": "rooms", "rooms": rooms}
-                for c in self.clients:
-                    if c.role == "lobby" and c.hello_done:
-                        c.send_json(msg)
+            last = now
+            msg = {"type": "rooms", "rooms": rooms}
+            for c in self.clients:
+                if c.role == "lobby" and c.hello_done:
+                    c.send_json(msg)
 
     # --- RoomHost -------------------------------------------------------------------------
     def spawn_bot(self, room: Room, seat: int, token: str, difficulty: float) -> None:

@@ -52,8 +52,7 @@ def test_connections_per_address_are_limited_with_a_clear_close_reason(tmp_path)
     async def main() -> None:
         async with server(tmp_path, limits=Limits(conns_per_address=3)) as srv:
             clients = [await NetClient.connect(srv.ws_url) for _ in range(3)]
-            async with connect(srv.ws_url) as ws:
-                await ws.send(json.dumps(HELLO))
+            async with connect(srv.ws_url) as ws:  # closed before it can say hello
                 code, reason = await close_of(ws)
             assert code == 1008 and "too many connections" in reason and "limit 3" in reason
             await clients.pop().close()
