@@ -27,6 +27,7 @@ import logging
 import math
 import mimetypes
 import os
+import socket
 import sqlite3
 import time
 import urllib.parse
@@ -380,6 +381,13 @@ class GameServer:
     async def _handler(self, ws: ServerConnection) -> None:
         conn = Conn(ws, self.limits)
         self.clients.add(conn)
+        sock = ws.transport.get_extra_info("socket") if ws.transport is not None else None
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF,
+                                self.limits.socket_send_buffer)
+            except OSError:  # pragma: no cover - not settable on this platform
+                pass
         self.per_address[conn.address] += 1
         try:
             if self.per_address[conn.address] > self.limits.conns_per_address:

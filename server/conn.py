@@ -32,6 +32,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("clothball.server")
 
+CLOSE_WAIT_S = 2.0  # a dropped client's closing handshake gets this long
+
 
 class TokenBucket:
     def __init__(self, rate: float, burst: float) -> None:
@@ -81,6 +83,7 @@ class Conn:
         self.corners_replaced = 0
         self._backed_up_since: float | None = None
         self._sending_since: float | None = None
+        self._closing: asyncio.Future[None] | None = None
         self._sender = asyncio.create_task(self._send_loop())
 
     # --- offering data --------------------------------------------------------------------
@@ -188,21 +191,30 @@ class Conn:
             return
         self.closed = True
         log.info("dropping client %s: %s", self.id, reason)
-        asyncio.ensure_future(self._close(1008, reason[:120]))
+        self._closing = asyncio.ensure_future(self._close(1008, reason[:120]))
 
     def kicked(self, reason: str) -> None:
         if self.closed:
             return
         self.closed = True
-        asyncio.ensure_future(self._close(4000, reason[:120]))
+        self._closing = asyncio.ensure_future(self._close(4000, reason[:120]))
 
     async def _close(self, code: int, reason: str) -> None:
+        # A client that stopped reading blocks the sender inside ws.send, which holds the
+        # connection's send lock that a clean close needs: bound the wait, then cut it.
         try:
-            await self.ws.close(code, reason)
-        except Exception:  # pragma: no cover
+            await asyncio.wait_for(self.ws.close(code, reason), CLOSE_WAIT_S)
+        except Exception:
             pass
+        finally:
+            if self.ws.transport is not None and not self.ws.transport.is_closing():
+                self.ws.transport.abort()
 
     async def finish(self) -> None:
+        if self._closing is not None:
+            # The close code and reason go out before the handler returns (which would
+            # close the connection as a normal 1000).
+            await asyncio.gather(self._closing, return_exceptions=True)
         self.closed = True
         self._sender.cancel()
         try:

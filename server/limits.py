@@ -37,6 +37,10 @@ class Limits:
     slow_drop_s: float = 5.0  # s a client may leave its socket backed up (else closed 1008)
     max_control_queue: int = 512  # unsent control messages (more: closed 1008)
     max_write_buffer: int = 256 * 1024  # bytes waiting in the socket that count as backed up
+    # The kernel's send buffer per connection (SO_SNDBUF; Linux doubles it). Fixed, so a
+    # client that stops reading is noticed within seconds and holds at most this much
+    # kernel memory, instead of the megabytes TCP autotuning would give it.
+    socket_send_buffer: int = 128 * 1024
     ping_interval: float = 20.0  # s between keep-alive pings
     ping_timeout: float = 20.0  # s without a pong: the client is gone (closed 1011)
 

@@ -99,7 +99,7 @@ def test_a_client_that_vanishes_without_a_close(tmp_path) -> None:
 
 
 def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_path) -> None:
-    limits = Limits(slow_drop_s=1.0)
+    limits = Limits(slow_drop_s=1.0, socket_send_buffer=16384)
     with live_server(tmp_path, limits=limits) as ls:
         room = ls.srv.main_room
         assert room is not None
@@ -142,6 +142,13 @@ def start_server(data: Path, *args: str) -> tuple[subprocess.Popen[str], int, st
         raise AssertionError("the server process did not start")
     info = json.loads(line)
     return proc, info["port"], info["recording"]
+
+
+def stop(proc: subprocess.Popen[str]) -> None:
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    if proc.stdout is not None:
+        proc.stdout.close()
 
 
 def get(port: int, path: str) -> bytes:
@@ -189,8 +196,7 @@ def test_sigkill_mid_round_and_restart_keep_the_index_and_every_earlier_round(tm
                 kept[r["id"]] = body
             time.sleep(rng.uniform(0.0, 2.0))  # rounds last about a second: kill in one
         finally:
-            proc.send_signal(signal.SIGKILL)
-            proc.wait()
+            stop(proc)
         assert set(kept) <= check_data_dir(data)
     assert len(kept) >= 6
 
@@ -260,8 +266,7 @@ def test_a_full_disk_loses_the_round_not_the_match(tmp_path) -> None:
         assert replays(port)["total"] == stats["rounds_saved"]  # the index still answers
         assert not list((data / "replays").glob("*.tmp"))  # no half-written file kept
     finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+        stop(proc)
 
 
 @pytest.mark.parametrize("kind", ["not-a-directory", "read-only"])

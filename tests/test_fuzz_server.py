@@ -245,12 +245,15 @@ def test_replay_reader_refuses_damage_cleanly(data: bytes) -> None:
 
 def test_memory_stays_bounded_under_garbage_connections(live: LiveServer) -> None:
     """Hundreds of clients that send junk and vanish leave nothing behind: the memory the
-    process holds after 300 more of them is within a small margin of what it held before."""
+    process holds after 300 more of them is within a small margin of what it held before
+    (300 leaked connections would hold megabytes)."""
     import tracemalloc
 
     junk = [b"\x01\x01" + b"\0" * 26, "{oops", json.dumps({"type": "join", "room": "main",
                                                            "role": "spectator"}),
-            json.dumps({"type": "create_room", "name": "x" * 48}), json.dumps({"type": "fly"})]
+            json.dumps({"type": "list_rooms"}), json.dumps({"type": "fly"})]
+    # (no create_room: rooms are bounded by their own limits, and one opening or closing
+    # for idleness inside the window would be counted here)
 
     def churn(n: int) -> None:
         for i in range(n):
@@ -261,15 +264,24 @@ def test_memory_stays_bounded_under_garbage_connections(live: LiveServer) -> Non
                 finish(ws)
             live.http(b"GET /api/replays?player=%00&limit=x HTTP/1.1\r\nHost: h\r\n\r\n")
 
+    # The rooms' lateness samples grow at 1 kHz up to their own bound
+    # (RoomSim.LATENESS_SAMPLES) whatever the clients do: not what is measured here.
+    not_samples = [tracemalloc.Filter(False, "*/server/sim.py")]
+
+    def held() -> int:
+        snap = tracemalloc.take_snapshot().filter_traces(not_samples)
+        return sum(t.size for t in snap.traces)
+
+    clients0 = live.call(lambda: len(live.srv.clients))  # the module's seated player
     tracemalloc.start()
     try:
         churn(100)  # warm-up: caches, interned strings, the rooms the junk created
         time.sleep(0.5)
-        before = tracemalloc.get_traced_memory()[0]
+        before = held()
         churn(300)
         time.sleep(0.5)
-        after = tracemalloc.get_traced_memory()[0]
+        after = held()
     finally:
         tracemalloc.stop()
-    assert after - before < 1_000_000, (before, after)
-    assert live.call(lambda: len(live.srv.clients)) == 0
+    assert after - before < 300_000, (before, after)
+    assert live.call(lambda: len(live.srv.clients)) == clients0
