@@ -444,7 +444,12 @@ def run_load(args: argparse.Namespace) -> int:
         "first_missed": next((s for s in steps if not s["met"]), None),
         "steps": steps,
     }
-    if getattr(args, "json", False):
+    dest = getattr(args, "json", None)
+    if isinstance(dest, str):  # clothball bench --json FILE
+        with open(dest, "w") as f:
+            json.dump(result, f, indent=2)
+        print(f"wrote {dest}")
+    if dest is True:  # python -m clothball.server.loadbench --json
         print(json.dumps(result, indent=2))
     else:
         h = result["held"]

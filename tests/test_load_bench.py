@@ -1,0 +1,34 @@
+"""``clothball bench --load`` runs end to end (a tiny, short configuration): it grows rooms,
+measures each step from the server's own counters and reports them. Speed is not asserted
+here (docs/benchmarks/load.md has the figures)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+@pytest.mark.slow
+def test_load_bench_runs_and_reports_every_step(tmp_path) -> None:
+    dest = tmp_path / "load.json"
+    out = subprocess.run(
+        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--load-seconds", "1",
+         "--load-max-rooms", "2", "--server-n", "12", "--hip-rate", "50",
+         "--load-spectators", "1", "--json", str(dest)],
+        capture_output=True, text=True, timeout=180, check=True,
+    )
+    r = json.loads(dest.read_text())
+    assert r["n"] == 12 and r["spectators_per_room"] == 1 and r["cpus"] >= 1
+    assert 1 <= len(r["steps"]) <= 2
+    for i, step in enumerate(r["steps"], start=1):
+        assert step["rooms"] == i and step["clients"] == 5 * i
+        assert step["hip_offered_per_s"] == 200 * i
+        assert step["messages_in_per_s"] > 0 and step["messages_out_per_s"] > 0
+        assert step["lateness_p99_ms"] >= step["lateness_p50_ms"] >= 0
+        assert isinstance(step["met"], bool)
+    held = r["held"]
+    assert held is None or held["met"]
+    assert "load average" in out.stderr and "held:" in out.stdout
