@@ -207,6 +207,21 @@ def _pct(v: np.ndarray) -> dict[str, float]:
             "p999": float(p999), "max": float(v.max())}
 
 
+def _server_info(server: subprocess.Popen[str]) -> tuple[dict[str, Any], str, str]:
+    """What the bench's server process printed when it started; its HTTP and ws URLs."""
+    assert server.stdout is not None
+    info = json.loads(server.stdout.readline())
+    return info, f"http://127.0.0.1:{info['port']}", f"ws://127.0.0.1:{info['port']}/ws"
+
+
+def _stop_server(server: subprocess.Popen[str]) -> None:
+    server.send_signal(signal.SIGTERM)
+    try:
+        server.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        server.kill()
+
+
 def _get(url: str) -> Any:
     with urllib.request.urlopen(url, timeout=10) as r:
         return json.loads(r.read())
@@ -235,10 +250,7 @@ def run(args: argparse.Namespace) -> int:
                               env=env)
     spect: subprocess.Popen[str] | None = None
     try:
-        assert server.stdout is not None
-        info = json.loads(server.stdout.readline())
-        http = f"http://127.0.0.1:{info['port']}"
-        ws = f"ws://127.0.0.1:{info['port']}/ws"
+        info, http, ws = _server_info(server)
         print(f"server bench: {args.players} players x {args.hip_rate:g} Hz HIP, "
               f"{args.spectators} spectators, {seconds:g} s, n={args.server_n}, "
               f"backend {info['backend']} ({info['substeps']} substeps/frame), "
@@ -261,11 +273,7 @@ def run(args: argparse.Namespace) -> int:
             spec_out = json.loads(spect.stdout.readline())
             spect.wait(timeout=30)
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        _stop_server(server)
         if spect is not None and spect.poll() is None:
             spect.kill()
     room = next(iter(stats1["rooms"].values()))
@@ -393,10 +401,7 @@ def run_load(args: argparse.Namespace) -> int:
     clients: list[subprocess.Popen[str]] = []
     steps: list[dict[str, Any]] = []
     try:
-        assert server.stdout is not None
-        info = json.loads(server.stdout.readline())
-        http = f"http://127.0.0.1:{info['port']}"
-        ws = f"ws://127.0.0.1:{info['port']}/ws"
+        info, http, ws = _server_info(server)
         print(f"load bench: rooms of 4 players x {args.hip_rate:g} Hz HIP + "
               f"{args.load_spectators} spectators, {seconds:g} s a step, n={args.server_n}, "
               f"backend {info['backend']} ({info['substeps']} substeps/frame), "
@@ -429,11 +434,7 @@ def run_load(args: argparse.Namespace) -> int:
                 proc.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 proc.kill()
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        _stop_server(server)
     held = [s for s in steps if s["met"]]
     result = {
         "n": args.server_n, "backend": info["backend"], "substeps": info["substeps"],
