@@ -251,7 +251,7 @@ def test_a_full_disk_loses_the_round_not_the_match(tmp_path) -> None:
     try:
         assert recording == "on"
 
-        async def main() -> None:
+        async def main() -> str:
             spec = await NetClient.connect(f"ws://127.0.0.1:{port}/ws", role="spectator",
                                            room="main")
             failed = await spec.wait_event("replay_failed", timeout=60)
@@ -259,12 +259,16 @@ def test_a_full_disk_loses_the_round_not_the_match(tmp_path) -> None:
             assert "File too large" in failed["reason"] or "No space" in failed["reason"]
             await spec.wait_event("score", timeout=30, since=spec.received_total)
             await spec.close()
+            return str(failed["id"])
 
-        run(main())
+        lost = run(main())
         stats = json.loads(get(port, "/api/stats"))
         assert stats["rounds_not_saved"] >= 1 and stats["rooms"]["main"]["frames"] > 0
         assert replays(port)["total"] == stats["rounds_saved"]  # the index still answers
-        assert not list((data / "replays").glob("*.tmp"))  # no half-written file kept
+        # no half-written file kept, nothing indexed for it
+        assert not (data / "replays" / f"{lost}.cbr.tmp").exists()
+        assert not (data / "replays" / f"{lost}.cbr").exists()
+        assert lost not in [r["id"] for r in replays(port)["replays"]]
     finally:
         stop(proc)
 
