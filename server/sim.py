@@ -35,6 +35,10 @@ from . import protocol as P
 
 log = logging.getLogger("clothball.server")
 
+# s: a sleep ends up to this late (Linux's default timer slack), so a frame may start this
+# much before its time instead.
+TIMER_SLACK = 50e-6
+
 
 @dataclass
 class FrameResult:
@@ -51,7 +55,7 @@ class FrameResult:
 @dataclass
 class SimStats:
     frames: int = 0
-    steps: int = 0  # step calls (a call covers one frame, more when catching up)
+    steps: int = 0  # step calls (one frame each, also when catching up)
     skipped_frames: int = 0  # frames dropped because the loop fell further behind than allowed
     lateness: list[float] = field(default_factory=list)  # s, newest samples (bounded)
     meshes: int = 0
@@ -152,18 +156,18 @@ class RoomSim:
         stats = self.stats
         while not self._stop.is_set():
             now = self.clock()
-            due = int((now - t0) / dt)
-            behind = due - done
+            behind = int((now - t0 + TIMER_SLACK) / dt) - done
             if behind <= 0:
-                wait = t0 + (done + 1) * dt - now
-                if wait > 0.0002:
-                    time.sleep(wait - 0.0001)
+                # Sleep the whole wait: spinning through the end of it would hold the GIL
+                # while the event loop has HIPs to read and corners to send.
+                time.sleep(t0 + (done + 1) * dt - TIMER_SLACK - now)
                 continue
             if behind > self.max_catchup:
                 skip = behind - self.max_catchup
                 t0 += skip * dt
                 stats.skipped_frames += skip
-                behind = self.max_catchup
+            # One frame per pass, also when catching up: each frame takes the newest hand
+            # positions and publishes its corners, so no HIP waits for a batch of frames.
             self._drain_commands()
             hips = self.anchors.copy()
             for s, slot in enumerate(self._hip_slots):
@@ -172,7 +176,7 @@ class RoomSim:
                     self._applied[s] = (slot[1], slot[2])
             cloth.set_hips(hips)
             try:
-                cloth.step(behind)
+                cloth.step(1)
             except SimulationError as e:
                 # The room stops (the server tells its clients and closes it); resetting
                 # would hide a scene or engine fault behind a game that silently restarts.
@@ -181,9 +185,9 @@ class RoomSim:
                 self._mesh_ready.set()
                 self._publish(FrameResult(cloth.frame, self.now(), [], sim_error=str(e)))
                 return
-            done += behind
+            done += 1
             frame = cloth.frame
-            stats.frames += behind
+            stats.frames += 1
             stats.steps += 1
             pos, vel = cloth.corners()
             force = cloth.corner_forces()
