@@ -26,9 +26,10 @@ The study (``clothball accuracy`` runs it; ``docs/accuracy.md`` explains the res
   trajectory run's frames (stepped one at a time, as the game's 1 kHz loop does) after a
   few warm-up frames, on the same machine in the same run.
 
-Substep sizes: the explicit integrators start at the stability bound (``stability.py``)
-and halve; implicit Euler starts at the largest step the ball-tunnelling bound allows
-(capped at one substep per frame) and halves.
+Substep sizes: each integrator starts at its own bound (``stability.py``: the explicit
+stability bound for semi-implicit Euler and velocity Verlet, the ball-tunnelling bound
+capped at one substep per frame for implicit Euler) and halves. Implicit Euler runs with
+the scene's CG settings; its reference solves CG to ``REFERENCE_CG_TOLERANCE``.
 """
 
 from __future__ import annotations
@@ -54,10 +55,14 @@ from .integrators_ref import (
 )
 from .scene import INTEGRATORS as NATIVE_INTEGRATORS
 from .scene import Scene
-from .stability import BALL_TRAVEL, SAFETY, auto_substeps
+from .stability import auto_substeps
 
 PRECISIONS = ("float32", "float64")
 REFERENCE_FACTOR = 16  # the reference step is this many times smaller than the finest step
+# Implicit Euler's reference: CG to this relative residual. Its steps are 16x smaller than
+# the finest, where the system is nearly the mass matrix and CG needs few iterations.
+REFERENCE_CG_TOLERANCE = 1e-10
+REFERENCE_CG_ITERATIONS = 100
 
 
 # --- simulations ----------------------------------------------------------------------------
@@ -101,15 +106,20 @@ def native_integrators() -> tuple[str, ...]:
 
 
 def make_sim(
-    scene: Scene, integrator: str, precision: str, substeps: int, backend: str
+    scene: Scene, integrator: str, precision: str, substeps: int, backend: str,
+    reference: bool = False,
 ) -> tuple[Any, str]:
     """A simulation of ``scene`` with fixed substeps, and the engine that runs it.
 
     The native engine where it implements the integrator; else the NumPy reference
-    (float64 only, and far slower: its timings are not the engine's)."""
+    (float64 only, and far slower: its timings are not the engine's). ``reference``: the
+    study's reference run (implicit Euler then solves CG tightly)."""
     changes: dict[str, Any] = {"substeps": int(substeps)}
     if integrator != "semi_implicit_euler":
         changes["integrator"] = integrator
+    if reference and integrator == "implicit_euler":
+        changes["cg_tolerance"] = REFERENCE_CG_TOLERANCE
+        changes["cg_max_iterations"] = REFERENCE_CG_ITERATIONS
     if integrator in native_integrators():
         sim = Cloth(scene.with_changes({"sim": changes}), backend=backend, precision=precision)
         return sim, f"native-{sim.backend}"
@@ -170,16 +180,9 @@ def drop_energy(scene: Scene, start: Start) -> float:
 
 
 def start_substeps(scene: Scene, integrator: str, ball_speed: float) -> int:
-    """Substeps per frame at the largest step the integrator may take in this scene."""
-    if integrator in ("semi_implicit_euler", "velocity_verlet"):
-        # Velocity Verlet has the same bound as semi-implicit Euler: undamped both are
-        # stable for omega dt < 2 (they are the same map up to where v is sampled).
-        return auto_substeps(scene, ball_speed)
-    frame = float(scene["sim"]["frame_dt"])
-    dt = frame
-    if "ball" in scene.effects and ball_speed > 0.0:
-        dt = min(dt, SAFETY * BALL_TRAVEL * scene["ball"]["radius"] / ball_speed)
-    return max(1, math.ceil(frame / dt - 1e-9))
+    """Substeps per frame at the largest step the integrator may take in this scene (its
+    own bound, ``stability.py``), at the ball's impact speed."""
+    return auto_substeps(scene.with_changes({"sim": {"integrator": integrator}}), ball_speed)
 
 
 @dataclass
@@ -359,7 +362,8 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
             s0 = start_substeps(scene, integ, speed)
             finest = s0 * 2 ** (plan.levels - 1)
             s_ref = finest * REFERENCE_FACTOR
-            ref_sim, ref_engine = make_sim(scene, integ, "float64", s_ref, plan.backend)
+            ref_sim, ref_engine = make_sim(scene, integ, "float64", s_ref, plan.backend,
+                                           reference=True)
             ref = run_trajectory(ref_sim, scene, start, plan.duration_s, sample_frames)
             del ref_sim
             tick(f"n={n} {integ} reference ({s_ref} substeps/frame)")

@@ -63,6 +63,9 @@ def native_config(scene: Scene, threads: int = 0) -> _native.Config:
     c.max_strain = scene["strain_limit"]["max_strain"]
     c.strain_iterations = scene["strain_limit"]["iterations"]
     c.threads = threads
+    c.integrator = _native.INTEGRATOR_IDS[scene["sim"]["integrator"]]
+    c.cg_max_iterations = scene["sim"]["cg_max_iterations"]
+    c.cg_tolerance = scene["sim"]["cg_tolerance"]
     c.effects = effect_bits(scene.effects)
     return c
 

@@ -18,7 +18,7 @@ from typing import Any
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
 SCENES_DIR = ASSETS / "scenes"
 
-INTEGRATORS = ("semi_implicit_euler",)
+INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "implicit_euler")
 PRECISIONS = ("float32", "float64")
 EFFECTS = (
     "structural",
@@ -107,7 +107,18 @@ SCHEMA: dict[str, dict[str, Key]] = {
     "sim": {
         "frame_dt": Key(0.001, "float", 0.0, 0.1, lo_open=True, doc="simulated time per frame, s"),
         "substeps": Key(None, "int", 1, 100000, doc="substeps per frame (default: automatic)"),
-        "integrator": Key("semi_implicit_euler", "str", choices=INTEGRATORS),
+        "integrator": Key(
+            "semi_implicit_euler", "str", choices=INTEGRATORS,
+            doc="time integrator (docs/accuracy.md); strain_limit needs semi_implicit_euler",
+        ),
+        "cg_max_iterations": Key(
+            200, "int", 1, 100000,
+            doc="implicit_euler: conjugate-gradient iterations per substep, at most",
+        ),
+        "cg_tolerance": Key(
+            1e-5, "float", 0.0, 1.0,
+            doc="implicit_euler: CG stops at residual <= this x right-hand side (relative)",
+        ),
         "precision": Key("float32", "str", choices=PRECISIONS),
         "gravity": Key((0.0, -9.81, 0.0), "vec3", -1e3, 1e3, effect="gravity", doc="m/s^2"),
         "effects": Key(DEFAULT_EFFECTS, "effects", doc="effects this scene simulates"),
@@ -208,6 +219,14 @@ class Scene:
                         f"{section}.{key}: set, but the scene does not name the '{needs}' effect "
                         f"in sim.effects (add it, or remove the key)"
                     )
+        integrator = values["sim"]["integrator"]
+        if "strain_limit" in effects and integrator != "semi_implicit_euler":
+            # Velocity Verlet keeps F(x) between substeps and the projection would move x under
+            # it; implicit Euler needs no limiter to stay stable.
+            raise SceneError(
+                f"sim.integrator: {integrator!r} does not support the 'strain_limit' effect "
+                f"(use semi_implicit_euler, or remove strain_limit from sim.effects)"
+            )
 
     # --- constructors ---------------------------------------------------------------------
     @classmethod

@@ -9,6 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 EFFECT_BITS: dict[str, int]
+INTEGRATOR_IDS: dict[str, int]  # Config.integrator of each scene integrator name
 falcon: ModuleType  # the Novint Falcon driver (native/falcon/bind_falcon.cpp)
 
 class Config:
@@ -32,6 +33,9 @@ class Config:
     max_strain: float
     strain_iterations: int
     threads: int
+    integrator: int
+    cg_max_iterations: int
+    cg_tolerance: float
     effects: int
     def __init__(self) -> None: ...
 

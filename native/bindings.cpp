@@ -93,6 +93,9 @@ PYBIND11_MODULE(_native, m) {
       .def_readwrite("max_strain", &cb::Config::max_strain)
       .def_readwrite("strain_iterations", &cb::Config::strain_iterations)
       .def_readwrite("threads", &cb::Config::threads)
+      .def_readwrite("integrator", &cb::Config::integrator)
+      .def_readwrite("cg_max_iterations", &cb::Config::cg_max_iterations)
+      .def_readwrite("cg_tolerance", &cb::Config::cg_tolerance)
       .def_readwrite("effects", &cb::Config::effects);
 
   py::class_<Engine>(m, "Engine")
@@ -123,6 +126,11 @@ PYBIND11_MODULE(_native, m) {
   effects["wind"] = unsigned(cb::WIND);
   effects["strain_limit"] = unsigned(cb::STRAIN_LIMIT);
   m.attr("EFFECT_BITS") = effects;
+  py::dict integrators;
+  integrators["semi_implicit_euler"] = int(cb::SEMI_IMPLICIT_EULER);
+  integrators["velocity_verlet"] = int(cb::VELOCITY_VERLET);
+  integrators["implicit_euler"] = int(cb::IMPLICIT_EULER);
+  m.attr("INTEGRATOR_IDS") = integrators;
   m.def("cuda_unavailable_reason", &cb::cuda_unavailable_reason,
         "Empty string when a CUDA device can be used, else the reason it cannot.");
   m.def("cpu_threads", &cb::cpu_threads);

@@ -9,6 +9,7 @@
 
 #include "core/backend.hpp"
 #include "core/forces.hpp"
+#include "cpu_integrators.hpp"
 
 namespace cb {
 namespace {
@@ -38,6 +39,7 @@ class CpuCloth final : public Backend {
     frames_ = table()[c.effects & (kNumEffectSets - 1)];
     strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
     threads_ = c.threads > 0 ? c.threads : omp_get_max_threads();
+    alt_ = make_cpu_integrator<R>(c);  // velocity Verlet, implicit Euler (their own units)
   }
   unsigned compiled_effects() const override {
     return (cfg_.effects & (kNumEffectSets - 1)) | (strain_sweeps_ ? STRAIN_LIMIT : 0u);
@@ -55,6 +57,7 @@ class CpuCloth final : public Backend {
       V.set(q, {R(vel[3 * q]), R(vel[3 * q + 1]), R(vel[3 * q + 2])});
     }
     finite_ = true;
+    if (alt_) alt_->invalidate();
   }
   void get_positions(double* out) override { copy_out(pos_(cur_), out); }
   void get_velocities(double* out) override { copy_out(vel_(cur_), out); }
@@ -71,6 +74,7 @@ class CpuCloth final : public Backend {
   }
   void set_ball(const double* pv) override {
     ball_ = {{R(pv[0]), R(pv[1]), R(pv[2])}, {R(pv[3]), R(pv[4]), R(pv[5])}};
+    if (alt_) alt_->invalidate();
   }
   void get_ball(double* pv) override {
     const R v[6] = {ball_.p.x, ball_.p.y, ball_.p.z, ball_.v.x, ball_.v.y, ball_.v.z};
@@ -86,7 +90,14 @@ class CpuCloth final : public Backend {
     }
   }
   bool state_finite() override { return finite_; }
-  void step(int frames, int substeps, double dt) override { frames_(*this, frames, substeps, R(dt)); }
+  void step(int frames, int substeps, double dt) override {
+    if (alt_) {
+      CpuView<R> v{p_, {pos_(0), pos_(1)}, {vel_(0), vel_(1)}, &cur_, &ball_, fin_, threads_, &finite_};
+      alt_->frames(v, frames, substeps, R(dt));
+      return;
+    }
+    frames_(*this, frames, substeps, R(dt));
+  }
 
   // One frame loop per effect set; threads live across all substeps of the call and meet
   // at a barrier between substeps (the double buffer swap).
@@ -200,6 +211,7 @@ class CpuCloth final : public Backend {
   FrameInputs<R> fin_{};
   Ball<R> ball_{};
   FramesFn<R> frames_ = nullptr;
+  std::unique_ptr<CpuIntegrator<R>> alt_;  // null: semi-implicit Euler (run_frames)
 };
 
 }  // namespace

@@ -15,6 +15,7 @@
 #include "core/backend.hpp"
 #include "cuda_check.hpp"
 #include "core/forces.hpp"
+#include "cuda_integrators.hpp"
 
 namespace cb {
 namespace {
@@ -204,6 +205,7 @@ class CudaCloth final : public Backend {
     effects_ = c.effects & (kNumEffectSets - 1);
     strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
     drop_graphs();
+    alt_ = make_cuda_integrator<R>(c);  // velocity Verlet, implicit Euler (their own units)
   }
   unsigned compiled_effects() const override {
     return effects_ | (strain_sweeps_ ? STRAIN_LIMIT : 0u);
@@ -225,6 +227,7 @@ class CudaCloth final : public Backend {
       }
     CB_CUDA(cudaMemcpy(buf(cur_), h.data(), sizeof(R) * h.size(), cudaMemcpyHostToDevice));
     CB_CUDA(cudaMemset(nonfinite_, 0, sizeof(int)));
+    if (alt_) alt_->invalidate();
     refresh_readback();
   }
   void get_positions(double* out) override { copy_out(buf(cur_), out); }
@@ -243,6 +246,7 @@ class CudaCloth final : public Backend {
   void set_ball(const double* pv) override {
     Ball<R> b{{R(pv[0]), R(pv[1]), R(pv[2])}, {R(pv[3]), R(pv[4]), R(pv[5])}};
     CB_CUDA(cudaMemcpy(ball_ + cur_, &b, sizeof(b), cudaMemcpyHostToDevice));
+    if (alt_) alt_->invalidate();
     refresh_readback();
   }
   void get_ball(double* pv) override {
@@ -254,6 +258,11 @@ class CudaCloth final : public Backend {
 
   void step(int frames, int substeps, double dt) override {
     if (frames <= 0) return;
+    if (alt_ && alt_->needs_prime(*fin_host_)) {  // outside the graphs: only when inputs changed
+      load_inputs<R><<<1, 32, 0, stream_>>>(fin_mapped_, fin_dev_);
+      alt_->prime(stream_, alt_view(), cur_);
+      cur_ = 1 - cur_;
+    }
     for (int f = 0; f < frames; ++f) {
       // One graph per (substeps, dt, starting buffer): automatic substeps vary per frame.
       cudaGraphExec_t& g = graphs_[GraphKey{substeps, R(dt), cur_}];
@@ -279,8 +288,11 @@ class CudaCloth final : public Backend {
     int b = start;
     const unsigned blocks = unsigned(std::min((N_ + kBlock - 1) / kBlock, max_blocks_));
     for (int s = 0; s < substeps; ++s) {
-      kernel_<<<blocks, kBlock, 0, stream_>>>(p_, dev(b), dev(1 - b), fin_dev_, ball_ + b,
-                                             ball_ + (1 - b), acc_, nonfinite_, dt);
+      if (alt_)
+        alt_->substep(stream_, alt_view(), b, dt);
+      else
+        kernel_<<<blocks, kBlock, 0, stream_>>>(p_, dev(b), dev(1 - b), fin_dev_, ball_ + b,
+                                               ball_ + (1 - b), acc_, nonfinite_, dt);
       b = 1 - b;
       // Strain limiting: an even number of Jacobi sweeps, buffer b -> scratch -> buffer b.
       DevBuf<R> d = dev(b);
@@ -295,6 +307,11 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
     CB_CUDA(cudaGraphDestroy(graph));
     return exec;
+  }
+
+  CudaView<R> alt_view() const {
+    const DevBuf<R> a = dev(0), b = dev(1);
+    return {p_, max_blocks_, {a.pos, b.pos}, {a.vel, b.vel}, ball_, fin_dev_, nonfinite_};
   }
 
   void drop_graphs() {
@@ -337,6 +354,7 @@ class CudaCloth final : public Backend {
   int cur_ = 0;
   using GraphKey = std::tuple<int, R, int>;
   std::map<GraphKey, cudaGraphExec_t> graphs_;
+  std::unique_ptr<CudaIntegrator<R>> alt_;  // null: semi-implicit Euler (se_substep)
 };
 
 }  // namespace

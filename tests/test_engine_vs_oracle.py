@@ -9,6 +9,8 @@ drift plus 10 eps of the largest coordinate.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from clothball.game import Cloth, ReferenceCloth, Scene
@@ -82,14 +84,21 @@ def _state(sim) -> np.ndarray:
     return np.concatenate([pos.ravel(), vel.ravel(), bp, bv])
 
 
-def allowed_drift(scene: Scene, precision: str, substeps: int, hips: np.ndarray) -> float:
+def allowed_drift(scene: Scene, precision: str, substeps: int, hips: np.ndarray,
+                  make: Callable[[Scene], ReferenceCloth] = ReferenceCloth,
+                  drive: Callable[[ReferenceCloth], None] | None = None) -> float:
+    """The tolerance of the module doc, for the reference that ``make`` builds, driven by
+    ``drive`` (default: FRAMES frames with the hands at ``hips``)."""
     eps = float(np.finfo(np.float32 if precision == "float32" else np.float64).eps)
     rng = np.random.default_rng(7)
-    a, b = ReferenceCloth(scene), ReferenceCloth(scene)
+    a, b = make(scene), make(scene)
     b.pos = b.pos * (1 + eps * rng.choice([-1.0, 1.0], size=b.pos.shape))
     b.ball_pos = b.ball_pos * (1 + eps * rng.choice([-1.0, 1.0], size=3))
     for sim in (a, b):
-        _drive(sim, scene, FRAMES, substeps, hips)
+        if drive is None:
+            _drive(sim, scene, FRAMES, substeps, hips)
+        else:
+            drive(sim)
     drift = np.abs(_state(a) - _state(b)).max()
     scale = np.abs(_state(a)).max()
     return 10 * drift + 10 * eps * scale

@@ -1,17 +1,21 @@
 #!/usr/bin/env bash
-# The accuracy study on the GPU: build with CUDA for the local card, run the accuracy tests
-# with CLOTHBALL_REQUIRE_GPU=1 (a GPU skip is a failure), then `clothball accuracy` on the
-# cuda backend, writing the table, JSON and plots into $OUT.
+# The accuracy study on the GPU: build with CUDA for the local card, run the accuracy and
+# native-integrator tests with CLOTHBALL_REQUIRE_GPU=1 (a GPU skip is a failure), then
+# `clothball accuracy` on the cuda backend, writing the table, JSON and plots into $OUT.
 # Usage (on a machine with an NVIDIA GPU, from the repository root):
 #   OUT=results bash tools/accuracy_gpu.sh [extra accuracy args, e.g. --sizes 20,40,80]
 # Pure-Python wheels the machine lacks (tqdm) may be put in .whl/ beforehand.
 OUT=${OUT:-accuracy-gpu-results}
 source "$(dirname "$0")/gpu_build.sh"
 cd /tmp  # import the installed package, not the source tree
+tests_rc=0
+if [ -z "${ACCURACY_SKIP_TESTS:-}" ]; then  # set it to rerun only the study
 CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -c "$OLDPWD/setup.cfg" \
   --rootdir "$OLDPWD" "$OLDPWD/tests/test_accuracy.py" "$OLDPWD/tests/test_integrators_ref.py" \
+  "$OLDPWD/tests/test_integrators_native.py" \
   2>&1 | tee "$OUT/accuracy_tests.txt" | tail -5
 tests_rc=${PIPESTATUS[0]}
+fi
 python3 -m clothball.game.cli accuracy --backend cuda --sizes 20,40,80 \
   --json "$OUT/accuracy_gpu.json" --plot "$OUT/accuracy_gpu.png" --fig4 "$OUT/fig4_gpu.png" "$@" \
   2>"$OUT/accuracy_gpu.err" | tee "$OUT/accuracy_gpu.txt"

@@ -8,6 +8,8 @@ if compgen -G ".whl/*.whl" >/dev/null; then
   export PYTHONPATH=/tmp/site
 fi
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv | tee "$OUT/gpu.txt"
+build_start=$SECONDS
 python3 -m pip install -q --no-build-isolation --no-deps -Cbuild-dir=/tmp/cb-build \
   -Ccmake.define.CLOTHBALL_CUDA=ON -Ccmake.define.CMAKE_CUDA_ARCHITECTURES=90 . \
   >"$OUT/build.log" 2>&1 || { tail -40 "$OUT/build.log"; exit 1; }
+echo "build (CPU + CUDA sm_90, $(nproc) cores): $((SECONDS - build_start)) s" | tee -a "$OUT/gpu.txt"

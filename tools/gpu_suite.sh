@@ -10,6 +10,7 @@ cd /tmp  # import the installed package, not the source tree
 CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -c "$OLDPWD/setup.cfg" \
   --rootdir "$OLDPWD" "$OLDPWD/tests/test_engine_vs_oracle.py" "$OLDPWD/tests/test_cloth_api.py" \
   "$OLDPWD/tests/test_scene.py" "$OLDPWD/tests/test_effects.py" "$OLDPWD/tests/test_hard_cases.py" \
+  "$OLDPWD/tests/test_integrators_native.py" \
   2>&1 | tee "$OUT/gpu_tests.txt" | tail -5
 tests_rc=${PIPESTATUS[0]}
 cd "$OLDPWD"

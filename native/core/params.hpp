@@ -21,6 +21,9 @@ constexpr unsigned kNumForceEffects = 8;
 constexpr unsigned STRAIN_LIMIT = 1u << 8;
 constexpr unsigned kNumEffectSets = 1u << kNumForceEffects;
 
+// Time integrators (Config::integrator); the order of game/scene.py's INTEGRATORS.
+enum Integrator : int { SEMI_IMPLICIT_EULER = 0, VELOCITY_VERLET = 1, IMPLICIT_EULER = 2 };
+
 // Host-side configuration, always in double; converted to Params<R> by each backend.
 struct Config {
   int n = 0;
@@ -36,6 +39,9 @@ struct Config {
   double max_strain = 0.1;  // strain limiting: longest spring is (1 + max_strain) L
   int strain_iterations = 10;
   int threads = 0;          // CPU threads; 0: all
+  int integrator = SEMI_IMPLICIT_EULER;
+  int cg_max_iterations = 200;  // implicit Euler: CG iterations per substep, at most
+  double cg_tolerance = 1e-5;   // implicit Euler: stop when |r| <= this |rhs|
   unsigned effects = 0;     // Effect bits, plus STRAIN_LIMIT
 };
 

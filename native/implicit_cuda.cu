@@ -1,0 +1,196 @@
+// Linearised implicit Euler on the CUDA backend (see core/integrators.hpp). A substep is a
+// right-hand-side kernel (specialised on the effect set), cg_max_iterations pairs of CG
+// kernels (the operator, specialised on the stiffness effects only, and the node-local
+// update), and a finishing kernel, all captured into the frame's graph. CG's scalars stay
+// on the device: block sums plus atomics, the last block acting on the totals, and every
+// kernel of an iteration after convergence returning at once (it reads the same scalars).
+// Compiled once per real type (CB_REAL).
+#include <algorithm>
+#include <stdexcept>
+#include <utility>
+
+#include "core/backend.hpp"
+#include "core/integrators.hpp"
+#include "cuda_check.hpp"
+#include "cuda_integrators.hpp"
+#include "integrators_cuda.cuh"
+
+namespace cb {
+namespace {
+
+using R = CB_REAL;
+using ci::kBlock;
+
+// CG scalars: sc[0] = |rhs|^2, then for each iteration k the triple (r.z, r.r, p.Ap) at
+// sc[1 + 3k] (r.z and r.r of iterate k, p.Ap of iteration k). Zeroed before each substep.
+struct IeArgs {
+  Params<R> p;
+  CgVectors<R> cg;
+  R* sc;
+  R* acc;  // 11 sums for the last-block patterns
+  unsigned* ticket;
+  R tol, a_node, a_ball, dt;
+};
+__device__ __forceinline__ R* slot(const IeArgs& a, int k) { return a.sc + 1 + 3 * k; }
+
+template <unsigned E>
+__global__ void __launch_bounds__(kBlock)
+    ie_rhs_kernel(IeArgs a, Planes<R> P, Planes<R> V, const FrameInputs<R>* __restrict__ fin,
+                  const Ball<R>* __restrict__ ball) {
+  const int n = a.p.n, N = n * n;
+  const Ball<R> b = *ball;
+  RhsSums<R> mine{};
+  for (int q = blockIdx.x * blockDim.x + threadIdx.x; q < N; q += gridDim.x * blockDim.x) {
+    const int i = q / n, j = q - i * n;
+    ie_rhs_node<R, E>(a.p, P, V, a.cg, *fin, b.p, b.v, i, j, a.a_node, a.dt, mine);
+  }
+  const R v[11] = {mine.contact.x, mine.contact.y, mine.contact.z, mine.cj.x, mine.cj.y,
+                   mine.cj.z, mine.cd.x, mine.cd.y, mine.cd.z, mine.bb, mine.rz};
+  if (ci::grid_sum(v, a.acc, a.ticket)) {
+    R t[11];
+    for (int k = 0; k < 11; ++k) t[k] = ci::acc_read(a.acc, k);
+    RhsSums<R> all{{t[0], t[1], t[2]}, {t[3], t[4], t[5]}, {t[6], t[7], t[8]}, R(0), R(0)};
+    R bb = R(0), rz = R(0);
+    ie_rhs_ball<R, E>(a.p, a.cg, b, all, a.a_ball, a.dt, N, bb, rz);
+    a.sc[0] = t[9] + bb;
+    slot(a, 0)[0] = t[10] + rz;
+    for (int k = 0; k < 11; ++k) a.acc[k] = R(0);
+    *a.ticket = 0;
+  }
+}
+
+template <unsigned S>
+__global__ void __launch_bounds__(kBlock)
+    ie_apply_kernel(IeArgs a, Planes<R> P, const Ball<R>* __restrict__ ball, int k) {
+  const R* s = slot(a, k);
+  if (cg_stopped(k, a.sc[0], k > 0 ? s[-1] : R(0), s[1], a.tol)) return;  // uniform
+  const int n = a.p.n, N = n * n, from = k & 1;
+  const bool first = k == 0;
+  const R beta = first ? R(0) : s[0] / s[-3];
+  const V3<R> wb = cg_direction(a.cg, from, N, first, beta);
+  V3<R> ball_p{R(0), R(0), R(0)}, cj_sum{R(0), R(0), R(0)};
+  if constexpr ((S & BALL) != 0) ball_p = ball->p;
+  R pap = R(0);
+  for (int q = blockIdx.x * blockDim.x + threadIdx.x; q < N; q += gridDim.x * blockDim.x) {
+    const int i = q / n, j = q - i * n;
+    V3<R> cj{R(0), R(0), R(0)};
+    pap += ie_apply_node<R, S>(a.p, P, a.cg, from, first, beta, ball_p, wb, i, j, a.a_node, a.dt,
+                               cj);
+    cj_sum += cj;
+  }
+  const R v[4] = {cj_sum.x, cj_sum.y, cj_sum.z, pap};
+  if (ci::grid_sum(v, a.acc, a.ticket)) {
+    const V3<R> cs{ci::acc_read(a.acc, 0), ci::acc_read(a.acc, 1), ci::acc_read(a.acc, 2)};
+    const R pb = ie_apply_ball(a.cg, from, first, beta, cs, a.a_ball, a.dt, N);
+    slot(a, k)[2] = ci::acc_read(a.acc, 3) + pb;
+    for (int c = 0; c < 4; ++c) a.acc[c] = R(0);
+    *a.ticket = 0;
+  }
+}
+
+__global__ void __launch_bounds__(kBlock) ie_update_kernel(IeArgs a, int N, int k) {
+  const R* s = slot(a, k);
+  const R pap = s[2];
+  if (!(pap > R(0))) return;  // iteration k stopped (or found p . A p <= 0): uniform
+  const R alpha = s[0] / pap;
+  R sums[2] = {R(0), R(0)};  // r . z, r . r of iterate k + 1
+  for (int q = blockIdx.x * blockDim.x + threadIdx.x; q <= N; q += gridDim.x * blockDim.x)
+    ie_update_entry(a.cg, 1 - (k & 1), q, alpha, sums[1], sums[0]);
+  ci::grid_sum(sums, slot(a, k + 1), static_cast<unsigned*>(nullptr));
+}
+
+__global__ void __launch_bounds__(kBlock)
+    ie_finish_kernel(IeArgs a, Planes<R> P, Planes<R> V, Planes<R> P2, Planes<R> V2,
+                     const Ball<R>* __restrict__ ball_in, Ball<R>* __restrict__ ball_out,
+                     int* nonfinite, bool has_ball) {
+  const int N = a.p.n * a.p.n;
+  const int first = blockIdx.x * blockDim.x + threadIdx.x;
+  R check = 0;
+  for (int q = first; q < N; q += gridDim.x * blockDim.x)
+    ie_finish_node(a.cg, P, V, P2, V2, q, a.dt, check);
+  if (check != R(0)) *nonfinite = 1;
+  if (first == 0) *ball_out = has_ball ? ie_finish_ball(a.cg, *ball_in, N, a.dt) : *ball_in;
+}
+
+using RhsKernel = void (*)(IeArgs, Planes<R>, Planes<R>, const FrameInputs<R>*, const Ball<R>*);
+using ApplyKernel = void (*)(IeArgs, Planes<R>, const Ball<R>*, int);
+template <unsigned E>
+struct RhsEntry {
+  static constexpr RhsKernel fn = &ie_rhs_kernel<E>;
+};
+template <unsigned I>
+struct ApplyEntry {
+  static constexpr ApplyKernel fn = &ie_apply_kernel<stiff_set(I)>;
+};
+
+class CudaImplicit final : public CudaIntegrator<R> {
+ public:
+  explicit CudaImplicit(const Config& c)
+      : N_(c.n * c.n), effects_(c.effects & (kNumEffectSets - 1)),
+        max_iter_(std::max(0, c.cg_max_iterations)), m_(c.node_mass),
+        c_((c.effects & DAMPING) ? c.damping : 0.0), mb_((c.effects & BALL) ? c.ball_mass : 1.0),
+        cb_((c.effects & BALL) ? c.ball_damping : 0.0),
+        rhs_(effect_table<RhsKernel, RhsEntry>(
+            std::make_integer_sequence<unsigned, kNumEffectSets>{})[effects_]),
+        apply_(effect_table<ApplyKernel, ApplyEntry>(
+            std::make_integer_sequence<unsigned, kNumStiffSets>{})[stiff_index(effects_)]) {
+    const size_t entries = size_t(N_) + 1;  // the nodes, then the ball
+    CB_CUDA(cudaMalloc(&vec_, sizeof(R) * 21 * entries));
+    CB_CUDA(cudaMemset(vec_, 0, sizeof(R) * 21 * entries));
+    sc_count_ = 1 + 3 * (size_t(max_iter_) + 1);
+    CB_CUDA(cudaMalloc(&sc_, sizeof(R) * (sc_count_ + 12)));
+    CB_CUDA(cudaMemset(sc_, 0, sizeof(R) * (sc_count_ + 12)));
+    auto planes = [&](int k) {
+      R* b = vec_ + size_t(3 * k) * entries;
+      return Planes<R>{b, b + entries, b + 2 * entries};
+    };
+    args_.p = Params<R>::from(c);
+    args_.cg = {planes(0), planes(1), planes(2), planes(3), {planes(4), planes(5)}, planes(6)};
+    args_.sc = sc_;
+    args_.acc = sc_ + sc_count_;
+    args_.ticket = reinterpret_cast<unsigned*>(sc_ + sc_count_ + 11);
+    args_.tol = R(c.cg_tolerance);
+  }
+  ~CudaImplicit() override {
+    cudaFree(vec_);
+    cudaFree(sc_);
+  }
+
+  void substep(cudaStream_t s, const CudaView<R>& v, int b, R dt) override {
+    IeArgs a = args_;
+    a.dt = dt;
+    a.a_node = R(m_ + double(dt) * c_);
+    a.a_ball = R(mb_ + double(dt) * cb_);
+    const unsigned blocks = ci::grid_blocks(N_, v.max_blocks);
+    CB_CUDA(cudaMemsetAsync(sc_, 0, sizeof(R) * sc_count_, s));
+    rhs_<<<blocks, kBlock, 0, s>>>(a, v.pos[b], v.vel[b], v.fin, v.ball + b);
+    for (int k = 0; k < max_iter_; ++k) {
+      apply_<<<blocks, kBlock, 0, s>>>(a, v.pos[b], v.ball + b, k);
+      ie_update_kernel<<<ci::grid_blocks(N_ + 1, v.max_blocks), kBlock, 0, s>>>(a, N_, k);
+    }
+    ie_finish_kernel<<<blocks, kBlock, 0, s>>>(a, v.pos[b], v.vel[b], v.pos[1 - b],
+                                              v.vel[1 - b], v.ball + b, v.ball + (1 - b),
+                                              v.nonfinite, (effects_ & BALL) != 0);
+  }
+
+ private:
+  const int N_;
+  const unsigned effects_;
+  const int max_iter_;
+  const double m_, c_, mb_, cb_;
+  const RhsKernel rhs_;
+  const ApplyKernel apply_;
+  R* vec_ = nullptr;  // the 7 CG vectors of N + 1 entries, 3 planes each
+  R* sc_ = nullptr;   // CG scalars, then 11 sums and the ticket
+  size_t sc_count_ = 0;
+  IeArgs args_{};
+};
+
+}  // namespace
+
+template <>
+std::unique_ptr<CudaIntegrator<CB_REAL>> make_cuda_implicit<CB_REAL>(const Config& c) {
+  return std::make_unique<CudaImplicit>(c);
+}
+
+}  // namespace cb
