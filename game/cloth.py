@@ -217,6 +217,12 @@ class Cloth:
         self._engine.set_wind(self.wind_at(self.frame * self._frame_dt))
 
     @property
+    def ball_contact_active(self) -> bool:
+        """Whether the next substep computes ball contact: False while no node can reach
+        the ball (it is off the cloth), when the kernels run compiled without contact."""
+        return self._engine.ball_contact_on()
+
+    @property
     def compiled_effects(self) -> frozenset[str]:
         """The effect set the running kernels were compiled for."""
         return effect_names(self._engine.compiled_effects())

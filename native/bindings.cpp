@@ -23,6 +23,7 @@ class Engine {
   void set_hips(Array h) { impl_->set_hips(checked(h, 12, "hips").data()); }
   void set_wind(Array w) { impl_->set_wind(checked(w, 3, "wind").data()); }
   bool state_finite() { return impl_->state_finite(); }
+  bool ball_contact_on() { return impl_->ball_contact_on(); }
   unsigned compiled_effects() const { return impl_->compiled_effects(); }
   void set_state(Array p, Array v) {
     impl_->set_state(checked(p, 3 * nodes(), "positions").data(),
@@ -105,6 +106,7 @@ PYBIND11_MODULE(_native, m) {
       .def("set_hips", &Engine::set_hips)
       .def("set_wind", &Engine::set_wind)
       .def("state_finite", &Engine::state_finite)
+      .def("ball_contact_on", &Engine::ball_contact_on)
       .def("compiled_effects", &Engine::compiled_effects)
       .def("set_state", &Engine::set_state)
       .def("positions", &Engine::positions)

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 #include <vector>
 
@@ -39,6 +40,7 @@ class CpuCloth final : public Backend {
     frames_ = table()[c.effects & (kNumEffectSets - 1)];
     strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
     threads_ = c.threads > 0 ? c.threads : omp_get_max_threads();
+    contact_on_ = true;
     alt_ = make_cpu_integrator<R>(c);  // velocity Verlet, implicit Euler (their own units)
   }
   unsigned compiled_effects() const override {
@@ -57,6 +59,7 @@ class CpuCloth final : public Backend {
       V.set(q, {R(vel[3 * q]), R(vel[3 * q + 1]), R(vel[3 * q + 2])});
     }
     finite_ = true;
+    contact_on_ = true;
     if (alt_) alt_->invalidate();
   }
   void get_positions(double* out) override { copy_out(pos_(cur_), out); }
@@ -74,6 +77,7 @@ class CpuCloth final : public Backend {
   }
   void set_ball(const double* pv) override {
     ball_ = {{R(pv[0]), R(pv[1]), R(pv[2])}, {R(pv[3]), R(pv[4]), R(pv[5])}};
+    contact_on_ = true;
     if (alt_) alt_->invalidate();
   }
   void get_ball(double* pv) override {
@@ -90,6 +94,7 @@ class CpuCloth final : public Backend {
     }
   }
   bool state_finite() override { return finite_; }
+  bool ball_contact_on() override { return (cfg_.effects & BALL) != 0 && contact_on_; }
   void step(int frames, int substeps, double dt) override {
     if (alt_) {
       CpuView<R> v{p_, {pos_(0), pos_(1)}, {vel_(0), vel_(1)}, &cur_, &ball_, fin_, threads_, &finite_};
@@ -103,9 +108,8 @@ class CpuCloth final : public Backend {
   // at a barrier between substeps (the double buffer swap).
   template <unsigned E>
   static void run_frames(CpuCloth& c, int frames, int substeps, R dt) {
-    const int n = c.p_.n;
     const int nthreads = c.threads_;
-    std::vector<V3<R>> partial(size_t(nthreads) * 8);  // padded against false sharing
+    std::vector<R> partial(size_t(nthreads) * 16);  // per thread: contact sum, nearest; padded
     std::vector<R> checks(size_t(nthreads) * 16, R(0));
     const int total = frames * substeps;
     const int sweeps = c.strain_sweeps_;
@@ -120,32 +124,30 @@ class CpuCloth final : public Backend {
         const Planes<R> P = c.pos_(cur), V = c.vel_(cur), P2 = c.pos_(1 - cur),
                         V2 = c.vel_(1 - cur);
         const V3<R> ball_p = c.ball_.p;
-        R cx = 0, cy = 0, cz = 0;  // this thread's share of the contact sum (eq. 5)
-#define CB_NODE(INTERIOR)                                                                  \
-  {                                                                                        \
-    V3<R> ct = se_node_update<R, E, INTERIOR>(p, P, V, P2, V2, fin, ball_p, i, j, dt, check); \
-    cx += ct.x; cy += ct.y; cz += ct.z;                                                    \
-  }
-#pragma omp for schedule(static)
-        for (int i = 0; i < n; ++i) {
-          const bool inner_row = i >= 2 && i < n - 2;
-          const int j0 = inner_row ? 2 : n, j1 = inner_row ? n - 2 : n;
-          for (int j = 0; j < j0; ++j) CB_NODE(false)
-          // Every neighbour exists here: no bounds tests, and the loop vectorises.
-#pragma omp simd reduction(+ : cx, cy, cz, check)
-          for (int j = j0; j < j1; ++j) CB_NODE(true)
-          for (int j = j1 > j0 ? j1 : j0; j < n; ++j) CB_NODE(false)
+        R* mine = &partial[size_t(tid) * 16];
+        // While no node can touch the ball, the contact force is compiled out of the sweep
+        // (but the ball still moves, and the nearest node is still tracked).
+        if constexpr ((E & BALL) != 0) {
+          if (c.contact_on_) sweep<E, true>(p, P, V, P2, V2, fin, ball_p, dt, check, mine);
+          else sweep<(E & ~BALL), true>(p, P, V, P2, V2, fin, ball_p, dt, check, mine);
+        } else {
+          sweep<E, false>(p, P, V, P2, V2, fin, ball_p, dt, check, mine);
         }
-#undef CB_NODE
-        partial[size_t(tid) * 8] = {cx, cy, cz};
         if (sweeps) c.strain_limit(p, P2, V2, dt);  // one copy for all effect sets
 #pragma omp barrier
 #pragma omp single
         {
           if constexpr ((E & BALL) != 0) {
             V3<R> sum{R(0), R(0), R(0)};
-            for (int t = 0; t < nthreads; ++t) sum += partial[size_t(t) * 8];
+            R nearest2 = partial[3];
+            for (int t = 0; t < nthreads; ++t) {
+              const R* o = &partial[size_t(t) * 16];
+              sum += V3<R>{o[0], o[1], o[2]};
+              nearest2 = o[3] < nearest2 ? o[3] : nearest2;
+            }
+            const V3<R> before = c.ball_.p;
             c.ball_ = ball_update<R, E>(p, c.ball_, sum, dt);
+            c.contact_on_ = contact_possible(p, nearest2, c.ball_.p - before, sweeps > 0);
           }
           c.cur_ = 1 - cur;
         }
@@ -156,6 +158,40 @@ class CpuCloth final : public Backend {
     all -= all;
     for (int t = 0; t < nthreads; ++t) all += checks[size_t(t) * 16];
     if (all != R(0)) c.finite_ = false;
+  }
+
+  // One semi-implicit Euler sweep over this thread's rows (an orphaned omp for). Writes the
+  // thread's contact sum to out[0..2] and, with Track, its smallest squared distance from a
+  // new node position to the ball's current centre to out[3].
+  template <unsigned E, bool Track>
+  static void sweep(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
+                    const Planes<R>& P2, const Planes<R>& V2, const FrameInputs<R>& fin,
+                    V3<R> ball_p, R dt, R& check, R* out) {
+    const int n = p.n;
+    R cx = 0, cy = 0, cz = 0;  // this thread's share of the contact sum (eq. 5)
+    R near2 = std::numeric_limits<R>::infinity();
+#define CB_NODE(INTERIOR)                                                                  \
+  {                                                                                        \
+    V3<R> ct = se_node_update<R, E, INTERIOR>(p, P, V, P2, V2, fin, ball_p, i, j, dt, check); \
+    cx += ct.x; cy += ct.y; cz += ct.z;                                                    \
+    if constexpr (Track) {                                                                 \
+      const V3<R> d = P2.get(i * n + j) - ball_p;                                          \
+      const R r2 = dot(d, d);                                                              \
+      near2 = r2 < near2 ? r2 : near2;                                                     \
+    }                                                                                      \
+  }
+#pragma omp for schedule(static)
+    for (int i = 0; i < n; ++i) {
+      const bool inner_row = i >= 2 && i < n - 2;
+      const int j0 = inner_row ? 2 : n, j1 = inner_row ? n - 2 : n;
+      for (int j = 0; j < j0; ++j) CB_NODE(false)
+      // Every neighbour exists here: no bounds tests, and the loop vectorises.
+#pragma omp simd reduction(+ : cx, cy, cz, check) reduction(min : near2)
+      for (int j = j0; j < j1; ++j) CB_NODE(true)
+      for (int j = j1 > j0 ? j1 : j0; j < n; ++j) CB_NODE(false)
+    }
+#undef CB_NODE
+    out[0] = cx; out[1] = cy; out[2] = cz; out[3] = near2;
   }
 
  private:
@@ -208,6 +244,7 @@ class CpuCloth final : public Backend {
   int strain_sweeps_ = 0;
   int threads_ = 1;
   bool finite_ = true;
+  bool contact_on_ = true;  // may a node touch the ball in the next substep?
   FrameInputs<R> fin_{};
   Ball<R> ball_{};
   FramesFn<R> frames_ = nullptr;

@@ -5,6 +5,8 @@
 #include <cuda_runtime.h>
 
 #include <algorithm>
+#include <cstring>
+#include <limits>
 #include <cstdio>
 #include <map>
 #include <tuple>
@@ -31,15 +33,51 @@ struct DevBuf {
   Planes<R> pos, vel;
 };
 
+// A non-negative real as an unsigned integer of its width: the integers order as the reals
+// do, so atomicMin on them takes the minimum distance.
+template <class R>
+struct RealBits;
+template <>
+struct RealBits<float> {
+  using T = unsigned;
+  static __device__ T of(float v) { return __float_as_uint(v); }
+  static __device__ float real(T b) { return __uint_as_float(b); }
+};
+template <>
+struct RealBits<double> {
+  using T = unsigned long long;
+  static __device__ T of(double v) { return (T)__double_as_longlong(v); }
+  static __device__ double real(T b) { return __longlong_as_double((long long)b); }
+};
+
+// The ball's per-substep accumulators, reset by the last block of each substep.
 template <class R>
 struct BallAcc {
   R f[3];
   unsigned ticket;
+  typename RealBits<R>::T nearest2;  // smallest squared node-to-ball distance (see forces.hpp)
+  int contact_on;                    // may a node touch the ball in the next substep?
+  int strain_limited;                // set by the host: strain limiting keeps contact on
+
+  static BallAcc initial(bool strain) {
+    BallAcc a{};
+    const R inf = std::numeric_limits<R>::infinity();
+    std::memcpy(&a.nearest2, &inf, sizeof(R));
+    a.contact_on = 1;
+    a.strain_limited = strain ? 1 : 0;
+    return a;
+  }
 };
 
 template <class R>
 __device__ R warp_sum(R v) {
   for (int o = 16; o > 0; o >>= 1) v += __shfl_down_sync(0xffffffffu, v, o);
+  return v;
+}
+
+template <class R>
+__device__ R warp_min(R v) {
+  for (int o = 16; o > 0; o >>= 1) v = fmin(v, __shfl_down_sync(0xffffffffu, v, o));
   return v;
 }
 
@@ -60,10 +98,25 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
   // needs one ball-sum atomic per resident block rather than one per 256 nodes.
   const int first = blockIdx.x * blockDim.x + threadIdx.x;
   R check = 0;
+  // While no node can touch the ball the sweep runs compiled without contact (the same
+  // decision for the whole grid), still tracking the node nearest the ball.
+  const bool touch = (E & BALL) != 0 && acc->contact_on;
+  R near2 = std::numeric_limits<R>::infinity();
   for (int q = first; q < n * n; q += gridDim.x * blockDim.x) {
     const int i = q / n, j = q - i * n;
-    contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j, dt,
-                                    check);
+    if constexpr ((E & BALL) != 0) {
+      if (touch)
+        contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
+                                        dt, check);
+      else
+        se_node_update<R, (E & ~BALL)>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
+                                       dt, check);
+      const V3<R> d = out.pos.get(q) - ball_p;
+      near2 = fmin(near2, dot(d, d));
+    } else {
+      contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
+                                      dt, check);
+    }
   }
   if (check != R(0)) *nonfinite = 1;  // sticky until the host resets the state
   const int q = first;
@@ -71,7 +124,7 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
     if (q == 0) *ball_out = *ball_in;  // no ball in this scene: carry its state unchanged
   }
   if constexpr ((E & BALL) != 0) {
-    __shared__ R red[3][kBlock / 32];
+    __shared__ R red[4][kBlock / 32];
     __shared__ bool last;
     R c[3] = {contact.x, contact.y, contact.z};
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
@@ -80,21 +133,30 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
       R s = warp_sum(c[k]);
       if (lane == 0) red[k][warp] = s;
     }
+    near2 = warp_min(near2);
+    if (lane == 0) red[3][warp] = near2;
     __syncthreads();
     if (threadIdx.x == 0) {
-      R s[3] = {R(0), R(0), R(0)};
-      for (int w = 0; w < kBlock / 32; ++w)
+      R s[4] = {R(0), R(0), R(0), red[3][0]};
+      for (int w = 0; w < kBlock / 32; ++w) {
         for (int k = 0; k < 3; ++k) s[k] += red[k][w];
+        s[3] = fmin(s[3], red[3][w]);
+      }
       for (int k = 0; k < 3; ++k)
         if (s[k] != R(0)) atomicAdd(&acc->f[k], s[k]);
+      atomicMin(&acc->nearest2, RealBits<R>::of(s[3]));
       __threadfence();
       last = atomicAdd(&acc->ticket, 1u) == gridDim.x - 1;
       if (last) {
         __threadfence();
-        volatile R* vf = acc->f;
-        V3<R> sum{vf[0], vf[1], vf[2]};
-        *ball_out = ball_update<R, E>(p, *ball_in, sum, dt);
+        volatile BallAcc<R>* va = acc;
+        const V3<R> sum{va->f[0], va->f[1], va->f[2]};
+        const Ball<R> b = ball_update<R, E>(p, *ball_in, sum, dt);
+        *ball_out = b;
+        const R nearest2 = RealBits<R>::real(va->nearest2);
+        acc->contact_on = contact_possible(p, nearest2, b.p - ball_in->p, va->strain_limited != 0);
         acc->f[0] = acc->f[1] = acc->f[2] = R(0);
+        acc->nearest2 = RealBits<R>::of(std::numeric_limits<R>::infinity());
         acc->ticket = 0;
       }
     }
@@ -171,7 +233,6 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaMalloc(&ball_, sizeof(Ball<R>) * 2));
     CB_CUDA(cudaMemset(ball_, 0, sizeof(Ball<R>) * 2));
     CB_CUDA(cudaMalloc(&acc_, sizeof(BallAcc<R>)));
-    CB_CUDA(cudaMemset(acc_, 0, sizeof(BallAcc<R>)));
     CB_CUDA(cudaMalloc(&fin_dev_, sizeof(FrameInputs<R>)));
     CB_CUDA(cudaMemset(fin_dev_, 0, sizeof(FrameInputs<R>)));
     CB_CUDA(cudaMalloc(&nonfinite_, sizeof(int)));
@@ -205,12 +266,18 @@ class CudaCloth final : public Backend {
     effects_ = c.effects & (kNumEffectSets - 1);
     strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
     drop_graphs();
+    reset_contact();
     alt_ = make_cuda_integrator<R>(c);  // velocity Verlet, implicit Euler (their own units)
   }
   unsigned compiled_effects() const override {
     return effects_ | (strain_sweeps_ ? STRAIN_LIMIT : 0u);
   }
   bool state_finite() override { return readback_host_[30] == R(0); }
+  bool ball_contact_on() override {
+    BallAcc<R> a;
+    CB_CUDA(cudaMemcpy(&a, acc_, sizeof(a), cudaMemcpyDeviceToHost));
+    return (effects_ & BALL) != 0 && a.contact_on != 0;
+  }
   void set_wind(const double* w) override { fin_host_->wind = {R(w[0]), R(w[1]), R(w[2])}; }
 
   void set_hips(const double* h) override {
@@ -228,6 +295,7 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaMemcpy(buf(cur_), h.data(), sizeof(R) * h.size(), cudaMemcpyHostToDevice));
     CB_CUDA(cudaMemset(nonfinite_, 0, sizeof(int)));
     if (alt_) alt_->invalidate();
+    reset_contact();
     refresh_readback();
   }
   void get_positions(double* out) override { copy_out(buf(cur_), out); }
@@ -247,6 +315,7 @@ class CudaCloth final : public Backend {
     Ball<R> b{{R(pv[0]), R(pv[1]), R(pv[2])}, {R(pv[3]), R(pv[4]), R(pv[5])}};
     CB_CUDA(cudaMemcpy(ball_ + cur_, &b, sizeof(b), cudaMemcpyHostToDevice));
     if (alt_) alt_->invalidate();
+    reset_contact();
     refresh_readback();
   }
   void get_ball(double* pv) override {
@@ -312,6 +381,12 @@ class CudaCloth final : public Backend {
   CudaView<R> alt_view() const {
     const DevBuf<R> a = dev(0), b = dev(1);
     return {p_, max_blocks_, {a.pos, b.pos}, {a.vel, b.vel}, ball_, fin_dev_, nonfinite_};
+  }
+
+  // Contact on until a substep shows that no node can reach the ball (forces.hpp).
+  void reset_contact() {
+    const BallAcc<R> a = BallAcc<R>::initial(strain_sweeps_ > 0);
+    CB_CUDA(cudaMemcpy(acc_, &a, sizeof(a), cudaMemcpyHostToDevice));
   }
 
   void drop_graphs() {

@@ -141,3 +141,44 @@ def test_absent_effect_has_no_influence(backend: str, absent: str, field: str, v
         e.step(20, 4, 2.5e-4)
         results.append(e.positions())
     np.testing.assert_array_equal(results[0], results[1])
+
+
+def _far_ball_pair(n: int) -> tuple[Scene, Scene]:
+    """The same cloth with and without the ball effect; the ball starts far below."""
+    cloth = {"n": n}
+    sim = {"substeps": 8}
+    fx = ["structural", "gravity", "damping", "coupling"]
+    with_ball = Scene.from_dict(
+        {
+            "cloth": cloth,
+            "ball": {"position": [0.0, -3.0, 0.0], "velocity": [0.0, 0.0, 0.0]},
+            "sim": {**sim, "effects": [*fx, "ball"]},
+        }
+    )
+    return with_ball, Scene.from_dict({"cloth": cloth, "sim": {**sim, "effects": fx}})
+
+
+def test_ball_contact_skipped_while_off_the_cloth(backend: str) -> None:
+    """With the ball far from every node the substeps run compiled without contact: the
+    cloth moves bit for bit as in the scene without a ball, while the ball still falls."""
+    with_ball, without = _far_ball_pair(20)
+    a = Cloth(with_ball, backend=backend, precision="float64")
+    b = Cloth(without, backend=backend, precision="float64")
+    assert a.ball_contact_active  # until a substep shows otherwise
+    hips = a.hips() + 0.05
+    for c in (a, b):
+        c.set_hips(hips)
+        c.step(30)
+    assert not a.ball_contact_active and not b.ball_contact_active
+    np.testing.assert_array_equal(a.positions(), b.positions())
+    np.testing.assert_array_equal(a.velocities(), b.velocities())
+    assert a.ball()[0][1] < -3.0 - 0.5 * 9.81 * 0.03**2 * 0.9  # it fell
+    # Press the ball into the cloth (1 cm deep, moving down): contact is back on at once,
+    # and the cloth brakes the ball (gravity alone would speed it up).
+    radius = with_ball["ball"]["radius"]
+    a.set_ball(a.positions()[10, 10] + [0.0, radius - 0.01, 0.0], (0.0, -0.5, 0.0))
+    assert a.ball_contact_active
+    a.step(1)
+    assert a.ball()[1][1] > -0.5
+    b.step(1)
+    assert not np.array_equal(a.positions(), b.positions())

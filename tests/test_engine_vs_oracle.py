@@ -39,6 +39,11 @@ CASES = {
         {"ball": {"position": [0.03, 1.085, -0.02], "velocity": [0.0, -0.3, 0.0]}},
     ),
     "coupling": (["structural", "gravity", "coupling"], {}),
+    # The ball starts clear of the cloth (contact compiled out) and lands during the run.
+    "ball_lands": (
+        ["structural", "gravity", "damping", "ball", "coupling"],
+        {"ball": {"position": [0.01, 1.1, 0.0], "velocity": [0.0, -2.0, 0.0]}},
+    ),
     "all": (
         ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],
         {"ball": {"position": [0.0, 1.085, 0.0], "velocity": [0.0, -0.3, 0.0]}},

@@ -18,4 +18,8 @@ python3 -m clothball.game.cli bench --backends cuda --json "$OUT/bench_gpu.json"
   | tee "$OUT/bench_gpu.txt"
 python3 -m clothball.game.cli bench --effects --backends cuda --json "$OUT/effects_gpu.json" \
   2>>"$OUT/bench_gpu.err" | tee "$OUT/effects_gpu.txt"
+# The CPU backend's effect costs on two quiet cores of this machine (the development
+# machine is shared, and small CPU rows scatter there).
+OMP_NUM_THREADS=2 taskset -c 0,1 python3 -m clothball.game.cli bench --effects --backends cpu \
+  --json "$OUT/effects_cpu.json" 2>>"$OUT/bench_gpu.err" | tee "$OUT/effects_cpu.txt"
 exit "$tests_rc"

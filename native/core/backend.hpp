@@ -31,6 +31,9 @@ class Backend {
   virtual bool state_finite() = 0;
   // The effect set the running kernels were compiled for (Effect bits + STRAIN_LIMIT).
   virtual unsigned compiled_effects() const = 0;
+  // Whether the next substep computes ball contact: false while no node can touch the
+  // ball, when the sweep runs compiled without it (forces.hpp, contact_possible).
+  virtual bool ball_contact_on() = 0;
 };
 
 // Each backend is compiled once per real type, in its own translation unit (the effect-set

@@ -203,6 +203,17 @@ CB_HD Ball<R> ball_update(const Params<R>& p, Ball<R> b, V3<R> contact_sum, R dt
   return b;
 }
 
+// Whether a node can touch the ball in the next substep; eq. (4) is zero unless one is
+// inside it, and then the contact can be compiled out of that substep. `nearest2`: the
+// smallest squared distance from a node's new position to the ball's centre before the
+// ball's update; `moved`: the ball's displacement in that update. By the triangle
+// inequality every node is then at least sqrt(nearest2) - |moved| from the new centre.
+// Strain limiting moves nodes after the sweep, so with it contact stays on. NaN: on.
+template <class R>
+CB_HD bool contact_possible(const Params<R>& p, R nearest2, V3<R> moved, bool strain_limited) {
+  return strain_limited || !(sqrt(nearest2) - length(moved) >= p.ball_radius);
+}
+
 // Unit normal at node (i, j) from the cross product of the grid tangents (central
 // differences, one-sided at the border). Eq. (8) as printed is not a normal.
 template <class R>
