@@ -63,7 +63,8 @@ class LiveServer:
 @contextlib.contextmanager
 def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
     errors = ErrorLog()
-    loggers = [logging.getLogger("clothball"), logging.getLogger("websockets")]
+    # The server's loggers only: a test's own clients log under websockets.client.
+    loggers = [logging.getLogger("clothball"), logging.getLogger("websockets.server")]
     for lg in loggers:
         lg.addHandler(errors)
     loop = asyncio.new_event_loop()
