@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 import urllib.request
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -418,9 +419,12 @@ def run_load(args: argparse.Namespace) -> int:
                 raise RuntimeError("a room's clients did not connect")
             time.sleep(1.0)  # settle
             s0 = _get(f"{http}/api/stats?reset=1")
+            c0, w0 = _cpu_seconds(clients), time.perf_counter()
             time.sleep(seconds)
             s1 = _get(f"{http}/api/stats")
             step = _load_step(rooms, s0, s1, args)
+            # The clients share the machine with the server: what they cost is reported.
+            step["clients_cpu_cores"] = (_cpu_seconds(clients) - c0) / (time.perf_counter() - w0)
             steps.append(step)
             print(_load_line(step), file=sys.stderr, flush=True)
             if not step["met"]:
@@ -488,11 +492,24 @@ def _load_step(rooms: int, s0: dict[str, Any], s1: dict[str, Any], args: argpars
     return step
 
 
+def _cpu_seconds(procs: list[subprocess.Popen[str]]) -> float:
+    """User + system CPU seconds of these processes so far (Linux /proc; else NaN)."""
+    total = 0.0
+    for p in procs:
+        try:
+            fields = Path(f"/proc/{p.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return math.nan
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
 def _load_line(s: dict[str, Any]) -> str:
     return (f"{s['rooms']:3d} rooms {s['clients']:4d} clients  in {s['messages_in_per_s']:7.0f}/s"
             f" (of {s['hip_offered_per_s']:.0f})  out {s['messages_out_per_s']:7.0f}/s  lateness "
             f"p50 {s['lateness_p50_ms']:.2f} p99 {s['lateness_p99_ms']:.2f} ms  skipped "
-            f"{s['skipped_frames']}  server {s['server_cpu_cores']:.2f} cores  load "
+            f"{s['skipped_frames']}  CPU server {s['server_cpu_cores']:.2f} clients "
+            f"{s['clients_cpu_cores']:.2f} cores  load "
             f"{s['load_average']:.1f}  {'ok' if s['met'] else 'MISSED'}")
 
 
