@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import _native  # type: ignore[attr-defined]
 from .cloth import corners_of, rest_positions
 from .scene import Scene
 
@@ -183,7 +184,7 @@ class ReferenceCloth:
         if "strain_limit" in self.fx:
             limit = self.scene["strain_limit"]
             max_len = (1.0 + limit["max_strain"]) * self.scene.rest_length
-            sweeps = (limit["iterations"] + 1) // 2 * 2  # the engine runs an even number
+            sweeps = _native.strain_sweeps(limit["iterations"])  # the engine's count
             for _ in range(sweeps):
                 new = strain_limit_sweep(self.pos, max_len)
                 self.vel = self.vel + (new - self.pos) / dt

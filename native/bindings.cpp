@@ -136,6 +136,15 @@ PYBIND11_MODULE(_native, m) {
   m.def("cuda_unavailable_reason", &cb::cuda_unavailable_reason,
         "Empty string when a CUDA device can be used, else the reason it cannot.");
   m.def("cpu_threads", &cb::cpu_threads);
+  m.def(
+      "strain_sweeps",
+      [](int iterations) {
+        cb::Config c;
+        c.effects = cb::STRAIN_LIMIT;
+        c.strain_iterations = iterations;
+        return cb::strain_sweeps(c);
+      },
+      "Strain-limiting sweeps a substep for the scene's strain_limit.iterations.");
   m.def("cuda_copy_bandwidth_gbs", &cb::cuda_copy_bandwidth_gbs, py::arg("bytes"),
         py::arg("reps") = 20, py::call_guard<py::gil_scoped_release>());
   clothball_falcon::bind(m);

@@ -38,13 +38,13 @@ class CpuCloth final : public Backend {
     cfg_ = c;
     p_ = Params<R>::from(c);
     frames_ = table()[c.effects & (kNumEffectSets - 1)];
-    strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
+    strain_sweeps_ = strain_sweeps(c);
     threads_ = c.threads > 0 ? c.threads : omp_get_max_threads();
     contact_on_ = true;
     alt_ = make_cpu_integrator<R>(c);  // velocity Verlet, implicit Euler (their own units)
   }
   unsigned compiled_effects() const override {
-    return (cfg_.effects & (kNumEffectSets - 1)) | (strain_sweeps_ ? STRAIN_LIMIT : 0u);
+    return compiled_effect_set(cfg_);
   }
 
   void set_hips(const double* h) override {

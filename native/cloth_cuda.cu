@@ -263,14 +263,14 @@ class CudaCloth final : public Backend {
     if (c.n != n_) throw std::invalid_argument("configure: n cannot change");
     p_ = Params<R>::from(c);
     kernel_ = kernel_table<R>()[c.effects & (kNumEffectSets - 1)];
-    effects_ = c.effects & (kNumEffectSets - 1);
-    strain_sweeps_ = (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
+    effects_ = compiled_effect_set(c);
+    strain_sweeps_ = strain_sweeps(c);
     drop_graphs();
     reset_contact();
     alt_ = make_cuda_integrator<R>(c);  // velocity Verlet, implicit Euler (their own units)
   }
   unsigned compiled_effects() const override {
-    return effects_ | (strain_sweeps_ ? STRAIN_LIMIT : 0u);
+    return effects_;
   }
   bool state_finite() override { return readback_host_[30] == R(0); }
   bool ball_contact_on() override {

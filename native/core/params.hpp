@@ -1,5 +1,7 @@
 // Scene parameters as the kernels see them, and the effect flags that specialise them.
 #pragma once
+#include <algorithm>
+
 #include "vec.hpp"
 
 namespace cb {
@@ -44,6 +46,17 @@ struct Config {
   double cg_tolerance = 1e-5;   // implicit Euler: stop when |r| <= this |rhs|
   unsigned effects = 0;     // Effect bits, plus STRAIN_LIMIT
 };
+
+// Strain-limiting Jacobi sweeps a substep: the scene's iterations rounded up to an even
+// number (each pair of sweeps ends back in the substep's buffer); 0 without the effect.
+inline int strain_sweeps(const Config& c) {
+  return (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
+}
+
+// The effect set a backend runs for this configuration: force bits and STRAIN_LIMIT.
+inline unsigned compiled_effect_set(const Config& c) {
+  return c.effects & ((kNumEffectSets - 1) | STRAIN_LIMIT);
+}
 
 template <class R>
 struct Params {
