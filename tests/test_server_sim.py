@@ -1,4 +1,4 @@
-"""The room's simulation thread: catching up one frame at a time, and the catch-up bound."""
+"""The room's simulation thread: how it catches up, and the catch-up bound."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def wait_for(cond, what: str, timeout: float = 30.0) -> None:
         time.sleep(0.005)
 
 
-def test_frames_behind_are_caught_up_one_frame_per_step_and_the_excess_skipped() -> None:
+def test_a_backlog_is_stepped_a_quarter_at_a_time_and_the_excess_skipped() -> None:
     clock = ManualClock()
     sim = RoomSim(TINY, "cpu", clock=clock, epoch=0.0, max_catchup=50)
     sim.start()
@@ -33,13 +33,15 @@ def test_frames_behind_are_caught_up_one_frame_per_step_and_the_excess_skipped()
         st = sim.stats
         clock.t = 10.5 * sim.frame_dt  # ten frames due at once
         wait_for(lambda: st.frames >= 10, "ten frames")
-        # No batch: each due frame is its own step (newest HIPs, its own corner state).
-        assert (st.frames, st.steps, st.skipped_frames) == (10, 10, 0)
-        assert len(st.lateness) == 10
+        # Not one batch: steps of 3, 2, 2, 1, 1, 1 frames, each with the newest HIPs and
+        # its own corner state.
+        assert (st.frames, st.steps, st.skipped_frames) == (10, 6, 0)
+        assert len(st.lateness) == 6
         clock.t = 210.5 * sim.frame_dt  # 200 more due: 50 are simulated, 150 skipped
         wait_for(lambda: st.frames >= 60, "the catch-up")
         time.sleep(0.05)  # nothing more is due: the thread sleeps
-        assert (st.frames, st.steps, st.skipped_frames) == (60, 60, 150)
+        # 50 frames in steps of 13, 10, 7, 6, 4, 3, 2, 2, 1, 1, 1.
+        assert (st.frames, st.steps, st.skipped_frames) == (60, 17, 150)
         assert sim.cloth.frame == 60
     finally:
         sim.stop()
