@@ -32,6 +32,7 @@ log = logging.getLogger("clothball.server")
 
 REACH_FRACTION = 0.3  # a hand may move this fraction of the cloth's size from its anchor
 RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
+MESH_FANOUT_CHUNK = 8  # connections offered a new MESH per pass of the event loop
 
 
 class RoomHost(Protocol):
@@ -483,8 +484,7 @@ class Room:
                 if s.conn is not None:
                     s.conn.offer_corner(result.corners[s.index], result.server_time)
         if result.mesh is not None:
-            for c in self.conns():
-                c.offer_mesh(result.mesh)
+            self._fan_out_mesh(result.mesh, self.conns(), 0)
         if result.sim_error is not None:
             self._stop_on_error(result.sim_error)
             return
@@ -512,6 +512,16 @@ class Room:
         self.spectators.clear()
         self._closed = True
         self.host.room_stopped(self, reason)
+
+    def _fan_out_mesh(self, mesh: bytes, conns: list[Conn], start: int) -> None:
+        """Offer a MESH to ``conns[start:]``, ``MESH_FANOUT_CHUNK`` per pass of the event
+        loop, so that the players' HIPs are read between the passes: fifty spectators' sends
+        in one pass held the HIPs arriving just after it up by about 2 ms (median)."""
+        end = start + MESH_FANOUT_CHUNK
+        for c in conns[start:end]:
+            c.offer_mesh(mesh)
+        if end < len(conns) and not self._closed:
+            self.loop.call_soon(self._fan_out_mesh, mesh, conns, end)
 
     def on_hip(self, conn: Conn, hip: P.Hip) -> None:
         seat = conn.seat

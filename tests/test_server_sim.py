@@ -1,11 +1,17 @@
-"""The room's simulation thread: how it catches up, and the catch-up bound."""
+"""The room's simulation thread (how it catches up, the catch-up bound) and the MESH fan-out
+(every spectator served when it is spread over several passes of the event loop)."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 
+from clothball.game.net_client import NetClient
+from clothball.server import room as room_mod
+from clothball.server.protocol import decode_mesh
+from clothball.server.room import RoomSettings
 from clothball.server.sim import RoomSim
-from server_helpers import TINY
+from server_helpers import TINY, run, server
 
 
 class ManualClock:
@@ -45,3 +51,27 @@ def test_a_backlog_is_stepped_a_quarter_at_a_time_and_the_excess_skipped() -> No
         assert sim.cloth.frame == 60
     finally:
         sim.stop()
+
+
+def test_every_spectator_gets_the_mesh_when_the_fan_out_takes_several_passes(tmp_path) -> None:
+    n_spec = 3 * room_mod.MESH_FANOUT_CHUNK + 1
+
+    async def main() -> None:
+        async with server(tmp_path, settings=RoomSettings()) as srv:
+            room = srv.main_room
+            assert room is not None
+            frames: list[set[int]] = [set() for _ in range(n_spec)]
+            specs = []
+            for i in range(n_spec):
+                c = await NetClient.connect(srv.ws_url, role="spectator", room=room.id,
+                                            decode_mesh=False)
+                c.on_mesh = lambda data, s=frames[i]: s.add(decode_mesh(data).frame)
+                specs.append(c)
+            await asyncio.sleep(2.0)
+            for c in specs:
+                await c.close()
+        assert all(len(f) >= 10 for f in frames), [len(f) for f in frames]
+        # The same meshes reached the first and the last chunk of spectators.
+        assert len(set.intersection(*frames)) >= 5
+
+    run(main())
