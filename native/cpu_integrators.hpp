@@ -54,6 +54,15 @@ std::unique_ptr<CpuIntegrator<R>> make_cpu_integrator(const Config& c) {
   return nullptr;
 }
 
+// After the frames: the state stays finite only if every thread's check (the sum of its t - t,
+// see se_node_update) stayed 0 and the ball is finite.
+template <class R>
+inline void note_finite(CpuView<R>& v, R check_all) {
+  const Ball<R>& b = *v.ball;
+  const R all = b.p.x + b.p.y + b.p.z + b.v.x + b.v.y + b.v.z;
+  if (check_all != R(0) || all - all != R(0)) *v.finite = false;
+}
+
 // Per-thread partial sums of K values, padded against false sharing, and their totals in
 // a fixed (thread) order, so every thread gets the same, reproducible values.
 template <class R, int K>

@@ -136,9 +136,7 @@ class CpuImplicit final : public CpuIntegrator<R> {
 #pragma omp atomic
       check_all += check;
     }
-    const Ball<R>& b = *v.ball;
-    R all = b.p.x + b.p.y + b.p.z + b.v.x + b.v.y + b.v.z;
-    if (check_all != R(0) || all - all != R(0)) *v.finite = false;
+    note_finite(v, check_all);
   }
 
  private:

@@ -200,6 +200,16 @@ struct CgVectors {
                                    // search direction (ping-pong), operator times it
 };
 
+// Stores residual r at CG entry q with its diagonal d and z = r / d; adds r . r and r . z.
+template <class R>
+CB_HD void cg_set_residual(const CgVectors<R>& cg, int q, V3<R> r, V3<R> d, R& rr, R& rz) {
+  const V3<R> z{r.x / d.x, r.y / d.y, r.z / d.z};
+  cg.r.set(q, r);
+  cg.z.set(q, z);
+  rr += dot(r, r);
+  rz += dot(r, z);
+}
+
 // What one node adds to the sums of the right-hand side pass.
 template <class R>
 struct RhsSums {
@@ -223,16 +233,12 @@ CB_HD void ie_rhs_node(const Params<R>& p, const Planes<R>& P, const Planes<R>& 
   const V3<R> nd = node_neg_diag<R, S, Interior>(p, P, x, i, j, ball_p, cd);
   const R dt2 = dt * dt;
   const V3<R> dg{a_node + dt2 * nd.x, a_node + dt2 * nd.y, a_node + dt2 * nd.z};
-  const V3<R> z{rhs.x / dg.x, rhs.y / dg.y, rhs.z / dg.z};
   cg.x.set(q, {R(0), R(0), R(0)});
-  cg.r.set(q, rhs);
-  cg.z.set(q, z);
   cg.d.set(q, dg);
+  cg_set_residual(cg, q, rhs, dg, sums.bb, sums.rz);
   sums.contact += contact;
   sums.cj += cj;
   sums.cd += cd;
-  sums.bb += dot(rhs, rhs);
-  sums.rz += dot(rhs, z);
 }
 
 // The ball's row of the right-hand side pass, from the summed node parts. Without a ball
@@ -249,13 +255,9 @@ CB_HD void ie_rhs_ball(const Params<R>& p, const CgVectors<R>& cg, Ball<R> b,
     const R dt2 = dt * dt;
     dg = {a_ball + dt2 * s.cd.x, a_ball + dt2 * s.cd.y, a_ball + dt2 * s.cd.z};
   }
-  const V3<R> z{rhs.x / dg.x, rhs.y / dg.y, rhs.z / dg.z};
   cg.x.set(N, {R(0), R(0), R(0)});
-  cg.r.set(N, rhs);
-  cg.z.set(N, z);
   cg.d.set(N, dg);
-  bb += dot(rhs, rhs);
-  rz += dot(rhs, z);
+  cg_set_residual(cg, N, rhs, dg, bb, rz);
 }
 
 // The search direction at entry r: p = z (first iteration) or z + beta p_old.
@@ -296,15 +298,8 @@ CB_HD R ie_apply_ball(const CgVectors<R>& cg, int from, bool first, R beta, V3<R
 // and r . z.
 template <class R>
 CB_HD void ie_update_entry(const CgVectors<R>& cg, int to, int q, R alpha, R& rr, R& rz) {
-  const V3<R> x = cg.x.get(q) + cg.p[to].get(q) * alpha;
-  const V3<R> r = cg.r.get(q) - cg.ap.get(q) * alpha;
-  const V3<R> d = cg.d.get(q);
-  const V3<R> z{r.x / d.x, r.y / d.y, r.z / d.z};
-  cg.x.set(q, x);
-  cg.r.set(q, r);
-  cg.z.set(q, z);
-  rr += dot(r, r);
-  rz += dot(r, z);
+  cg.x.set(q, cg.x.get(q) + cg.p[to].get(q) * alpha);
+  cg_set_residual(cg, q, cg.r.get(q) - cg.ap.get(q) * alpha, cg.d.get(q), rr, rz);
 }
 
 // v' = v + dv, x' = x + dt v' for node q from (P, V) into (P2, V2).
