@@ -55,6 +55,7 @@ def native_config(scene: Scene, threads: int = 0) -> _native.Config:
     c.ball_mass = ball["mass"]
     c.ball_k = ball["stiffness"]
     c.ball_damping = ball["damping"]
+    c.ball_edges = ball["contact"] == "edges"
     c.coupling_k = scene["coupling"]["stiffness"]
     wind = scene["wind"]
     c.air_density = wind["air_density"]
@@ -219,7 +220,8 @@ class Cloth:
     @property
     def ball_contact_active(self) -> bool:
         """Whether the next substep computes ball contact: False while no node can reach
-        the ball (it is off the cloth), when the kernels run compiled without contact."""
+        the ball (it is off the cloth), when the kernels run compiled without contact.
+        Always True with edge contact (ball.contact = "edges")."""
         return self._engine.ball_contact_on()
 
     @property

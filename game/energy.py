@@ -23,6 +23,15 @@ def _spring_energy(pos: np.ndarray, dirs, k: float, rest: float, two_sided: bool
     return total
 
 
+def _segment_distances(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Distance from c to each segment a-b (flattened)."""
+    e = b - a
+    e2 = np.einsum("...i,...i", e, e)
+    t = np.einsum("...i,...i", c - a, e) / np.where(e2 > 1e-30, e2, 1.0)
+    t = np.where(e2 > 1e-30, np.clip(t, 0.0, 1.0), 0.5)[..., None]
+    return np.linalg.norm(a + t * e - c, axis=-1).ravel()
+
+
 def total_energy(
     scene: Scene,
     pos: np.ndarray,
@@ -55,7 +64,13 @@ def total_energy(
     if "ball" in fx and ball_pos is not None and ball_vel is not None:
         ball = scene["ball"]
         e += 0.5 * ball["mass"] * float(ball_vel @ ball_vel) - ball["mass"] * float(ball_pos @ g)
-        r = np.linalg.norm(pos - ball_pos, axis=-1)
+        if ball["contact"] == "edges":
+            # Edge contact is conservative too: 1/2 k_b (R - r)^2 per structural segment, r
+            # its distance to the centre (the force is its gradient at the nearest point).
+            r = np.concatenate([_segment_distances(a, b, ball_pos) for a, b in (
+                (pos[:, :-1], pos[:, 1:]), (pos[:-1, :], pos[1:, :]))])
+        else:
+            r = np.linalg.norm(pos - ball_pos, axis=-1).ravel()
         pen = np.maximum(ball["radius"] - r, 0.0)
         e += 0.5 * ball["stiffness"] * float(np.sum(pen * pen))
     return e

@@ -51,6 +51,33 @@ def ball_contact(pos: np.ndarray, centre: np.ndarray, radius: float, k: float) -
     return f
 
 
+def edge_contact(
+    pos: np.ndarray, centre: np.ndarray, radius: float, k: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Edge contact: eq. (4) at each structural segment's point nearest the ball's centre,
+    q = a + t (b - a) with t clamped to [0, 1] (t = 1/2 for a zero-length segment); node a
+    takes (1 - t) of it, node b takes t. Returns the force on every node and the summed
+    contact force (the ball takes minus it)."""
+    n = pos.shape[0]
+    f = np.zeros_like(pos)
+    total = np.zeros(3)
+    for a_sl, b_sl in (
+        ((slice(None), slice(0, n - 1)), (slice(None), slice(1, n))),  # along j
+        ((slice(0, n - 1), slice(None)), (slice(1, n), slice(None))),  # along i
+    ):
+        a, b = pos[a_sl], pos[b_sl]
+        e = b - a
+        e2 = np.einsum("...i,...i", e, e)
+        has_len = e2 > 1e-30
+        t = np.einsum("...i,...i", centre - a, e) / np.where(has_len, e2, 1.0)
+        t = np.where(has_len, np.clip(t, 0.0, 1.0), 0.5)[..., None]
+        fe = ball_contact(a + t * e, centre, radius, k)
+        f[a_sl] += (1.0 - t) * fe
+        f[b_sl] += t * fe
+        total += fe.sum(axis=(0, 1))
+    return f, total
+
+
 def triangles(n: int) -> np.ndarray:
     """Vertex indices (T, 3) of the grid's triangles: quad (a, b, c, d) = ((i,j), (i,j+1),
     (i+1,j+1), (i+1,j)) split into (a, b, c) and (a, c, d)."""
@@ -157,9 +184,14 @@ class ReferenceCloth:
         contact_sum = np.zeros(3)
         if "ball" in fx:
             ball = s["ball"]
-            contact = ball_contact(pos, self.ball_pos, ball["radius"], ball["stiffness"])
+            if ball["contact"] == "edges":
+                contact, contact_sum = edge_contact(
+                    pos, self.ball_pos, ball["radius"], ball["stiffness"]
+                )
+            else:
+                contact = ball_contact(pos, self.ball_pos, ball["radius"], ball["stiffness"])
+                contact_sum = contact.sum(axis=(0, 1))
             f += contact
-            contact_sum = contact.sum(axis=(0, 1))
         if "coupling" in fx:
             K = s["coupling"]["stiffness"]
             for c, (i, j) in enumerate(CORNERS):

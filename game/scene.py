@@ -20,6 +20,7 @@ SCENES_DIR = ASSETS / "scenes"
 
 INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "implicit_euler")
 PRECISIONS = ("float32", "float64")
+CONTACTS = ("nodes", "edges")  # ball.contact: eq. (4) on nodes, or on structural edges
 EFFECTS = (
     "structural",
     "shear",
@@ -78,6 +79,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
             None, "vec3", -1e3, 1e3, effect="ball", doc="start, m (default: 0.4 m above the centre)"
         ),
         "velocity": Key((0.0, 0.0, 0.0), "vec3", -1e3, 1e3, effect="ball", doc="start, m/s"),
+        "contact": Key(
+            "nodes", "str", choices=CONTACTS, effect="ball",
+            doc="nodes: eq. (4) on each node inside the ball (the paper; a ball can slip "
+            "between nodes through the springs); edges: eq. (4) at each structural spring's "
+            "point nearest the centre, shared by its two nodes by distance (the ball cannot "
+            "pass a spring; contact is never skipped; costs more; not with implicit_euler)",
+        ),
     },
     "coupling": {
         "stiffness": Key(
@@ -226,6 +234,12 @@ class Scene:
             raise SceneError(
                 f"sim.integrator: {integrator!r} does not support the 'strain_limit' effect "
                 f"(use semi_implicit_euler, or remove strain_limit from sim.effects)"
+            )
+        if values["ball"]["contact"] == "edges" and integrator == "implicit_euler":
+            # Implicit Euler's Jacobian linearises node contact only (integrators.hpp).
+            raise SceneError(
+                "ball.contact: 'edges' is not supported by the implicit_euler integrator "
+                "(its Jacobian linearises node contact); use nodes or an explicit integrator"
             )
 
     # --- constructors ---------------------------------------------------------------------

@@ -5,7 +5,8 @@ motion to m x'' = -k_eff x - c x'. Semi-implicit Euler is then stable when
 ``omega^2 dt^2 + 2 gamma dt < 4`` with omega^2 = k_eff / m and gamma = c / m, i.e.
 ``dt < (sqrt(gamma^2 + 4 omega^2) - gamma) / omega^2``. Gershgorin's theorem bounds the
 largest k_eff of the coupled system by each node's row sum: twice the stiffness of every
-spring at the node (structural, shear, bending, ball contact) plus the coupling spring to
+spring at the node (structural, shear, bending, ball contact; edge contact counts 8 k_b)
+plus the coupling spring to
 the fixed hand. The ball is bounded the same way from the contacts it can have at once,
 and must not move more than ``BALL_TRAVEL`` of its radius per substep (no tunnelling).
 
@@ -48,16 +49,23 @@ def node_stiffness(scene: Scene) -> float:
     if "bend" in fx:
         k += 2 * 4 * cloth["k_bend"]
     if "ball" in fx:
-        k += 2 * scene["ball"]["stiffness"]
+        # Nodes: the contact's k_b on the diagonal and -k_b in the ball's column. Edges: each
+        # of the 4 structural edges adds at most 2 k_b (docs/stability.md).
+        k += (8 if scene["ball"]["contact"] == "edges" else 2) * scene["ball"]["stiffness"]
     if "coupling" in fx:
         k += scene["coupling"]["stiffness"]
     return k
 
 
 def max_ball_contacts(scene: Scene) -> float:
-    """Most nodes that can be inside the ball at once: the grid points of its cross-section."""
+    """Most contacts the ball can have at once. Nodes: the grid points of its cross-section.
+    Edges: the structural edges whose midpoints lie within R + L/2 of its centre, a shifted
+    grid per direction."""
     r = scene["ball"]["radius"] / scene.rest_length
-    return min(float(scene.n * scene.n), math.pi * (r + 1.0) ** 2)
+    n = scene.n
+    if scene["ball"]["contact"] == "edges":
+        return min(2.0 * n * (n - 1), 2.0 * math.pi * (r + 1.5) ** 2)
+    return min(float(n * n), math.pi * (r + 1.0) ** 2)
 
 
 def stable_dt(scene: Scene, ball_speed: float = 0.0) -> float:

@@ -26,6 +26,7 @@ class Config:
     ball_mass: float
     ball_k: float
     ball_damping: float
+    ball_edges: bool
     coupling_k: float
     air_density: float
     drag: float

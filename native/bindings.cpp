@@ -87,6 +87,7 @@ PYBIND11_MODULE(_native, m) {
       .def_readwrite("ball_mass", &cb::Config::ball_mass)
       .def_readwrite("ball_k", &cb::Config::ball_k)
       .def_readwrite("ball_damping", &cb::Config::ball_damping)
+      .def_readwrite("ball_edges", &cb::Config::ball_edges)
       .def_readwrite("coupling_k", &cb::Config::coupling_k)
       .def_readwrite("air_density", &cb::Config::air_density)
       .def_readwrite("drag", &cb::Config::drag)

@@ -38,6 +38,12 @@ CASES = {
         ["structural", "gravity", "ball"],
         {"ball": {"position": [0.03, 1.085, -0.02], "velocity": [0.0, -0.3, 0.0]}},
     ),
+    # Edge contact: the ball comes down onto the middle of a spring between two nodes.
+    "ball_edges": (
+        ["structural", "gravity", "ball"],
+        {"ball": {"position": [0.03, 1.085, -0.02], "velocity": [0.0, -0.3, 0.0],
+                  "contact": "edges"}},
+    ),
     "coupling": (["structural", "gravity", "coupling"], {}),
     # The ball starts clear of the cloth (contact compiled out) and lands during the run.
     "ball_lands": (

@@ -101,23 +101,35 @@ def test_stiff_springs_1e5(backend: str) -> None:
     assert cloth_energy(c) <= e0 + 0.01 * energy_scale(s)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="open bug (issue 3): with point-vs-sphere contact (eq. 4) a ball of 10x the "
-    "cloth's mass drags the cloth down and slips through it instead of being caught",
-)
 def test_heavy_ball_dropped_from_2m(backend: str) -> None:
-    s = scene(24, ball={"mass": 5.0, "position": [0.0, 3.0, 0.0]})  # 10x the cloth's mass
+    """A ball of 10x the cloth's mass (5 kg, 111 J at impact) dropped from 2 m is caught.
+
+    It needs edge contact (ball.contact = "edges"): with the paper's node contact (eq. 4)
+    the sphere passes between the nodes through the spring segments, even with springs
+    at 1e5 N/m (strain only 0.12, the ball ends 5 m below the cloth). And it needs a stiff
+    cloth: at the default k_structural = 2000 N/m the springs stretch to strain 0.8 and
+    the ball tears through with edge contact too (too weak a cloth for 111 J: physics, not
+    a bug). With both, the float64 oracle (ReferenceCloth) at the automatic 18 substeps
+    keeps the ball at least 0.065 m above the cloth at strain 0.04, and it bounces back up."""
+    s = scene(
+        24,
+        cloth={"k_structural": 1e5},  # as test_stiff_springs_1e5
+        ball={"mass": 5.0, "position": [0.0, 3.0, 0.0], "contact": "edges"},
+    )
     c = Cloth(s, backend=backend)
     e0 = cloth_energy(c)
     lowest_gap = np.inf
+    worst = 0.0
     for _ in range(150):  # 1.5 s: the fall, the impact and the bounces
         c.step(10)
         (bx, by, bz), _ = c.ball()
         lowest_gap = min(lowest_gap, by - cloth_height_under(c, bx, bz))
-    assert np.all(np.isfinite(c.positions()))
+        worst = max(worst, float(strains(c.positions(), s.rest_length).max()))
+        assert np.all(np.isfinite(c.positions())) and np.all(np.isfinite(c.velocities()))
     assert lowest_gap > 0.0, "the ball went through the cloth"
+    # Static hands put no work in: the total energy (cloth, ball, contact) may only fall.
     assert cloth_energy(c) <= e0 + 0.01 * energy_scale(s)
+    assert worst < 0.2
 
 
 def test_ball_thrown_down_at_20_m_s(backend: str) -> None:

@@ -35,6 +35,22 @@ CB_HD V3<R> ball_contact(V3<R> d, R radius, R k) {
   return f;
 }
 
+// Edge contact: the structural segment from node x to its neighbour xn against the ball
+// (centre c). Eq. (4) acts at the segment's point nearest the centre, q = x + t (xn - x)
+// with t clamped to [0, 1], and this returns the node's share (1 - t) of it; the neighbour
+// takes the rest, t, from its own side (where t' = 1 - t). A zero-length segment splits
+// evenly. A ball can then not slip between nodes through a segment. Selects, not branches.
+template <class R>
+CB_HD V3<R> edge_contact_share(V3<R> x, V3<R> xn, V3<R> c, R radius, R k) {
+  const V3<R> e = xn - x;
+  const R e2 = dot(e, e);
+  const bool has_len = e2 > R(1e-30);
+  R t = dot(c - x, e) / (has_len ? e2 : R(1));
+  t = t < R(0) ? R(0) : (t > R(1) ? R(1) : t);
+  t = has_len ? t : R(0.5);
+  return ball_contact(x + e * t - c, radius, k) * (R(1) - t);
+}
+
 // Aerodynamic force on one vertex of triangle (p0, p1, p2) with vertex velocities v0..v2:
 // drag along the relative wind u and lift across it, both scaled by the area the wind
 // sees (cos theta = u.n / |u|, with n turned to face the wind). kd, kl are 1/2 rho C / 3,
@@ -77,7 +93,8 @@ CB_HD int corner_node(int c, int n) {
 }
 
 // Total force on node (i, j) from the state `pos`/`vel` at the substep's start (eq. 1).
-// `contact` receives this node's ball contact force (eq. 4) for the ball's sum (eq. 5).
+// `contact` receives this node's ball contact force (eq. 4) for the ball's sum (eq. 5):
+// at the node itself, or with p.ball_edges its shares of its (up to) 4 structural edges'.
 // Interior = true promises that every neighbour up to two nodes away exists and that the
 // node is no corner, so the bounds tests vanish (the CPU loop then vectorises).
 template <class R, unsigned E, bool Interior = false>
@@ -111,7 +128,17 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>
   if constexpr ((E & GRAVITY) != 0) f += p.gravity_force;
   if constexpr ((E & DAMPING) != 0) f -= vi * p.damping;
   if constexpr ((E & BALL) != 0) {
-    contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k);
+    if (p.ball_edges) {  // uniform over the sweep: a run-time mode, not an effect bit
+      const R rad = p.ball_radius, k = p.ball_k;
+      V3<R> c{R(0), R(0), R(0)};
+      if (Interior || j > 0) c += edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k);
+      if (Interior || j < n - 1) c += edge_contact_share(pi, pos.get(q + 1), ball_p, rad, k);
+      if (Interior || i > 0) c += edge_contact_share(pi, pos.get(q - n), ball_p, rad, k);
+      if (Interior || i < n - 1) c += edge_contact_share(pi, pos.get(q + n), ball_p, rad, k);
+      contact = c;
+    } else {
+      contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k);
+    }
     f += contact;
   }
   if constexpr ((E & COUPLING) != 0 && !Interior) {
@@ -209,9 +236,11 @@ CB_HD Ball<R> ball_update(const Params<R>& p, Ball<R> b, V3<R> contact_sum, R dt
 // ball's update; `moved`: the ball's displacement in that update. By the triangle
 // inequality every node is then at least sqrt(nearest2) - |moved| from the new centre.
 // Strain limiting moves nodes after the sweep, so with it contact stays on. NaN: on.
+// Edge contact (p.ball_edges) stays on too: a segment can touch the ball while both its
+// ends are farther than the radius, so the nearest node says nothing.
 template <class R>
 CB_HD bool contact_possible(const Params<R>& p, R nearest2, V3<R> moved, bool strain_limited) {
-  return strain_limited || !(sqrt(nearest2) - length(moved) >= p.ball_radius);
+  return strain_limited || p.ball_edges || !(sqrt(nearest2) - length(moved) >= p.ball_radius);
 }
 
 // Unit normal at node (i, j) from the cross product of the grid tangents (central

@@ -36,6 +36,7 @@ struct Config {
   double gravity[3] = {0, -9.81, 0};
   double damping = 0;       // beta1, N s/m per node (eq. 1)
   double ball_radius = 0, ball_mass = 1, ball_k = 0, ball_damping = 0;
+  bool ball_edges = false;  // ball contact on the structural edges, not only the nodes (eq. 4)
   double coupling_k = 0;    // K of eq. (7)
   double air_density = 1.2, drag = 1.0, lift = 0.3;  // wind on each triangle
   double max_strain = 0.1;  // strain limiting: longest spring is (1 + max_strain) L
@@ -68,6 +69,7 @@ struct Params {
   V3<R> gravity;
   R damping;
   R ball_radius, ball_inv_mass, ball_mass, ball_k, ball_damping;
+  bool ball_edges;         // Config::ball_edges
   R coupling_k;
   R wind_drag, wind_lift;  // 1/2 rho C / 3: each vertex's share of a triangle's force
   R max_len;               // (1 + max_strain) L
@@ -92,6 +94,7 @@ struct Params {
     p.ball_inv_mass = R(1.0 / c.ball_mass);
     p.ball_k = R(c.ball_k);
     p.ball_damping = R(c.ball_damping);
+    p.ball_edges = c.ball_edges;
     p.coupling_k = R(c.coupling_k);
     p.wind_drag = R(0.5 * c.air_density * c.drag / 3.0);
     p.wind_lift = R(0.5 * c.air_density * c.lift / 3.0);
