@@ -123,22 +123,23 @@ def wind_forces(
     return out.reshape(pos.shape)
 
 
-def strain_limit_sweep(pos: np.ndarray, max_len: float) -> np.ndarray:
-    """One Jacobi sweep of Provot's strain limiting over the structural springs: each spring
-    longer than max_len moves each of its ends a quarter of the excess towards the other
-    (a quarter, not half, keeps simultaneous Jacobi updates convergent)."""
-    n = pos.shape[0]
-    corr = np.zeros_like(pos)
-    for di, dj in STRUCTURAL_DIRS:
-        rows = slice(max(0, -di), n - max(0, di))
-        cols = slice(max(0, -dj), n - max(0, dj))
-        nrows = slice(max(0, -di) + di, n - max(0, di) + di)
-        ncols = slice(max(0, -dj) + dj, n - max(0, dj) + dj)
-        d = pos[nrows, ncols] - pos[rows, cols]
-        length = np.linalg.norm(d, axis=-1, keepdims=True)
-        over = np.maximum(length - max_len, 0.0)
-        corr[rows, cols] += d * (0.25 * over / np.where(length > 1e-12, length, 1.0))
-    return pos + corr
+def strain_limit_lines(pos: np.ndarray, vel: np.ndarray, max_len: float, inv_dt: float) -> None:
+    """Provot's strain limiting along the lines pos[l, :] (all lines at once), in place:
+    follow-the-leader, going along j, node j moves by the whole excess of its spring to the
+    just-limited node j - 1 (node 0 leads and stays); the velocity takes the correction
+    times inv_dt. One pass leaves every spring of every line within max_len."""
+    n = pos.shape[1]
+    lead = pos[:, 0].copy()
+    for j in range(1, n):
+        x = pos[:, j]
+        d = lead - x
+        length = np.sqrt(np.sum(d * d, axis=-1, keepdims=True))
+        over = length - max_len
+        on = over > 0
+        corr = np.where(on, d * (over / np.where(on, length, 1.0)), 0.0)
+        pos[:, j] = np.where(on, x + corr, x)
+        vel[:, j] = np.where(on, vel[:, j] + corr * inv_dt, vel[:, j])
+        lead = pos[:, j].copy()
 
 
 def grid_normals(pos: np.ndarray) -> np.ndarray:
@@ -216,11 +217,12 @@ class ReferenceCloth:
         if "strain_limit" in self.fx:
             limit = self.scene["strain_limit"]
             max_len = (1.0 + limit["max_strain"]) * self.scene.rest_length
-            sweeps = _native.strain_sweeps(limit["iterations"])  # the engine's count
-            for _ in range(sweeps):
-                new = strain_limit_sweep(self.pos, max_len)
-                self.vel = self.vel + (new - self.pos) / dt
-                self.pos = new
+            passes = _native.strain_sweeps(limit["iterations"])  # the engine's count
+            inv_dt = 1.0 / dt
+            for _ in range(passes):  # rows (along j), then columns (along i)
+                strain_limit_lines(self.pos, self.vel, max_len, inv_dt)
+                cols_p, cols_v = self.pos.swapaxes(0, 1), self.vel.swapaxes(0, 1)
+                strain_limit_lines(cols_p, cols_v, max_len, inv_dt)
 
     def step(self, frames: int, substeps: int) -> None:
         dt = self.scene["sim"]["frame_dt"] / substeps

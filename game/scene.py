@@ -109,7 +109,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
             0.1, "float", 0.0, 10.0, effect="strain_limit", doc="longest spring: (1 + this) L"
         ),
         "iterations": Key(
-            10, "int", 1, 1000, effect="strain_limit", doc="Jacobi sweeps per substep (even)"
+            10, "int", 1, 1000, effect="strain_limit", doc="passes (rows, then columns) per substep"
         ),
     },
     "sim": {

@@ -145,7 +145,7 @@ PYBIND11_MODULE(_native, m) {
         c.strain_iterations = iterations;
         return cb::strain_sweeps(c);
       },
-      "Strain-limiting sweeps a substep for the scene's strain_limit.iterations.");
+      "Strain-limiting passes (rows, then columns) a substep for strain_limit.iterations.");
   m.def("cuda_copy_bandwidth_gbs", &cb::cuda_copy_bandwidth_gbs, py::arg("bytes"),
         py::arg("reps") = 20, py::call_guard<py::gil_scoped_release>());
   clothball_falcon::bind(m);

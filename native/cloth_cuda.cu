@@ -185,13 +185,13 @@ __global__ void load_inputs(const FrameInputs<R>* host, FrameInputs<R>* dev) {
   if (threadIdx.x == 0) *dev = *host;
 }
 
-// One Jacobi sweep of strain limiting: positions A -> B, velocities corrected in place.
+// Strain limiting, half a pass: one thread per line (rows: first = i n, stride 1; columns:
+// first = j, stride n), each a sequential follow-the-leader chain, in place.
 template <class R>
-__global__ void __launch_bounds__(kBlock) strain_kernel(Params<R> p, Planes<R> A, Planes<R> B,
-                                                        Planes<R> V, R inv_dt) {
-  const int n = p.n;
-  for (int q = blockIdx.x * blockDim.x + threadIdx.x; q < n * n; q += gridDim.x * blockDim.x)
-    strain_limit_node<R>(p, A, B, V, q / n, q % n, inv_dt);
+__global__ void __launch_bounds__(kBlock) strain_kernel(Params<R> p, Planes<R> P, Planes<R> V,
+                                                        int line_step, int stride, R inv_dt) {
+  const int line = blockIdx.x * blockDim.x + threadIdx.x;
+  if (line < p.n) strain_limit_line<R>(p, P, V, line * line_step, stride, inv_dt);
 }
 
 template <class R>
@@ -237,7 +237,6 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaMemset(fin_dev_, 0, sizeof(FrameInputs<R>)));
     CB_CUDA(cudaMalloc(&nonfinite_, sizeof(int)));
     CB_CUDA(cudaMemset(nonfinite_, 0, sizeof(int)));
-    CB_CUDA(cudaMalloc(&scratch_, sizeof(R) * 3 * size_t(N_)));
     // Mapped pinned memory: kernels read the hands and write the per-frame read-back
     // directly, with no copy nodes in the frame's graph.
     CB_CUDA(cudaHostAlloc(&fin_host_, sizeof(FrameInputs<R>), cudaHostAllocMapped));
@@ -255,7 +254,7 @@ class CudaCloth final : public Backend {
   ~CudaCloth() override {
     drop_graphs();
     cudaFree(state_); cudaFree(ball_); cudaFree(acc_); cudaFree(fin_dev_); cudaFree(nonfinite_);
-    cudaFree(scratch_); cudaFreeHost(fin_host_); cudaFreeHost(readback_host_);
+    cudaFreeHost(fin_host_); cudaFreeHost(readback_host_);
     cudaStreamDestroy(stream_);
   }
 
@@ -363,12 +362,13 @@ class CudaCloth final : public Backend {
         kernel_<<<blocks, kBlock, 0, stream_>>>(p_, dev(b), dev(1 - b), fin_dev_, ball_ + b,
                                                ball_ + (1 - b), acc_, nonfinite_, dt);
       b = 1 - b;
-      // Strain limiting: an even number of Jacobi sweeps, buffer b -> scratch -> buffer b.
+      // Strain limiting, in place in buffer b: each pass the rows, then the columns.
       DevBuf<R> d = dev(b);
-      Planes<R> S{scratch_, scratch_ + N_, scratch_ + 2 * size_t(N_)};
-      for (int k = 0; k < strain_sweeps_; ++k)
-        strain_kernel<R><<<blocks, kBlock, 0, stream_>>>(p_, k % 2 ? S : d.pos, k % 2 ? d.pos : S,
-                                                         d.vel, R(1) / dt);
+      const unsigned line_blocks = unsigned((n_ + kBlock - 1) / kBlock);
+      for (int k = 0; k < strain_sweeps_; ++k) {
+        strain_kernel<R><<<line_blocks, kBlock, 0, stream_>>>(p_, d.pos, d.vel, n_, 1, R(1) / dt);
+        strain_kernel<R><<<line_blocks, kBlock, 0, stream_>>>(p_, d.pos, d.vel, 1, n_, R(1) / dt);
+      }
     }
     gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(b), ball_ + b, nonfinite_, readback_mapped_);
     CB_CUDA(cudaStreamEndCapture(stream_, &graph));
@@ -420,7 +420,6 @@ class CudaCloth final : public Backend {
   FrameInputs<R>* fin_host_ = nullptr;
   FrameInputs<R>* fin_mapped_ = nullptr;  // device view of fin_host_
   int* nonfinite_ = nullptr;
-  R* scratch_ = nullptr;  // strain limiting's second position buffer
   unsigned effects_ = 0;
   int strain_sweeps_ = 0;
   R* readback_host_ = nullptr;

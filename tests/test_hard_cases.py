@@ -167,12 +167,9 @@ def test_corner_yanked_5m_and_held(backend: str) -> None:
     assert limited < 0.75 * free
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="open (issue 3): 10 Jacobi sweeps a substep cannot hold the strain limit against "
-    "a coupling spring pulling a corner 5 m away; the strain settles near 0.6-0.7, not 0.1",
-)
 def test_yanked_corner_strain_within_the_limit(backend: str) -> None:
+    """The scene's default 10 passes hold the limit (measured worst: 0.1000085 in float64;
+    the 1e-3 relative margin covers the passes' residual and float32's rounding of max_len)."""
     assert _yank(backend, True) <= Scene.from_dict({"cloth": {"n": 2}})["strain_limit"][
         "max_strain"
     ] * (1 + 1e-3)

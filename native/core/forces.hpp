@@ -193,30 +193,31 @@ CB_HD V3<R> se_node_update(const Params<R>& p, const Planes<R>& P, const Planes<
   return contact;
 }
 
-// Provot's strain limiting, one Jacobi sweep for node (i, j): each structural spring longer
-// than max_len pulls each of its ends a quarter of the excess back (reading P, writing the
-// result to Q); the velocity takes the same correction over dt. A quarter, not Provot's
-// half: a Jacobi sweep moves a node for all its springs at once, and with half the sweeps
-// diverge on a corner yanked far away (the grid Laplacian's top eigenvalue is 4 per axis).
-template <class R, bool Interior = false>
-CB_HD void strain_limit_node(const Params<R>& p, const Planes<R>& P, const Planes<R>& Q,
-                             const Planes<R>& V, int i, int j, R inv_dt) {
-  const int n = p.n, q = i * n + j;
-  const V3<R> x = P.get(q);
-  V3<R> corr{R(0), R(0), R(0)};
-  auto pull = [&](int r) {
-    V3<R> d = P.get(r) - x;
-    R len = length(d);
-    R over = len - p.max_len;
-    R s = (over > R(0) ? R(0.25) * over : R(0)) / (len > R(1e-12) ? len : R(1));
-    corr += d * s;
-  };
-  if (Interior || j > 0) pull(q - 1);
-  if (Interior || j < n - 1) pull(q + 1);
-  if (Interior || i > 0) pull(q - n);
-  if (Interior || i < n - 1) pull(q + n);
-  Q.set(q, x + corr);
-  V.set(q, V.get(q) + corr * inv_dt);
+// Provot's strain limiting along one line of structural springs: a row (first = i n,
+// stride 1) or a column (first = j, stride n), as a Gauss-Seidel chain, follow-the-leader.
+// Going along the line, each node whose spring to its just-limited predecessor is longer
+// than max_len moves by the whole excess towards it, so after ONE pass every spring of
+// the line holds the limit (a correction travels the whole line, not one node a sweep as
+// in Jacobi). The line's first node is the leader and does not move; a backward pass
+// after it would find nothing to do. The velocity takes the same correction over dt.
+// In place: each line touches only its own nodes, so lines may run in parallel.
+template <class R>
+CB_HD void strain_limit_line(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
+                             int first, int stride, R inv_dt) {
+  V3<R> lead = P.get(first);
+  for (int k = 1, q = first + stride; k < p.n; ++k, q += stride) {
+    V3<R> x = P.get(q);
+    const V3<R> d = lead - x;
+    const R len = length(d);
+    const R over = len - p.max_len;
+    if (over > R(0)) {  // then len > max_len > 0
+      const V3<R> corr = d * (over / len);
+      x += corr;
+      P.set(q, x);
+      V.set(q, V.get(q) + corr * inv_dt);
+    }
+    lead = x;
+  }
 }
 
 // Eqs. (5)-(6): the ball under gravity, minus the summed contact forces, minus damping.

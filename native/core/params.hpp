@@ -40,7 +40,7 @@ struct Config {
   double coupling_k = 0;    // K of eq. (7)
   double air_density = 1.2, drag = 1.0, lift = 0.3;  // wind on each triangle
   double max_strain = 0.1;  // strain limiting: longest spring is (1 + max_strain) L
-  int strain_iterations = 10;
+  int strain_iterations = 10;  // strain limiting: passes (rows, then columns) a substep
   int threads = 0;          // CPU threads; 0: all
   int integrator = SEMI_IMPLICIT_EULER;
   int cg_max_iterations = 200;  // implicit Euler: CG iterations per substep, at most
@@ -48,10 +48,10 @@ struct Config {
   unsigned effects = 0;     // Effect bits, plus STRAIN_LIMIT
 };
 
-// Strain-limiting Jacobi sweeps a substep: the scene's iterations rounded up to an even
-// number (each pair of sweeps ends back in the substep's buffer); 0 without the effect.
+// Strain-limiting passes a substep: the scene's iterations (at least 1); 0 without the
+// effect. A pass limits every row, then every column (strain_limit_line in forces.hpp).
 inline int strain_sweeps(const Config& c) {
-  return (c.effects & STRAIN_LIMIT) ? (std::max(1, c.strain_iterations) + 1) / 2 * 2 : 0;
+  return (c.effects & STRAIN_LIMIT) ? std::max(1, c.strain_iterations) : 0;
 }
 
 // The effect set a backend runs for this configuration: force bits and STRAIN_LIMIT.
