@@ -128,7 +128,11 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>
   if constexpr ((E & GRAVITY) != 0) f += p.gravity_force;
   if constexpr ((E & DAMPING) != 0) f -= vi * p.damping;
   if constexpr ((E & BALL) != 0) {
-    if (p.ball_edges) {  // uniform over the sweep: a run-time mode, not an effect bit
+    // Uniform over a sweep: a run-time mode (not an effect set), fixed at compile time
+    // where E carries BALL_NODES or BALL_EDGES (the CPU sweep).
+    constexpr bool fixed_mode = (E & (BALL_NODES | BALL_EDGES)) != 0;
+    const bool edges = fixed_mode ? (E & BALL_EDGES) != 0 : p.ball_edges;
+    if (edges) {
       const R rad = p.ball_radius, k = p.ball_k;
       V3<R> c{R(0), R(0), R(0)};
       if (Interior || j > 0) c += edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k);
