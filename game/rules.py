@@ -31,7 +31,8 @@ concession; they share the win.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -117,6 +118,70 @@ def exit_edge(ball: np.ndarray, corners: np.ndarray, floor_y: float) -> int | No
     if ball[1] < floor_y:
         return int(np.argmax(dist))
     return None
+
+
+# Margins of the pre-test below, relative to the size of the coordinates involved. The two
+# computations of one signed distance differ by a few ulps of that size (about 1e-15 of
+# it); these margins are six orders of magnitude wider.
+_INSIDE_MARGIN = 1e-9
+_SHORT_EDGE = 1e-4
+
+
+def ball_clearly_in_play(ball: Sequence[float], corners: Sequence[Sequence[float]],
+                         floor_y: float) -> bool:
+    """A cheap, conservative pre-test of ``exit_edge``: True only when ``exit_edge`` would
+    return None, because the ball is not below the floor and its centre is inside every
+    edge's line by a clear margin (seen from above). False means "not sure": ask
+    ``exit_edge``. Plain floats, no NumPy: a few microseconds instead of tens.
+
+    Exact where it answers: ``exit_edge`` can only return an edge whose signed distance
+    (``edge_distances``) is positive, or when the ball is below the floor. This recomputes
+    each distance with the same formula (the same outward normal, away from the corners'
+    centroid) and answers True only when every one is negative by ``_INSIDE_MARGIN`` times
+    the coordinates' size, far beyond the rounding by which the two computations can differ;
+    an edge shorter than ``_SHORT_EDGE`` times that size (its normal ill-conditioned), a
+    centroid nearly on an edge's line, or a NaN/Inf gives False. The floor test is the same
+    comparison of the same floats. ``tests/test_rules.py`` checks the equivalence with
+    hypothesis.
+    """
+    px, py, pz = float(ball[0]), float(ball[1]), float(ball[2])
+    if not py >= floor_y:  # exit_edge tests ball[1] < floor_y (NaN: not sure)
+        return False
+    xs = [float(c[0]) for c in corners]
+    zs = [float(c[2]) for c in corners]
+    scale = 1.0 + max(abs(px), abs(pz), *map(abs, xs), *map(abs, zs))
+    tol = _INSIDE_MARGIN * scale
+    short = _SHORT_EDGE * scale
+    cx = (xs[0] + xs[1] + xs[2] + xs[3]) * 0.25
+    cz = (zs[0] + zs[1] + zs[2] + zs[3]) * 0.25
+    for e in range(SEATS):
+        ax, az = xs[e], zs[e]
+        dx, dz = xs[(e + 1) % SEATS] - ax, zs[(e + 1) % SEATS] - az
+        length = math.hypot(dx, dz)
+        if not length >= short:
+            return False
+        # Unit normal (dz, -dx) / length; s: its side of the centroid, q: the ball's.
+        s = (dz * (ax - cx) - dx * (az - cz)) / length
+        q = (dz * (px - ax) - dx * (pz - az)) / length
+        if s > tol:  # the normal points outward: distance q
+            if not q < -tol:
+                return False
+        elif s < -tol:  # exit_edge flips the normal: distance -q
+            if not q > tol:
+                return False
+        else:
+            return False
+    return True
+
+
+def exit_edge_fast(ball: Sequence[float], corners: Sequence[Sequence[float]],
+                   floor_y: float) -> int | None:
+    """``exit_edge`` with the pre-test first: the same answer, cheaply while the ball is
+    clearly on the cloth (the room thread asks every frame)."""
+    if ball_clearly_in_play(ball, corners, floor_y):
+        return None
+    return exit_edge(np.asarray(ball, dtype=np.float64), np.asarray(corners, dtype=np.float64),
+                     floor_y)
 
 
 @dataclass(frozen=True)

@@ -9,14 +9,16 @@ from clothball.game.rules import (
     EDGE_NAMES,
     IllegalMove,
     Match,
+    ball_clearly_in_play,
     edge_corners,
     edge_distances,
     edge_of_seat,
     exit_edge,
+    exit_edge_fast,
     guard_of_edge,
 )
 from clothball.game.scene import Scene
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 SCENE = Scene.load("classic").with_changes({"cloth": {"n": 8}})
@@ -165,3 +167,80 @@ def test_abort_returns_to_waiting_and_keeps_scores() -> None:
     m.concede(0, [0, 1])
     m.abort()
     assert m.state == "waiting" and m.scores[1] == 1
+
+
+# --- the room thread's pre-test (rules.ball_clearly_in_play / exit_edge_fast) -----------------
+
+_coord = st.floats(-2.0, 2.0, allow_nan=False, width=64)
+_tiny = st.sampled_from([0.0, 1e-300, 1e-17, 1e-15, 1e-13, 1e-12, 1e-10, 1e-9, 1e-8, 1e-6,
+                         1e-3]).flatmap(lambda v: st.sampled_from([v, -v]))
+
+
+@st.composite
+def _corners(draw: st.DrawFn) -> np.ndarray:
+    kind = draw(st.sampled_from(["near_rest", "anywhere", "degenerate", "float32"]))
+    if kind == "anywhere":
+        c = np.array(draw(st.lists(st.tuples(_coord, _coord, _coord), min_size=4, max_size=4)))
+    else:
+        jitter = draw(st.floats(0.0, 0.4))
+        d = np.array(draw(st.lists(st.tuples(_coord, _coord, _coord), min_size=4, max_size=4)))
+        c = CORNERS + jitter * d
+    if kind == "degenerate":  # corners on top of each other, or very nearly
+        i, j = draw(st.sampled_from([(0, 1), (1, 2), (2, 3), (3, 0), (0, 2)]))
+        c[j] = c[i] + draw(_tiny)
+        if draw(st.booleans()):
+            c[:] = c[0]
+    if kind == "float32":  # what a float32 engine hands over
+        c = c.astype(np.float32).astype(np.float64)
+    return c
+
+
+@st.composite
+def _ball(draw: st.DrawFn, corners: np.ndarray) -> np.ndarray:
+    kind = draw(st.sampled_from(["anywhere", "on_edge", "centroid", "corner"]))
+    y = draw(st.one_of(_coord, st.just(FLOOR + draw(_tiny))))
+    if kind == "anywhere":
+        x, z = draw(_coord), draw(_coord)
+    elif kind == "centroid":
+        x, z = corners[:, 0].mean(), corners[:, 2].mean()
+    elif kind == "corner":
+        k = draw(st.integers(0, 3))
+        x, z = corners[k, 0] + draw(_tiny), corners[k, 2] + draw(_tiny)
+    else:  # on an edge's line, or a hair either side of it
+        e = draw(st.integers(0, 3))
+        a, b = corners[e], corners[(e + 1) % 4]
+        t = draw(st.floats(-0.2, 1.2))
+        d = (b - a)[[0, 2]]
+        n = np.array([d[1], -d[0]])
+        off = draw(_tiny)
+        x, z = (a[[0, 2]] + t * d + off * n).tolist()
+    return np.array([x, y, z], dtype=np.float64)
+
+
+@st.composite
+def _exit_case(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, float]:
+    corners = draw(_corners())
+    ball = draw(_ball(corners))
+    floor = draw(st.one_of(st.just(FLOOR), _coord))
+    return ball, corners, floor
+
+
+@given(_exit_case())
+@settings(max_examples=3000, deadline=None)
+def test_exit_pre_test_agrees_with_the_full_test(case) -> None:
+    ball, corners, floor = case
+    full = exit_edge(ball, corners, floor)
+    if ball_clearly_in_play(ball.tolist(), corners.tolist(), floor):
+        assert full is None
+    assert exit_edge_fast(ball.tolist(), corners.tolist(), floor) == full
+    assert exit_edge_fast(ball, corners, floor) == full
+
+
+def test_exit_pre_test_answers_while_the_ball_is_in_play() -> None:
+    # The common case must take the cheap path, or the room thread saves nothing.
+    assert ball_clearly_in_play([0.0, 0.7, 0.0], CORNERS.tolist(), FLOOR)
+    assert ball_clearly_in_play([0.3, -0.5, -0.2], CORNERS.tolist(), FLOOR)
+    assert not ball_clearly_in_play([0.0, 0.7, -0.51], CORNERS.tolist(), FLOOR)  # outside
+    assert not ball_clearly_in_play([0.0, FLOOR - 1e-9, 0.0], CORNERS.tolist(), FLOOR)
+    assert not ball_clearly_in_play([np.nan, 0.7, 0.0], CORNERS.tolist(), FLOOR)
+    assert not ball_clearly_in_play([0.0, 0.7, 0.0], [[0.0, 1.0, 0.0]] * 4, FLOOR)
