@@ -39,6 +39,7 @@ import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
+from websockets.frames import Frame, Opcode
 from websockets.http11 import Request, Response
 
 from ..game.scene import ASSETS, Scene
@@ -61,6 +62,34 @@ PLACEHOLDER_PAGE = """<!doctype html>
 <p>The spectator page is not installed yet. Live rooms: <a href="/api/rooms">/api/rooms</a>,
 recorded rounds: <a href="/api/replays">/api/replays</a>.</p></body></html>
 """
+
+
+class _Connection(ServerConnection):
+    """A ``ServerConnection`` that can hand a complete binary message straight to
+    ``on_binary`` from ``data_received``, instead of queueing it for the handler task to read
+    one pass of the event loop later: HIPs (4 000 a second in the server bench) then cost
+    no task switch each. Only when no message is queued ahead of it (so that messages are
+    handled in the order they came), and only once the handler has set ``on_binary`` (it
+    does so when it starts its read loop); text, control and fragmented frames, and
+    everything before that, go the usual way."""
+
+    on_binary: Callable[[bytes], None] | None = None
+
+    def process_event(self, event: Any) -> None:
+        hook = self.on_binary
+        if (hook is not None and type(event) is Frame and event.opcode is Opcode.BINARY
+                and event.fin and not _queued(self.recv_messages)):
+            data = event.data
+            hook(data if type(data) is bytes else bytes(data))
+            return
+        super().process_event(event)
+
+
+def _queued(assembler: Any) -> int:
+    """Frames the handler has not read yet (websockets' Assembler keeps them in ``frames``;
+    a version without it is taken as always busy: the fast path stays off)."""
+    frames = getattr(assembler, "frames", None)
+    return len(frames) if frames is not None else 1
 
 
 class GameServer:
@@ -117,6 +146,7 @@ class GameServer:
         self._server = await serve(
             self._handler, self.host, self.port, process_request=self._process_request,
             max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
+            create_connection=_Connection,
             ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
             close_timeout=2,
         )
@@ -407,6 +437,8 @@ class GameServer:
                 await asyncio.sleep(0.05)  # let the error go out first
                 await ws.close(1008, "hello refused")
                 return
+            if isinstance(ws, _Connection):
+                ws.on_binary = lambda data: self._on_binary_now(conn, data)
             async for message in ws:
                 self.stats["messages_in"] += 1
                 conn.received += 1
@@ -419,6 +451,8 @@ class GameServer:
         except ConnectionClosed:
             pass
         finally:
+            if isinstance(ws, _Connection):
+                ws.on_binary = None
             self.clients.discard(conn)
             self.per_address[conn.address] -= 1
             if self.per_address[conn.address] <= 0:
@@ -481,6 +515,19 @@ class GameServer:
             conn.error(e)
             return
         self._on_control(conn, msg)
+
+    def _on_binary_now(self, conn: Conn, data: bytes) -> None:
+        """A binary message handed over by ``_Connection`` as it arrives: what the read loop
+        of ``_handler`` does with one, which stops reading once the client is closed."""
+        if conn.closed:
+            return
+        self.stats["messages_in"] += 1
+        conn.received += 1
+        try:
+            self._on_binary(conn, data)
+        except Exception:  # pragma: no cover - a bug: like a failing handler, close 1011
+            log.exception("handling a binary message from client %s failed", conn.id)
+            conn.fail("internal error")
 
     def _on_binary(self, conn: Conn, data: bytes) -> None:
         if not conn.binary_bucket.take():

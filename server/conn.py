@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
+from websockets.protocol import OPEN
 
 from . import protocol as P
 from .limits import DEFAULT, Limits
@@ -84,6 +85,7 @@ class Conn:
         self._backed_up_since: float | None = None
         self._sending_since: float | None = None
         self._closing: asyncio.Future[None] | None = None
+        self._idle = False  # the sender waits for work: nothing queued, nothing being sent
         self._sender = asyncio.create_task(self._send_loop())
 
     # --- offering data --------------------------------------------------------------------
@@ -109,6 +111,8 @@ class Conn:
         if self._stuck():
             return
         self._last_corner_time = server_time
+        if self._send_now(data):
+            return
         if self._corner is not None:
             self.corners_replaced += 1
         self._corner = data
@@ -117,8 +121,28 @@ class Conn:
     def offer_mesh(self, data: bytes) -> None:
         if self.closed or not self.want_mesh or self._stuck():
             return
+        if self._send_now(data):
+            return
         self._mesh = data
         self._wake.set()
+
+    def _send_now(self, data: bytes) -> bool:
+        """Write a binary message at once when the sender is idle and the socket takes it
+        without waiting (nothing buffered): the same bytes, in the same order, as the sender
+        task would write one pass of the event loop later, without waking it (4 000 CORNER
+        messages a second in the server bench). Otherwise (something queued or being
+        sent, a backed-up socket, a closing connection) False: the sender task does it."""
+        if not self._idle or self._control or self._corner is not None or self._mesh is not None:
+            return False
+        ws = self.ws
+        transport = ws.transport
+        if (transport is None or transport.is_closing() or ws.protocol.state is not OPEN
+                or transport.get_write_buffer_size()):
+            return False
+        ws.protocol.send_binary(data)
+        ws.send_data()
+        self.sent += 1
+        return True
 
     def error(self, err: P.ProtocolError | str, message: str = "", re: object = None) -> None:
         """Send an error reply, unless this client has had too many lately."""
@@ -148,7 +172,11 @@ class Conn:
         ws = self.ws
         try:
             while True:
-                await self._wake.wait()
+                self._idle = True
+                try:
+                    await self._wake.wait()
+                finally:
+                    self._idle = False
                 self._wake.clear()
                 while True:
                     if self._control:
@@ -192,6 +220,13 @@ class Conn:
         self.closed = True
         log.info("dropping client %s: %s", self.id, reason)
         self._closing = asyncio.ensure_future(self._close(1008, reason[:120]))
+
+    def fail(self, reason: str) -> None:
+        """Close the connection as a failing handler would (1011), without waiting."""
+        if self.closed:
+            return
+        self.closed = True
+        self._closing = asyncio.ensure_future(self._close(1011, reason[:120]))
 
     def kicked(self, reason: str) -> None:
         if self.closed:

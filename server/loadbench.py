@@ -308,11 +308,23 @@ def run(args: argparse.Namespace) -> int:
         "frame_lateness_p99_le_5ms": bool(late.get("p99", math.inf) <= TARGET_LATENESS_P99_MS),
         "all_spectators_30hz": bool(rates.size == 0 or rates.min() >= 0.95 * TARGET_MESH_HZ),
     }
-    if getattr(args, "json", False):
+    if _write_json(result, getattr(args, "json", None)):
         print(json.dumps(result, indent=2))
     else:
         _print(result)
     return 0
+
+
+def _write_json(result: dict[str, Any], dest: object) -> bool:
+    """``--json``: ``clothball bench --json FILE`` gives a path (the figures are written
+    there, the summary still printed); ``python -m clothball.server.loadbench --json`` gives
+    True (the figures are printed instead of the summary). True when they are to be
+    printed."""
+    if isinstance(dest, str | os.PathLike):
+        Path(dest).write_text(json.dumps(result, indent=2) + "\n")
+        print(f"wrote {dest}")
+        return False
+    return dest is True
 
 
 def _print(r: dict[str, Any]) -> None:
@@ -449,12 +461,7 @@ def run_load(args: argparse.Namespace) -> int:
         "first_missed": next((s for s in steps if not s["met"]), None),
         "steps": steps,
     }
-    dest = getattr(args, "json", None)
-    if isinstance(dest, str):  # clothball bench --json FILE
-        with open(dest, "w") as f:
-            json.dump(result, f, indent=2)
-        print(f"wrote {dest}")
-    if dest is True:  # python -m clothball.server.loadbench --json
+    if _write_json(result, getattr(args, "json", None)):
         print(json.dumps(result, indent=2))
     else:
         h = result["held"]

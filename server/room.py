@@ -535,7 +535,7 @@ class Room:
                 f"HIP {[round(v, 4) for v in hip.position]} is outside seat {seat}'s reach box "
                 f"{self.anchors[seat].round(4).tolist()} +/- {self.half_extent[0]:.3g} m",
             )
-        self.sim.set_hip(seat, np.array(hip.position), hip.seq, hip.time)
+        self.sim.set_hip(seat, hip.position, hip.seq, hip.time)
 
     def _on_exit(self, edge: int, frame: int, ball: list[float]) -> None:
         if self.match.state != "playing":

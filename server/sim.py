@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..game.cloth import Cloth, SimulationError, corners_of, rest_positions
-from ..game.rules import exit_edge
+from ..game.rules import exit_edge_fast
 from ..game.scene import Scene
 from . import protocol as P
 
@@ -94,7 +94,7 @@ class RoomSim:
         self.epoch = clock() if epoch is None else epoch  # server time zero
         self._deliver = deliver
         self._loop = loop
-        self._hip_slots: list[tuple[np.ndarray, int, float] | None] = [None] * 4
+        self._hip_slots: list[tuple[Any, int, float] | None] = [None] * 4
         self._commands: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -127,9 +127,10 @@ class RoomSim:
         """Server time: seconds since the server started."""
         return self.clock() - self.epoch
 
-    def set_hip(self, seat: int, position: np.ndarray | None, seq: int = 0,
+    def set_hip(self, seat: int, position: Any, seq: int = 0,
                 client_time: float = math.nan) -> None:
-        """The latest hand position for a seat (None: the corner rests at its anchor)."""
+        """The latest hand position for a seat, three floats (an array or a tuple; None:
+        the corner rests at its anchor)."""
         self._hip_slots[seat] = None if position is None else (position, seq, client_time)
 
     def command(self, name: str, arg: Any = None) -> None:
@@ -204,20 +205,18 @@ class RoomSim:
             lat.append(t_end - (t0 + done * dt))
             if len(lat) > self.LATENESS_SAMPLES:
                 del lat[: len(lat) // 2]
-            pl, vl, fl = pos.tolist(), vel.tolist(), force.tolist()
-            bpl, bvl = bp.tolist(), bv.tolist()
-            corners = [
-                P.encode_corner(frame, s, pl[s], vl[s], fl[s], self.stiffness, bpl, bvl,
-                                self._applied[s][0], self._applied[s][1], server_time)
-                for s in range(4)
-            ]
+            pl, bpl = pos.tolist(), bp.tolist()
+            corners = P.encode_corners(frame, server_time, pl, vel.tolist(), force.tolist(),
+                                       self.stiffness, bpl, bv.tolist(), self._applied)
             result = FrameResult(frame, server_time, corners)
             if self.has_ball:
                 if self._armed:
-                    edge = exit_edge(bp, pos, self.floor_y)
+                    # Plain floats and a cheap exact pre-test: the full test (NumPy, ~30 us)
+                    # runs only when the ball is near an edge or the floor.
+                    edge = exit_edge_fast(bpl, pl, self.floor_y)
                     if edge is not None:
                         self._armed = False
-                        result.exit = (edge, frame, [float(v) for v in bp])
+                        result.exit = (edge, frame, bpl)
                 elif bp[1] < self.floor_y - 50.0 * self.size:
                     # Nobody is playing and the ball fell off: put it back, keep it bounded.
                     sp = self.scene["ball"]["position"]
