@@ -5,6 +5,7 @@
 #include <cuda_runtime.h>
 
 #include <algorithm>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <cstdio>
@@ -40,34 +41,80 @@ struct RealBits;
 template <>
 struct RealBits<float> {
   using T = unsigned;
+  static constexpr T kInf = 0x7f800000u;
   static __device__ T of(float v) { return __float_as_uint(v); }
   static __device__ float real(T b) { return __uint_as_float(b); }
 };
 template <>
 struct RealBits<double> {
   using T = unsigned long long;
+  static constexpr T kInf = 0x7ff0000000000000ull;
   static __device__ T of(double v) { return (T)__double_as_longlong(v); }
   static __device__ double real(T b) { return __longlong_as_double((long long)b); }
 };
 
-// The ball's per-substep accumulators, reset by the last block of each substep.
+// One substep's ball sums: the contact force on the ball and the squared distance from the
+// nearest node (after its update) to the ball's centre (before the ball's update).
 template <class R>
 struct BallAcc {
   R f[3];
-  unsigned ticket;
-  typename RealBits<R>::T nearest2;  // smallest squared node-to-ball distance (see forces.hpp)
-  int contact_on;                    // may a node touch the ball in the next substep?
-  int strain_limited;                // set by the host: strain limiting keeps contact on
+  typename RealBits<R>::T nearest2;
 
-  static BallAcc initial(bool strain) {
-    BallAcc a{};
-    const R inf = std::numeric_limits<R>::infinity();
-    std::memcpy(&a.nearest2, &inf, sizeof(R));
-    a.contact_on = 1;
-    a.strain_limited = strain ? 1 : 0;
-    return a;
-  }
+  static __host__ __device__ BallAcc zero() { return {{R(0), R(0), R(0)}, RealBits<R>::kInf}; }
 };
+
+// What outlives a frame: whether the frame's first substep computes contact.
+struct BallCtl {
+  int contact_on;      // may a node touch the ball in the next substep?
+  int strain_limited;  // set by the host: strain limiting keeps contact on
+};
+
+// The ball's buffers as one launch sees them. Substep k of a frame reads the state buffer b
+// and the ball slot b (`cur`); its sums go to ring[k % 3] (`acc`), the previous substep's
+// are ring[(k - 1) % 3] (`acc_prev`, beside the ball slot 1 - b, `prev`).
+template <class R>
+struct SubstepBall {
+  const Ball<R>* prev;         // the previous substep's ball; null: the frame's first substep
+  const BallAcc<R>* acc_prev;  // the previous substep's sums
+  Ball<R>* cur;                // this substep's ball: read when prev is null, else written
+  Ball<R>* next;               // no ball effect: where the unchanged ball is carried
+  BallAcc<R>* acc;             // this substep's sums
+  BallAcc<R>* acc_next;        // cleared for the launch after next
+  BallAcc<R>* ring;            // all three (the frame's end clears them)
+  BallCtl* ctl;
+};
+
+// The ball at the start of a substep, and whether that substep computes contact.
+template <class R>
+struct BallNow {
+  Ball<R> b;
+  bool contact;
+};
+
+// The ball's update for the previous substep, deferred to here (eqs. 5-6): every block of a
+// substep computes it alike from the previous substep's finished sums, so no block waits
+// for the others inside a launch (no last-block ticket); the launch boundary is the barrier.
+// `prev` null: the first substep of a frame, whose ball the last frame finished.
+template <class R, unsigned E>
+__device__ BallNow<R> ball_now(const Params<R>& p, const Ball<R>* prev, const BallAcc<R>* acc,
+                               const Ball<R>* cur, const BallCtl* ctl, R dt) {
+  if (prev == nullptr) return {*cur, ctl->contact_on != 0};
+  const Ball<R> b0 = *prev;
+  const V3<R> sum{acc->f[0], acc->f[1], acc->f[2]};
+  const Ball<R> b = ball_update<R, E>(p, b0, sum, dt);
+  return {b, contact_possible(p, RealBits<R>::real(acc->nearest2), b.p - b0.p,
+                              ctl->strain_limited != 0)};
+}
+
+// Programmatic dependent launch (Hopper): a launch made programmatic (`launch` below) may
+// start while the one before it still runs, hiding its launch latency, and waits here
+// until that one's writes are visible. For any other launch both are no-ops.
+__device__ inline void follow_previous_launch() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  asm volatile("griddepcontrol.launch_dependents;" ::: "memory");
+  asm volatile("griddepcontrol.wait;" ::: "memory");
+#endif
+}
 
 template <class R>
 __device__ R warp_sum(R v) {
@@ -81,26 +128,35 @@ __device__ R warp_min(R v) {
   return v;
 }
 
-// One semi-implicit Euler substep for every node. With the ball on, each block sums its
-// nodes' contact forces; the last block to finish integrates the ball (eqs. 5-6), so the
-// whole substep is a single launch.
+// One semi-implicit Euler substep for every node. With the ball on, each block first
+// brings the ball up to this substep (ball_now), then adds its nodes' contact forces and
+// nearest distance to this substep's sums (`acc`), which the next launch reads; block 0
+// stores the ball and clears the sums the launch after next will use (`acc_next`).
 template <class R, unsigned E>
 __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, DevBuf<R> out,
                                                      const FrameInputs<R>* __restrict__ fin,
-                                                     const Ball<R>* __restrict__ ball_in,
-                                                     Ball<R>* __restrict__ ball_out,
-                                                     BallAcc<R>* acc, int* nonfinite, R dt) {
+                                                     SubstepBall<R> sb, int* nonfinite, R dt) {
+  follow_previous_launch();
   const int n = p.n;
   V3<R> contact{R(0), R(0), R(0)};
   V3<R> ball_p{R(0), R(0), R(0)};
-  if constexpr ((E & BALL) != 0) ball_p = ball_in->p;
-  // Grid-stride loop over a grid sized to the machine, not to the cloth: a large cloth then
-  // needs one ball-sum atomic per resident block rather than one per 256 nodes.
+  bool touch = false;
+  if constexpr ((E & BALL) != 0) {
+    const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
+    ball_p = now.b.p;
+    touch = now.contact;
+    if (blockIdx.x == 0 && threadIdx.x == 0) {
+      if (sb.prev != nullptr) *sb.cur = now.b;
+      *sb.acc_next = BallAcc<R>::zero();
+    }
+  }
+  // One node a thread (the grid covers the cloth): at large n this streams memory faster
+  // than a grid-stride loop over a machine-sized grid (tools/lab/stream_ceiling.cu: 78 %
+  // against 57 % of the copy bandwidth on an H200 at n = 4096). The loop stays for safety.
   const int first = blockIdx.x * blockDim.x + threadIdx.x;
   R check = 0;
   // While no node can touch the ball the sweep runs compiled without contact (the same
   // decision for the whole grid), still tracking the node nearest the ball.
-  const bool touch = (E & BALL) != 0 && acc->contact_on;
   R near2 = std::numeric_limits<R>::infinity();
   for (int q = first; q < n * n; q += gridDim.x * blockDim.x) {
     const int i = q / n, j = q - i * n;
@@ -119,13 +175,11 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
     }
   }
   if (check != R(0)) *nonfinite = 1;  // sticky until the host resets the state
-  const int q = first;
   if constexpr ((E & BALL) == 0) {
-    if (q == 0) *ball_out = *ball_in;  // no ball in this scene: carry its state unchanged
+    if (first == 0) *sb.next = *sb.cur;  // no ball in this scene: carry its state unchanged
   }
   if constexpr ((E & BALL) != 0) {
     __shared__ R red[4][kBlock / 32];
-    __shared__ bool last;
     R c[3] = {contact.x, contact.y, contact.z};
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
@@ -143,45 +197,49 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
         s[3] = fmin(s[3], red[3][w]);
       }
       for (int k = 0; k < 3; ++k)
-        if (s[k] != R(0)) atomicAdd(&acc->f[k], s[k]);
-      atomicMin(&acc->nearest2, RealBits<R>::of(s[3]));
-      __threadfence();
-      last = atomicAdd(&acc->ticket, 1u) == gridDim.x - 1;
-      if (last) {
-        __threadfence();
-        volatile BallAcc<R>* va = acc;
-        const V3<R> sum{va->f[0], va->f[1], va->f[2]};
-        const Ball<R> b = ball_update<R, E>(p, *ball_in, sum, dt);
-        *ball_out = b;
-        const R nearest2 = RealBits<R>::real(va->nearest2);
-        acc->contact_on = contact_possible(p, nearest2, b.p - ball_in->p, va->strain_limited != 0);
-        acc->f[0] = acc->f[1] = acc->f[2] = R(0);
-        acc->nearest2 = RealBits<R>::of(std::numeric_limits<R>::infinity());
-        acc->ticket = 0;
-      }
+        if (s[k] != R(0)) atomicAdd(&sb.acc->f[k], s[k]);
+      // Most blocks are farther than one already counted: a plain read spares their atomic
+      // (a stale read only costs an atomic that changes nothing).
+      const auto bits = RealBits<R>::of(s[3]);
+      if (bits < *static_cast<volatile typename RealBits<R>::T*>(&sb.acc->nearest2))
+        atomicMin(&sb.acc->nearest2, bits);
     }
   }
 }
 
-template <class R>
-__global__ void gather_corners(int n, DevBuf<R> s, const Ball<R>* ball, const int* nonfinite,
-                               R* out) {
+// The end of a frame: the last substep's deferred ball update (when `sb.acc_prev` is set),
+// then the corners, the ball and the non-finite flag to the mapped read-back.
+template <class R, unsigned E>
+__global__ void finish_frame(Params<R> p, DevBuf<R> s, SubstepBall<R> sb, const int* nonfinite,
+                             R dt, R* out) {
+  follow_previous_launch();
   const int t = threadIdx.x;
   if (t < 4) {
-    const int q = corner_node(t, n);
+    const int q = corner_node(t, p.n);
     V3<R> x = s.pos.get(q), v = s.vel.get(q);
     R* o = out + 6 * t;
     o[0] = x.x; o[1] = x.y; o[2] = x.z; o[3] = v.x; o[4] = v.y; o[5] = v.z;
   } else if (t == 4) {
+    Ball<R> b = *sb.cur;
+    if constexpr ((E & BALL) != 0) {
+      if (sb.prev != nullptr) {
+        const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
+        b = now.b;
+        *sb.cur = b;
+        sb.ctl->contact_on = now.contact ? 1 : 0;
+        for (int k = 0; k < 3; ++k) sb.ring[k] = BallAcc<R>::zero();
+      }
+    }
     R* o = out + 24;
-    o[0] = ball->p.x; o[1] = ball->p.y; o[2] = ball->p.z;
-    o[3] = ball->v.x; o[4] = ball->v.y; o[5] = ball->v.z;
+    o[0] = b.p.x; o[1] = b.p.y; o[2] = b.p.z;
+    o[3] = b.v.x; o[4] = b.v.y; o[5] = b.v.z;
     o[6] = R(*nonfinite);
   }
 }
 
 template <class R>
 __global__ void load_inputs(const FrameInputs<R>* host, FrameInputs<R>* dev) {
+  follow_previous_launch();
   if (threadIdx.x == 0) *dev = *host;
 }
 
@@ -204,19 +262,28 @@ __global__ void normals_kernel(int n, Planes<R> pos, R* out) {
 
 template <class R>
 using KernelFn = void (*)(Params<R>, DevBuf<R>, DevBuf<R>, const FrameInputs<R>*,
-                          const Ball<R>*, Ball<R>*, BallAcc<R>*, int*, R);
+                          SubstepBall<R>, int*, R);
+template <class R>
+using FinishFn = void (*)(Params<R>, DevBuf<R>, SubstepBall<R>, const int*, R, R*);
+
+template <class R>
+struct Kernels {
+  KernelFn<R> substep;
+  FinishFn<R> finish;
+};
 
 template <class R>
 struct KernelEntry {
   template <unsigned E>
   struct At {
-    static constexpr KernelFn<R> fn = &se_substep<R, E>;
+    // The frame's end needs only what the ball's update reads of the set.
+    static constexpr Kernels<R> fn{&se_substep<R, E>, &finish_frame<R, E & (BALL | GRAVITY)>};
   };
 };
 
 template <class R>
-const std::array<KernelFn<R>, kNumEffectSets>& kernel_table() {
-  static const auto t = effect_table<KernelFn<R>, KernelEntry<R>::template At>(
+const std::array<Kernels<R>, kNumEffectSets>& kernel_table() {
+  static const auto t = effect_table<Kernels<R>, KernelEntry<R>::template At>(
       std::make_integer_sequence<unsigned, kNumEffectSets>{});
   return t;
 }
@@ -232,7 +299,8 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaMemset(state_, 0, sizeof(R) * 12 * size_t(N_)));
     CB_CUDA(cudaMalloc(&ball_, sizeof(Ball<R>) * 2));
     CB_CUDA(cudaMemset(ball_, 0, sizeof(Ball<R>) * 2));
-    CB_CUDA(cudaMalloc(&acc_, sizeof(BallAcc<R>)));
+    CB_CUDA(cudaMalloc(&ring_, sizeof(BallAcc<R>) * 3));
+    CB_CUDA(cudaMalloc(&ctl_, sizeof(BallCtl)));
     CB_CUDA(cudaMalloc(&fin_dev_, sizeof(FrameInputs<R>)));
     CB_CUDA(cudaMemset(fin_dev_, 0, sizeof(FrameInputs<R>)));
     CB_CUDA(cudaMalloc(&nonfinite_, sizeof(int)));
@@ -246,6 +314,11 @@ class CudaCloth final : public Backend {
     int sms = 0;
     CB_CUDA(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, 0));
     max_blocks_ = sms * 8;
+    int major = 0;
+    CB_CUDA(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, 0));
+    // CLOTHBALL_CUDA_OVERLAP=0 turns overlapping launches off, to measure what they save.
+    const char* overlap = std::getenv("CLOTHBALL_CUDA_OVERLAP");
+    overlap_launches_ = major >= 9 && !(overlap && std::string(overlap) == "0");
     *fin_host_ = FrameInputs<R>{};
     for (int k = 0; k < kReadback; ++k) readback_host_[k] = R(0);
     configure(c);
@@ -253,7 +326,7 @@ class CudaCloth final : public Backend {
 
   ~CudaCloth() override {
     drop_graphs();
-    cudaFree(state_); cudaFree(ball_); cudaFree(acc_); cudaFree(fin_dev_); cudaFree(nonfinite_);
+    cudaFree(state_); cudaFree(ball_); cudaFree(ring_); cudaFree(ctl_); cudaFree(fin_dev_); cudaFree(nonfinite_);
     cudaFreeHost(fin_host_); cudaFreeHost(readback_host_);
     cudaStreamDestroy(stream_);
   }
@@ -261,7 +334,7 @@ class CudaCloth final : public Backend {
   void configure(const Config& c) override {
     if (c.n != n_) throw std::invalid_argument("configure: n cannot change");
     p_ = Params<R>::from(c);
-    kernel_ = kernel_table<R>()[c.effects & (kNumEffectSets - 1)];
+    kernels_ = kernel_table<R>()[c.effects & (kNumEffectSets - 1)];
     effects_ = compiled_effect_set(c);
     strain_sweeps_ = strain_sweeps(c);
     drop_graphs();
@@ -273,8 +346,8 @@ class CudaCloth final : public Backend {
   }
   bool state_finite() override { return readback_host_[30] == R(0); }
   bool ball_contact_on() override {
-    BallAcc<R> a;
-    CB_CUDA(cudaMemcpy(&a, acc_, sizeof(a), cudaMemcpyDeviceToHost));
+    BallCtl a;
+    CB_CUDA(cudaMemcpy(&a, ctl_, sizeof(a), cudaMemcpyDeviceToHost));
     return (effects_ & BALL) != 0 && a.contact_on != 0;
   }
   void set_wind(const double* w) override { fin_host_->wind = {R(w[0]), R(w[1]), R(w[2])}; }
@@ -354,13 +427,13 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
     load_inputs<R><<<1, 32, 0, stream_>>>(fin_mapped_, fin_dev_);
     int b = start;
-    const unsigned blocks = unsigned(std::min((N_ + kBlock - 1) / kBlock, max_blocks_));
+    const unsigned blocks = unsigned((N_ + kBlock - 1) / kBlock);
     for (int s = 0; s < substeps; ++s) {
       if (alt_)
         alt_->substep(stream_, alt_view(), b, dt);
       else
-        kernel_<<<blocks, kBlock, 0, stream_>>>(p_, dev(b), dev(1 - b), fin_dev_, ball_ + b,
-                                               ball_ + (1 - b), acc_, nonfinite_, dt);
+        launch(kernels_.substep, blocks, kBlock, p_, dev(b), dev(1 - b),
+               static_cast<const FrameInputs<R>*>(fin_dev_), substep_ball(s, b), nonfinite_, dt);
       b = 1 - b;
       // Strain limiting, in place in buffer b: each pass the rows, then the columns.
       DevBuf<R> d = dev(b);
@@ -370,7 +443,10 @@ class CudaCloth final : public Backend {
         strain_kernel<R><<<line_blocks, kBlock, 0, stream_>>>(p_, d.pos, d.vel, 1, n_, R(1) / dt);
       }
     }
-    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(b), ball_ + b, nonfinite_, readback_mapped_);
+    // The last substep's ball update is still due (semi-implicit Euler with the ball).
+    const bool due = !alt_ && (effects_ & BALL) != 0;
+    launch(kernels_.finish, 1, 32, p_, dev(b), due ? substep_ball(substeps, b) : substep_ball(0, b),
+           static_cast<const int*>(nonfinite_), dt, readback_mapped_);
     CB_CUDA(cudaStreamEndCapture(stream_, &graph));
     cudaGraphExec_t exec;
     CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
@@ -383,10 +459,37 @@ class CudaCloth final : public Backend {
     return {p_, max_blocks_, {a.pos, b.pos}, {a.vel, b.vel}, ball_, fin_dev_, nonfinite_};
   }
 
+  // A launch into the frame's graph that may overlap the one before it (see
+  // follow_previous_launch); an ordinary launch where that is off.
+  template <class... Ps, class... As>
+  void launch(void (*kernel)(Ps...), unsigned grid, unsigned block, As&&... args) {
+    cudaLaunchConfig_t cfg{};
+    cfg.gridDim = dim3(grid);
+    cfg.blockDim = dim3(block);
+    cfg.stream = stream_;
+    cudaLaunchAttribute overlap{};
+    overlap.id = cudaLaunchAttributeProgrammaticStreamSerialization;
+    overlap.val.programmaticStreamSerializationAllowed = 1;
+    cfg.attrs = &overlap;
+    cfg.numAttrs = overlap_launches_ ? 1 : 0;
+    CB_CUDA(cudaLaunchKernelEx(&cfg, kernel, std::forward<As>(args)...));
+  }
+
+  // Substep k of a frame that reads state buffer b (k = substeps: the frame's end).
+  SubstepBall<R> substep_ball(int k, int b) const {
+    Ball<R>* cur = ball_ + b;
+    Ball<R>* other = ball_ + (1 - b);
+    return {k == 0 ? nullptr : other, ring_ + (k + 2) % 3, cur, other,
+            ring_ + k % 3, ring_ + (k + 1) % 3, ring_, ctl_};
+  }
+
   // Contact on until a substep shows that no node can reach the ball (forces.hpp).
   void reset_contact() {
-    const BallAcc<R> a = BallAcc<R>::initial(strain_sweeps_ > 0);
-    CB_CUDA(cudaMemcpy(acc_, &a, sizeof(a), cudaMemcpyHostToDevice));
+    const BallCtl c{1, strain_sweeps_ > 0 ? 1 : 0};
+    CB_CUDA(cudaMemcpy(ctl_, &c, sizeof(c), cudaMemcpyHostToDevice));
+    const BallAcc<R> z = BallAcc<R>::zero();
+    const BallAcc<R> ring[3] = {z, z, z};
+    CB_CUDA(cudaMemcpy(ring_, ring, sizeof(ring), cudaMemcpyHostToDevice));
   }
 
   void drop_graphs() {
@@ -396,8 +499,8 @@ class CudaCloth final : public Backend {
   }
 
   void refresh_readback() {
-    gather_corners<R><<<1, 32, 0, stream_>>>(n_, dev(cur_), ball_ + cur_, nonfinite_,
-                                              readback_mapped_);
+    kernels_.finish<<<1, 32, 0, stream_>>>(p_, dev(cur_), substep_ball(0, cur_), nonfinite_,
+                                           R(0), readback_mapped_);
     CB_CUDA(cudaGetLastError());
     CB_CUDA(cudaStreamSynchronize(stream_));
   }
@@ -411,11 +514,12 @@ class CudaCloth final : public Backend {
 
   const int n_, N_;
   Params<R> p_{};
-  KernelFn<R> kernel_ = nullptr;
+  Kernels<R> kernels_{};
   cudaStream_t stream_ = nullptr;
   R* state_ = nullptr;  // two buffers of 6 planes: x y z vx vy vz
   Ball<R>* ball_ = nullptr;
-  BallAcc<R>* acc_ = nullptr;
+  BallAcc<R>* ring_ = nullptr;  // three substeps' ball sums (SubstepBall)
+  BallCtl* ctl_ = nullptr;
   FrameInputs<R>* fin_dev_ = nullptr;
   FrameInputs<R>* fin_host_ = nullptr;
   FrameInputs<R>* fin_mapped_ = nullptr;  // device view of fin_host_
@@ -425,6 +529,7 @@ class CudaCloth final : public Backend {
   R* readback_host_ = nullptr;
   R* readback_mapped_ = nullptr;  // device view of readback_host_
   int max_blocks_ = 1;
+  bool overlap_launches_ = false;  // programmatic dependent launch (compute capability >= 9)
   int cur_ = 0;
   using GraphKey = std::tuple<int, R, int>;
   std::map<GraphKey, cudaGraphExec_t> graphs_;
