@@ -1,5 +1,7 @@
 // CPU backend: the shared core stepped by OpenMP threads over rows. Compiled once per real
-// type: CB_REAL is float or double (see native/CMakeLists.txt).
+// type (CB_REAL is float or double) and part: the effect sets' frame loops are shared among
+// CB_PARTS objects that compile in parallel, part k holding the sets E with
+// E % CB_PARTS == k; part 0 also holds the backend itself (see native/CMakeLists.txt).
 #include <omp.h>
 
 #include <algorithm>
@@ -12,14 +14,26 @@
 #include "core/forces.hpp"
 #include "cpu_integrators.hpp"
 
+#ifndef CB_PARTS
+#define CB_PARTS 1
+#define CB_PART 0
+#endif
+
 namespace cb {
-namespace {
+// Named, not anonymous: the parts of this unit define the same class and meet in its table.
+namespace cpu {
 
 template <class R>
 class CpuCloth;
 
 template <class R>
 using FramesFn = void (*)(CpuCloth<R>&, int, int, R);
+template <class R>
+using FramesTable = std::array<FramesFn<R>, kNumEffectSets>;
+
+// Fills the entries of part `Part` (one specialisation per part object).
+template <class R, int Part>
+void fill_frames(FramesTable<R>& t);
 
 template <class R>
 class CpuCloth final : public Backend {
@@ -224,13 +238,14 @@ class CpuCloth final : public Backend {
     }
   }
 
-  template <unsigned E>
-  struct Entry {
-    static constexpr FramesFn<R> fn = &CpuCloth::run_frames<E>;
-  };
-  static const std::array<FramesFn<R>, kNumEffectSets>& table() {
-    static const auto t = effect_table<FramesFn<R>, Entry>(
-        std::make_integer_sequence<unsigned, kNumEffectSets>{});
+  template <int... Part>
+  static FramesTable<R> gather(std::integer_sequence<int, Part...>) {
+    FramesTable<R> t{};
+    (fill_frames<R, Part>(t), ...);
+    return t;
+  }
+  static const FramesTable<R>& table() {
+    static const FramesTable<R> t = gather(std::make_integer_sequence<int, CB_PARTS>{});
     return t;
   }
 
@@ -260,11 +275,24 @@ class CpuCloth final : public Backend {
   std::unique_ptr<CpuIntegrator<R>> alt_;  // null: semi-implicit Euler (run_frames)
 };
 
-}  // namespace
+template <class R, unsigned... K>
+void fill_part(FramesTable<R>& t, std::integer_sequence<unsigned, K...>) {
+  ((t[K * CB_PARTS + CB_PART] = &CpuCloth<R>::template run_frames<K * CB_PARTS + CB_PART>), ...);
+}
 
 template <>
-std::unique_ptr<Backend> make_cpu_backend_t<CB_REAL>(const Config& c) {
-  return std::make_unique<CpuCloth<CB_REAL>>(c);
+void fill_frames<CB_REAL, CB_PART>(FramesTable<CB_REAL>& t) {
+  static_assert(kNumEffectSets % CB_PARTS == 0, "CB_PARTS must divide the effect sets");
+  fill_part<CB_REAL>(t, std::make_integer_sequence<unsigned, kNumEffectSets / CB_PARTS>{});
 }
+
+}  // namespace cpu
+
+#if CB_PART == 0
+template <>
+std::unique_ptr<Backend> make_cpu_backend_t<CB_REAL>(const Config& c) {
+  return std::make_unique<cpu::CpuCloth<CB_REAL>>(c);
+}
+#endif
 
 }  // namespace cb

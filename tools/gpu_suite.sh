@@ -18,6 +18,14 @@ python3 -m clothball.game.cli bench --backends cuda --json "$OUT/bench_gpu.json"
   | tee "$OUT/bench_gpu.txt"
 python3 -m clothball.game.cli bench --effects --backends cuda --json "$OUT/effects_gpu.json" \
   2>>"$OUT/bench_gpu.err" | tee "$OUT/effects_gpu.txt"
+# What overlapping launches (programmatic dependent launch) save: the small sizes again
+# with them off.
+CLOTHBALL_CUDA_OVERLAP=0 python3 -m clothball.game.cli bench --backends cuda \
+  --precisions float32 --sizes 25,50,85,100,135,150,200,250 \
+  --json "$OUT/bench_gpu_no_overlap.json" 2>>"$OUT/bench_gpu.err" | tee "$OUT/bench_gpu_no_overlap.txt"
+# The plane layout's streaming ceiling at large n (tools/lab/stream_ceiling.cu).
+nvcc -O3 -std=c++17 --expt-relaxed-constexpr -arch=sm_90 -Inative tools/lab/stream_ceiling.cu \
+  -o /tmp/stream_ceiling && /tmp/stream_ceiling | tee "$OUT/stream_ceiling.txt"
 # The CPU backend's effect costs on two quiet cores of this machine (the development
 # machine is shared, and small CPU rows scatter there).
 OMP_NUM_THREADS=2 taskset -c 0,1 python3 -m clothball.game.cli bench --effects --backends cpu \

@@ -182,16 +182,20 @@ CB_HD void euler_update(V3<R>& x, V3<R>& v, V3<R> f, R inv_mass, R dt) {
 // One node's semi-implicit Euler substep from buffer (P, V) into (P2, V2). Returns the
 // node's ball contact force, for the ball's sum.
 // `check` accumulates t - t of the new state: 0 while every value is finite, NaN after.
+// `new_x`, if given, receives the node's new position (the GPU's nearest-node tracking
+// would otherwise read it back from memory).
 template <class R, unsigned E, bool Interior = false>
 CB_HD V3<R> se_node_update(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
                            const Planes<R>& P2, const Planes<R>& V2, const FrameInputs<R>& fin,
-                           V3<R> ball_p, int i, int j, R dt, R& check) {
+                           V3<R> ball_p, int i, int j, R dt, R& check,
+                           V3<R>* new_x = nullptr) {
   const int q = i * p.n + j;
   V3<R> x = P.get(q), v = V.get(q), contact{R(0), R(0), R(0)};
   V3<R> f = node_force<R, E, Interior>(p, P, V, x, v, i, j, fin, ball_p, contact);
   euler_update(x, v, f, p.inv_mass, dt);
   P2.set(q, x);
   V2.set(q, v);
+  if (new_x) *new_x = x;
   R t = x.x + x.y + x.z + v.x + v.y + v.z;
   check += t - t;
   return contact;
