@@ -23,6 +23,8 @@ log = logging.getLogger("clothball")
 BACKENDS = ("auto", "cpu", "cuda")
 CPU_MAX_N = 4096  # largest cloth the CPU backend is built and tested for (16.8 M nodes)
 MAX_FRAMES_PER_CALL = 10_000_000
+# The engines count one call's substeps in a 32-bit int: longer requests go in chunks.
+MAX_SUBSTEPS_PER_CALL = 2**31 - 1
 
 
 class SimulationError(RuntimeError):
@@ -262,6 +264,7 @@ class Cloth:
             # Auto substeps follow the ball's speed, so re-check at least every 10 frames;
             # gusts change the wind every frame.
             chunk = remaining if self._fixed_substeps is not None else min(remaining, 10)
+            chunk = min(chunk, max(1, MAX_SUBSTEPS_PER_CALL // self._substeps))
             if self._gusts:
                 chunk = 1
                 self._apply_wind()

@@ -134,3 +134,33 @@ def test_step_releases_the_gil() -> None:
     t.join()
     # With the GIL held throughout, the counter could only tick between step() calls.
     assert ticks > frames / 50 + 10
+
+
+def test_long_requests_go_to_the_engine_in_chunks_that_fit_its_counter(monkeypatch) -> None:
+    """The engines count a call's substeps in a 32-bit int; `Cloth.step` splits a request
+    so that no call exceeds it (here a cap of 20 substeps stands in for 2**31 - 1) and the
+    result is the same as stepping frame by frame."""
+    import clothball.game.cloth as cloth_mod
+
+    scene = Scene.load("classic").with_changes({"cloth": {"n": 8}, "sim": {"substeps": 8}})
+    chunked, single = Cloth(scene, backend="cpu"), Cloth(scene, backend="cpu")
+    calls: list[tuple[int, int]] = []
+    engine = chunked._engine
+
+    class Recording:
+        def __getattr__(self, name: str):
+            return getattr(engine, name)
+
+        def step(self, frames: int, substeps: int, dt: float) -> None:
+            calls.append((frames, substeps))
+            engine.step(frames, substeps, dt)
+
+    chunked._engine = Recording()
+    monkeypatch.setattr(cloth_mod, "MAX_SUBSTEPS_PER_CALL", 20)
+    chunked.step(5)
+    for _ in range(5):
+        single.step(1)
+    assert [f for f, _ in calls] == [2, 2, 1]
+    assert all(f * s <= 20 for f, s in calls)
+    assert chunked.frame == 5
+    np.testing.assert_array_equal(chunked.positions(), single.positions())
