@@ -29,39 +29,18 @@ from typing import Any
 import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
-from websockets.frames import Frame, Opcode
 from websockets.protocol import OPEN
 
 from ..server import protocol as P
+from ..server.binary_hook import BinaryHook
 from .devices.base import CornerState, Reach
 
 HISTORY = 2000
 
 
-class _Connection(ClientConnection):
-    """A ``ClientConnection`` that hands a complete binary message (CORNER, MESH) straight
-    to ``on_binary`` from ``data_received`` when no message is queued ahead of it (so the
-    order of messages is kept), instead of waking the reader task for each one: a player
-    gets 1 000 CORNER messages a second. Text, control and fragmented frames go the usual
-    way, and so does everything while ``on_binary`` is unset."""
-
-    on_binary: Callable[[bytes], None] | None = None
-
-    def process_event(self, event: Any) -> None:
-        hook = self.on_binary
-        if (hook is not None and type(event) is Frame and event.opcode is Opcode.BINARY
-                and event.fin and not _queued(self.recv_messages)):
-            data = event.data
-            hook(data if type(data) is bytes else bytes(data))
-            return
-        super().process_event(event)
-
-
-def _queued(assembler: Any) -> int:
-    """Frames not read yet (websockets' Assembler keeps them in ``frames``; without it the
-    fast path stays off)."""
-    frames = getattr(assembler, "frames", None)
-    return len(frames) if frames is not None else 1
+class _Connection(BinaryHook, ClientConnection):
+    """The client's connection: CORNER and MESH messages go straight to ``on_binary``
+    (see ``server.binary_hook``)."""
 
 
 class ServerError(RuntimeError):

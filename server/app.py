@@ -39,11 +39,11 @@ import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
-from websockets.frames import Frame, Opcode
 from websockets.http11 import Request, Response
 
 from ..game.scene import ASSETS, Scene
 from . import protocol as P
+from .binary_hook import BinaryHook
 from .conn import Conn
 from .limits import DEFAULT, Limits
 from .lobby import Lobby, parse_settings
@@ -64,32 +64,9 @@ recorded rounds: <a href="/api/replays">/api/replays</a>.</p></body></html>
 """
 
 
-class _Connection(ServerConnection):
-    """A ``ServerConnection`` that can hand a complete binary message straight to
-    ``on_binary`` from ``data_received``, instead of queueing it for the handler task to read
-    one pass of the event loop later: HIPs (4 000 a second in the server bench) then cost
-    no task switch each. Only when no message is queued ahead of it (so that messages are
-    handled in the order they came), and only once the handler has set ``on_binary`` (it
-    does so when it starts its read loop); text, control and fragmented frames, and
-    everything before that, go the usual way."""
-
-    on_binary: Callable[[bytes], None] | None = None
-
-    def process_event(self, event: Any) -> None:
-        hook = self.on_binary
-        if (hook is not None and type(event) is Frame and event.opcode is Opcode.BINARY
-                and event.fin and not _queued(self.recv_messages)):
-            data = event.data
-            hook(data if type(data) is bytes else bytes(data))
-            return
-        super().process_event(event)
-
-
-def _queued(assembler: Any) -> int:
-    """Frames the handler has not read yet (websockets' Assembler keeps them in ``frames``;
-    a version without it is taken as always busy: the fast path stays off)."""
-    frames = getattr(assembler, "frames", None)
-    return len(frames) if frames is not None else 1
+class _Connection(BinaryHook, ServerConnection):
+    """The server's connection: HIPs go straight to ``on_binary`` once the handler has set
+    it, when it starts its read loop (see ``binary_hook``)."""
 
 
 class GameServer:
