@@ -8,6 +8,7 @@
 #include <cstdlib>
 #include <limits>
 #include <cstdio>
+#include <cstring>
 #include <map>
 #include <tuple>
 #include <stdexcept>
@@ -36,30 +37,42 @@ struct DevBuf {
 // A non-negative real as an unsigned integer of its width: the integers order as the reals
 // do, so atomicMin on them takes the minimum distance.
 template <class R>
-struct RealBits;
-template <>
-struct RealBits<float> {
-  using T = unsigned;
-  static constexpr T kInf = 0x7f800000u;
-  static __device__ T of(float v) { return __float_as_uint(v); }
-  static __device__ float real(T b) { return __uint_as_float(b); }
-};
-template <>
-struct RealBits<double> {
-  using T = unsigned long long;
-  static constexpr T kInf = 0x7ff0000000000000ull;
-  static __device__ T of(double v) { return (T)__double_as_longlong(v); }
-  static __device__ double real(T b) { return __longlong_as_double((long long)b); }
+struct RealBits {
+  using T = std::conditional_t<sizeof(R) == 4, unsigned, unsigned long long>;
+  static __host__ __device__ T of(R v) {
+    T b;
+    std::memcpy(&b, &v, sizeof b);
+    return b;
+  }
+  static __host__ __device__ R real(T b) {
+    R v;
+    std::memcpy(&v, &b, sizeof v);
+    return v;
+  }
 };
 
+// Nodes are reported to the ball's nearest-distance sum only within twice its radius: the
+// test of contact_possible then stays exact while the ball moves less than its radius in a
+// substep (every node is then >= 2r - r from it), and is on (conservative) beyond. Warps
+// far from the ball so skip their atomic on the one shared word (thousands of blocks
+// serialised on it at large n).
+template <class R>
+__host__ __device__ R near_cutoff2(const Params<R>& p) {
+  const R c = R(2) * p.ball_radius;
+  return c * c;
+}
+
 // One substep's ball sums: the contact force on the ball and the squared distance from the
-// nearest node (after its update) to the ball's centre (before the ball's update).
+// nearest node (after its update) to the ball's centre (before the ball's update), or the
+// cutoff when no node is nearer.
 template <class R>
 struct BallAcc {
   R f[3];
   typename RealBits<R>::T nearest2;
 
-  static __host__ __device__ BallAcc zero() { return {{R(0), R(0), R(0)}, RealBits<R>::kInf}; }
+  static __host__ __device__ BallAcc zero(const Params<R>& p) {
+    return {{R(0), R(0), R(0)}, RealBits<R>::of(near_cutoff2(p))};
+  }
 };
 
 // What outlives a frame: whether the frame's first substep computes contact.
@@ -137,6 +150,7 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
                                                      SubstepBall<R> sb, int* nonfinite, R dt) {
   follow_previous_launch();
   const int n = p.n;
+  const int first = blockIdx.x * blockDim.x + threadIdx.x;
   V3<R> contact{R(0), R(0), R(0)};
   V3<R> ball_p{R(0), R(0), R(0)};
   bool touch = false;
@@ -146,13 +160,11 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
     touch = now.contact;
     if (blockIdx.x == 0 && threadIdx.x == 0) {
       if (sb.prev != nullptr) *sb.cur = now.b;
-      *sb.acc_next = BallAcc<R>::zero();
+      *sb.acc_next = BallAcc<R>::zero(p);
     }
   }
-  // Grid-stride loop over the blocks that fit on the device at once, not over the cloth: a
-  // block's ball update and sums are fixed costs that one node a thread would pay 256
-  // nodes at a time (measured slower at n = 1024 on an H100: 32.9 against 27.3 us).
-  const int first = blockIdx.x * blockDim.x + threadIdx.x;
+  // A grid-stride loop while the cloth fits in one wave of resident blocks (the ball's
+  // update is then paid once a thread); one node a thread beyond (see capture).
   R check = 0;
   // While no node can touch the ball the sweep runs compiled without contact (the same
   // decision for the whole grid), still tracking the node nearest the ball.
@@ -179,38 +191,32 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
     if (first == 0) *sb.next = *sb.cur;  // no ball in this scene: carry its state unchanged
   }
   if constexpr ((E & BALL) != 0) {
-    __shared__ R red[4][kBlock / 32];
-    R c[3] = {contact.x, contact.y, contact.z};
-    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-#pragma unroll
-    for (int k = 0; k < 3; ++k) {
-      R s = warp_sum(c[k]);
-      if (lane == 0) red[k][warp] = s;
+    // Each warp adds to the sums directly: only the few warps at the ball have anything to
+    // add, and the others skip the shuffles too (whole warps reach here: the loop exits
+    // per lane, but every lane of a launched warp arrives).
+    const unsigned all = 0xffffffffu;
+    const bool lead = (threadIdx.x & 31) == 0;
+    if (__any_sync(all, contact.x != R(0) || contact.y != R(0) || contact.z != R(0))) {
+      const R c[3] = {warp_sum(contact.x), warp_sum(contact.y), warp_sum(contact.z)};
+      if (lead)
+        for (int k = 0; k < 3; ++k) atomicAdd(&sb.acc->f[k], c[k]);
     }
-    near2 = warp_min(near2);
-    if (lane == 0) red[3][warp] = near2;
-    __syncthreads();
-    if (threadIdx.x == 0) {
-      R s[4] = {R(0), R(0), R(0), red[3][0]};
-      for (int w = 0; w < kBlock / 32; ++w) {
-        for (int k = 0; k < 3; ++k) s[k] += red[k][w];
-        s[3] = fmin(s[3], red[3][w]);
-      }
-      for (int k = 0; k < 3; ++k)
-        if (s[k] != R(0)) atomicAdd(&sb.acc->f[k], s[k]);
-      atomicMin(&sb.acc->nearest2, RealBits<R>::of(s[3]));
+    if (__any_sync(all, near2 < near_cutoff2(p))) {
+      near2 = warp_min(near2);
+      if (lead) atomicMin(&sb.acc->nearest2, RealBits<R>::of(near2));
     }
   }
 }
 
-// The end of a frame: the last substep's deferred ball update (when `sb.acc_prev` is set),
-// then the corners, the ball and the non-finite flag to the mapped read-back.
+// The end of a frame: the last substep's deferred ball update (when `sb.prev` is set),
+// then the corners, the ball and the non-finite flag to the mapped read-back. With no
+// read-back (`out` null) it is the ball's own launch before a substep (large n).
 template <class R, unsigned E>
 __global__ void finish_frame(Params<R> p, DevBuf<R> s, SubstepBall<R> sb, const int* nonfinite,
                              R dt, R* out) {
   follow_previous_launch();
   const int t = threadIdx.x;
-  if (t < 4) {
+  if (t < 4 && out != nullptr) {
     const int q = corner_node(t, p.n);
     V3<R> x = s.pos.get(q), v = s.vel.get(q);
     R* o = out + 6 * t;
@@ -223,9 +229,10 @@ __global__ void finish_frame(Params<R> p, DevBuf<R> s, SubstepBall<R> sb, const 
         b = now.b;
         *sb.cur = b;
         sb.ctl->contact_on = now.contact ? 1 : 0;
-        for (int k = 0; k < 3; ++k) sb.ring[k] = BallAcc<R>::zero();
+        for (int k = 0; k < 3; ++k) sb.ring[k] = BallAcc<R>::zero(p);
       }
     }
+    if (out == nullptr) return;
     R* o = out + 24;
     o[0] = b.p.x; o[1] = b.p.y; o[2] = b.p.z;
     o[3] = b.v.x; o[4] = b.v.y; o[5] = b.v.z;
@@ -279,8 +286,14 @@ struct KernelEntry {
 
 template <class R>
 const std::array<Kernels<R>, kNumEffectSets>& kernel_table() {
+#ifdef CB_LAB_EFFECT_SET
+  // A lab build (tools/lab/substep_bench.cu) compiles only the set it times, in seconds.
+  static std::array<Kernels<R>, kNumEffectSets> t{};
+  t[CB_LAB_EFFECT_SET] = KernelEntry<R>::template At<CB_LAB_EFFECT_SET>::fn;
+#else
   static const auto t = effect_table<Kernels<R>, KernelEntry<R>::template At>(
       std::make_integer_sequence<unsigned, kNumEffectSets>{});
+#endif
   return t;
 }
 
@@ -316,6 +329,10 @@ class CudaCloth final : public Backend {
     // CLOTHBALL_CUDA_OVERLAP=0 turns overlapping launches off, to measure what they save.
     const char* overlap = std::getenv("CLOTHBALL_CUDA_OVERLAP");
     overlap_launches_ = major >= 9 && !(overlap && std::string(overlap) == "0");
+    // CLOTHBALL_CUDA_NODE_A_THREAD=1 (or 0) takes the largest cloths' launch shape at every
+    // size (or at none): the tests check it on small cloths against the oracle.
+    const char* wide = std::getenv("CLOTHBALL_CUDA_NODE_A_THREAD");
+    force_wide_ = wide ? std::string(wide) == "1" ? 1 : std::string(wide) == "0" ? 0 : -1 : -1;
     *fin_host_ = FrameInputs<R>{};
     for (int k = 0; k < kReadback; ++k) readback_host_[k] = R(0);
     configure(c);
@@ -427,13 +444,28 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
     load_inputs<R><<<1, 32, 0, stream_>>>(fin_mapped_, fin_dev_);
     int b = start;
-    const unsigned blocks = unsigned(std::min((N_ + kBlock - 1) / kBlock, resident_blocks_));
+    // A node a thread for the largest cloths, where a grid-stride loop leaves each thread's
+    // loads waiting on its previous node's; the ball's update, which every block would
+    // then repeat, becomes a launch of its own. The crossover was measured on an H100
+    // (tools/lab/substep_bench.cu): the loop is faster up to n = 2048 (84.4 against 86.1
+    // us), one node a thread at n = 4096 (333 against 414 us).
+    const int node_blocks = (N_ + kBlock - 1) / kBlock;
+    const bool wide = force_wide_ >= 0 ? force_wide_ == 1 : node_blocks > 64 * resident_blocks_;
+    const bool ball_launch = wide && (effects_ & BALL) != 0;
+    const unsigned blocks = unsigned(wide ? node_blocks : std::min(node_blocks, resident_blocks_));
     for (int s = 0; s < substeps; ++s) {
-      if (alt_)
+      if (alt_) {
         alt_->substep(stream_, alt_view(), b, dt);
-      else
+      } else {
+        SubstepBall<R> sb = substep_ball(s, b);
+        if (ball_launch && sb.prev != nullptr) {
+          launch(kernels_.finish, 1, 32, p_, dev(b), sb, static_cast<const int*>(nonfinite_), dt,
+                 static_cast<R*>(nullptr));
+          sb.prev = nullptr;  // the substep reads the updated ball
+        }
         launch(kernels_.substep, blocks, kBlock, p_, dev(b), dev(1 - b),
-               static_cast<const FrameInputs<R>*>(fin_dev_), substep_ball(s, b), nonfinite_, dt);
+               static_cast<const FrameInputs<R>*>(fin_dev_), sb, nonfinite_, dt);
+      }
       b = 1 - b;
       // Strain limiting, in place in buffer b: each pass the rows, then the columns.
       DevBuf<R> d = dev(b);
@@ -487,7 +519,7 @@ class CudaCloth final : public Backend {
   void reset_contact() {
     const BallCtl c{1, strain_sweeps_ > 0 ? 1 : 0};
     CB_CUDA(cudaMemcpy(ctl_, &c, sizeof(c), cudaMemcpyHostToDevice));
-    const BallAcc<R> z = BallAcc<R>::zero();
+    const BallAcc<R> z = BallAcc<R>::zero(p_);
     const BallAcc<R> ring[3] = {z, z, z};
     CB_CUDA(cudaMemcpy(ring_, ring, sizeof(ring), cudaMemcpyHostToDevice));
   }
@@ -532,6 +564,7 @@ class CudaCloth final : public Backend {
   int sms_ = 1;
   int resident_blocks_ = 1;  // the substep kernel's grid: as many blocks as fit at once
   bool overlap_launches_ = false;  // programmatic dependent launch (compute capability >= 9)
+  int force_wide_ = -1;            // CLOTHBALL_CUDA_NODE_A_THREAD: 1 always, 0 never, -1 auto
   int cur_ = 0;
   using GraphKey = std::tuple<int, R, int>;
   std::map<GraphKey, cudaGraphExec_t> graphs_;

@@ -26,6 +26,13 @@ def backend(request: pytest.FixtureRequest) -> str:
     return request.param
 
 
+@pytest.fixture
+def cuda() -> str:
+    """The CUDA backend, for tests of it alone."""
+    require_cuda()
+    return "cuda"
+
+
 @pytest.fixture(params=["float32", "float64"])
 def precision(request: pytest.FixtureRequest) -> str:
     return request.param

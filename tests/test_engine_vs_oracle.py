@@ -136,6 +136,17 @@ def test_matches_oracle(case: str, backend: str, precision: str) -> None:
     np.testing.assert_allclose(cloth.normals(), ref.normals(), rtol=0, atol=atol)
 
 
+@pytest.mark.gpu
+@pytest.mark.parametrize("case", ["ball_lands", "all_large", "strain_limit"])
+def test_cuda_node_a_thread_matches_oracle(
+    case: str, cuda: str, precision: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The CUDA launch shape of the largest cloths (a node a thread, the ball's update a
+    launch of its own), forced on small ones: same oracle and tolerance as above."""
+    monkeypatch.setenv("CLOTHBALL_CUDA_NODE_A_THREAD", "1")
+    test_matches_oracle(case, cuda, precision)
+
+
 def test_normals_of_a_known_surface(backend: str) -> None:
     """A cloth bent into the plane y = x tan(a) has normal (-sin a, cos a, 0) everywhere."""
     scene = scene_with(["structural"])
