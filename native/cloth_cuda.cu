@@ -290,11 +290,10 @@ const std::array<Kernels<R>, kNumEffectSets>& kernel_table() {
   // A lab build (tools/lab/substep_bench.cu) compiles only the set it times, in seconds.
   static std::array<Kernels<R>, kNumEffectSets> t{};
   t[CB_LAB_EFFECT_SET] = KernelEntry<R>::template At<CB_LAB_EFFECT_SET>::fn;
-#else
-  static const auto t = effect_table<Kernels<R>, KernelEntry<R>::template At>(
-      std::make_integer_sequence<unsigned, kNumEffectSets>{});
-#endif
   return t;
+#else
+  return dispatch_table<Kernels<R>, KernelEntry<R>::template At>();
+#endif
 }
 
 template <class R>

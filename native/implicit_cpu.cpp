@@ -49,8 +49,9 @@ class CpuImplicit final : public CpuIntegrator<R> {
         m_(c.node_mass), c_((c.effects & DAMPING) ? c.damping : 0.0),
         mb_((c.effects & BALL) ? c.ball_mass : 1.0), cb_((c.effects & BALL) ? c.ball_damping : 0.0),
         max_iter_(std::max(0, c.cg_max_iterations)), tol_(R(c.cg_tolerance)),
-        run_(table()[c.effects & (kNumEffectSets - 1)]),
-        apply_(apply_table()[stiff_index(c.effects & kStiffEffects)]) {
+        run_(dispatch_table<ImplicitRun<R>, Entry>()[c.effects & (kNumEffectSets - 1)]),
+        apply_(dispatch_table<ApplyFn<R>, ApplyEntry, kNumStiffSets>()[stiff_index(
+            c.effects & kStiffEffects)]) {
     auto planes = [&](int k) {
       R* b = buf_.data() + size_t(3 * k) * stride_;
       return Planes<R>{b, b + stride_, b + 2 * stride_};
@@ -144,20 +145,10 @@ class CpuImplicit final : public CpuIntegrator<R> {
   struct Entry {
     static constexpr ImplicitRun<R> fn = &CpuImplicit::run<E>;
   };
-  static const std::array<ImplicitRun<R>, kNumEffectSets>& table() {
-    static const auto t = effect_table<ImplicitRun<R>, Entry>(
-        std::make_integer_sequence<unsigned, kNumEffectSets>{});
-    return t;
-  }
   template <unsigned I>
   struct ApplyEntry {
     static constexpr ApplyFn<R> fn = &apply_pass<R, stiff_set(I)>;
   };
-  static const std::array<ApplyFn<R>, kNumStiffSets>& apply_table() {
-    static const auto t = effect_table<ApplyFn<R>, ApplyEntry>(
-        std::make_integer_sequence<unsigned, kNumStiffSets>{});
-    return t;
-  }
 
   const int N_;
   const size_t stride_;

@@ -130,10 +130,8 @@ class CudaImplicit final : public CudaIntegrator<R> {
         max_iter_(std::max(0, c.cg_max_iterations)), m_(c.node_mass),
         c_((c.effects & DAMPING) ? c.damping : 0.0), mb_((c.effects & BALL) ? c.ball_mass : 1.0),
         cb_((c.effects & BALL) ? c.ball_damping : 0.0),
-        rhs_(effect_table<RhsKernel, RhsEntry>(
-            std::make_integer_sequence<unsigned, kNumEffectSets>{})[effects_]),
-        apply_(effect_table<ApplyKernel, ApplyEntry>(
-            std::make_integer_sequence<unsigned, kNumStiffSets>{})[stiff_index(effects_)]) {
+        rhs_(dispatch_table<RhsKernel, RhsEntry>()[effects_]),
+        apply_(dispatch_table<ApplyKernel, ApplyEntry, kNumStiffSets>()[stiff_index(effects_)]) {
     const size_t entries = size_t(N_) + 1;  // the nodes, then the ball
     CB_CUDA(cudaMalloc(&vec_, sizeof(R) * 21 * entries));
     CB_CUDA(cudaMemset(vec_, 0, sizeof(R) * 21 * entries));

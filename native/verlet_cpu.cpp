@@ -28,7 +28,7 @@ class CpuVerlet final : public CpuIntegrator<R> {
       : N_(c.n * c.n), f_(3 * size_t(N_), R(0)),
         gamma_((c.effects & DAMPING) ? R(c.damping / c.node_mass) : R(0)),
         gamma_b_((c.effects & BALL) ? R(c.ball_damping / c.ball_mass) : R(0)),
-        run_(table()[c.effects & (kNumEffectSets - 1)]) {}
+        run_(dispatch_table<VerletRun<R>, Entry>()[c.effects & (kNumEffectSets - 1)]) {}
 
   void invalidate() override { primed_ = false; }
 
@@ -99,11 +99,6 @@ class CpuVerlet final : public CpuIntegrator<R> {
   struct Entry {
     static constexpr VerletRun<R> fn = &CpuVerlet::run<E>;
   };
-  static const std::array<VerletRun<R>, kNumEffectSets>& table() {
-    static const auto t = effect_table<VerletRun<R>, Entry>(
-        std::make_integer_sequence<unsigned, kNumEffectSets>{});
-    return t;
-  }
 
   const int N_;
   std::vector<R> f_;  // F per node, 3 planes: the next substep's opening kick

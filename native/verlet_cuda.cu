@@ -90,8 +90,7 @@ class CudaVerlet final : public CudaIntegrator<R> {
  public:
   explicit CudaVerlet(const Config& c)
       : N_(c.n * c.n), effects_(c.effects & (kNumEffectSets - 1)),
-        force_(effect_table<ForceKernel, ForceEntry>(
-            std::make_integer_sequence<unsigned, kNumEffectSets>{})[effects_]) {
+        force_(dispatch_table<ForceKernel, ForceEntry>()[effects_]) {
     CB_CUDA(cudaMalloc(&f_, sizeof(R) * 3 * size_t(N_)));
     CB_CUDA(cudaMemset(f_, 0, sizeof(R) * 3 * size_t(N_)));
     CB_CUDA(cudaMalloc(&fb_, sizeof(V3<R>)));

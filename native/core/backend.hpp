@@ -69,6 +69,13 @@ std::array<Fn, sizeof...(E)> effect_table(std::integer_sequence<unsigned, E...>)
   return {{Impl<E>::fn...}};
 }
 
+// The same over [0, N), built once: a backend's dispatch on its scene's effect set.
+template <class Fn, template <unsigned> class Impl, unsigned N = kNumEffectSets>
+const std::array<Fn, N>& dispatch_table() {
+  static const auto t = effect_table<Fn, Impl>(std::make_integer_sequence<unsigned, N>{});
+  return t;
+}
+
 // Corner node indices in the documented order: (0,0), (0,n-1), (n-1,n-1), (n-1,0).
 inline std::array<int, 4> corner_nodes(int n) {
   return {0, n - 1, n * n - 1, (n - 1) * n};
