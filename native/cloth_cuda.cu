@@ -140,10 +140,11 @@ __device__ R warp_min(R v) {
   return v;
 }
 
-// One semi-implicit Euler substep for every node. With the ball on, each block first
-// brings the ball up to this substep (ball_now), then adds its nodes' contact forces and
-// nearest distance to this substep's sums (`acc`), which the next launch reads; block 0
-// stores the ball and clears the sums the launch after next will use (`acc_next`).
+// One semi-implicit Euler substep for every node. With the ball on, each thread first
+// brings the ball up to this substep (ball_now; at large n a launch of its own did), then
+// each warp adds its nodes' contact forces and nearest distance to this substep's sums
+// (`acc`), which the next launch reads; block 0 stores the ball and clears the sums the
+// launch after next will use (`acc_next`).
 template <class R, unsigned E>
 __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, DevBuf<R> out,
                                                      const FrameInputs<R>* __restrict__ fin,
@@ -163,8 +164,8 @@ __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, 
       *sb.acc_next = BallAcc<R>::zero(p);
     }
   }
-  // A grid-stride loop while the cloth fits in one wave of resident blocks (the ball's
-  // update is then paid once a thread); one node a thread beyond (see capture).
+  // A grid-stride loop over the resident blocks (each thread then pays the ball's update
+  // once), or one node a thread for the largest cloths (see capture).
   R check = 0;
   // While no node can touch the ball the sweep runs compiled without contact (the same
   // decision for the whole grid), still tracking the node nearest the ball.
