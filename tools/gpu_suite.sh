@@ -23,14 +23,15 @@ python3 -m clothball.game.cli bench --effects --backends cuda --json "$OUT/effec
 CLOTHBALL_CUDA_OVERLAP=0 python3 -m clothball.game.cli bench --backends cuda \
   --precisions float32 --sizes 25,50,85,100,135,150,200,250 \
   --json "$OUT/bench_gpu_no_overlap.json" 2>>"$OUT/bench_gpu.err" | tee "$OUT/bench_gpu_no_overlap.txt"
-# The plane layout's streaming ceiling at large n (tools/lab/stream_ceiling.cu).
-nvcc -O3 -std=c++17 --expt-relaxed-constexpr -arch=sm_90 -Inative tools/lab/stream_ceiling.cu \
-  -o /tmp/stream_ceiling && /tmp/stream_ceiling | tee "$OUT/stream_ceiling.txt"
-# The same backend timed with no Python, and its state fingerprint (tools/lab/substep_bench.cu).
-python3 tools/lab/classic_configs.py > "$OUT/classic.cfg" && nvcc -O3 -std=c++17 \
-  --expt-relaxed-constexpr -arch=sm_90 -prec-div=false -prec-sqrt=false -Inative \
-  tools/lab/substep_bench.cu -o /tmp/substep_bench && /tmp/substep_bench "$OUT/classic.cfg" \
-  | tee "$OUT/substep_bench.txt"
+# The lab programs (tools/lab/), built as the package's cloth unit is (native/CMakeLists.txt).
+lab_nvcc=(nvcc -O3 -std=c++17 --expt-relaxed-constexpr -arch=sm_90 -Inative)
+# The plane layout's streaming ceiling at large n.
+"${lab_nvcc[@]}" tools/lab/stream_ceiling.cu -o /tmp/stream_ceiling \
+  && /tmp/stream_ceiling | tee "$OUT/stream_ceiling.txt"
+# The same backend timed with no Python, and its state fingerprint.
+python3 tools/lab/classic_configs.py > "$OUT/classic.cfg" \
+  && "${lab_nvcc[@]}" -prec-div=false -prec-sqrt=false tools/lab/substep_bench.cu \
+    -o /tmp/substep_bench && /tmp/substep_bench "$OUT/classic.cfg" | tee "$OUT/substep_bench.txt"
 # The CPU backend's effect costs on two quiet cores of this machine (the development
 # machine is shared, and small CPU rows scatter there).
 OMP_NUM_THREADS=2 taskset -c 0,1 python3 -m clothball.game.cli bench --effects --backends cpu \
