@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 from clothball.game.net_client import NetClient, ServerError
 from clothball.server import protocol as P
+from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 from server_helpers import http_json, run, server, until
 from websockets.asyncio.client import ClientConnection, connect
@@ -85,7 +86,11 @@ def test_no_hello_in_time_closes(tmp_path) -> None:
 def test_bad_messages_after_hello_get_errors_and_the_room_runs_on(tmp_path) -> None:
     async def main() -> None:
         settings = RoomSettings(bots_allowed=False)
-        async with server(tmp_path, settings=settings) as srv:
+        # A HIP rate far below what any machine reads, so that the flood below is over it
+        # however slowly a loaded machine reads it (at the default 1200/s, a server taking
+        # over ~2.2 s for the 3000 HIPs would refuse none; here it takes ~0.1 s).
+        limits = Limits(binary_rate=100.0, binary_burst=50.0)
+        async with server(tmp_path, settings=settings, limits=limits) as srv:
             room = srv.main_room
             assert room is not None
             rid = room.id
@@ -196,11 +201,12 @@ def test_bad_messages_after_hello_get_errors_and_the_room_runs_on(tmp_path) -> N
                 await ws.send(b"\0" * (P.MAX_MESSAGE_BYTES + 1))
                 assert await closed_with(ws) == 1009
 
-            # the room ran on through all of it; the good player was never disturbed
-            f0 = player.corner.frame
-            await asyncio.sleep(0.3)
-            assert player.corner.frame > f0 + 100
-            assert room.sim._thread.is_alive() and room.sim.stats.skipped_frames == 0
+            # the room ran on through all of it, and the good player still gets its corners
+            # (whether it kept its 1 kHz pace is measured by the load bench, not asserted
+            # here: on a shared 2-core machine a stall of 50 ms skips frames by design)
+            f0, sim0 = player.corner.frame, room.sim.stats.frames
+            await until(lambda: player.corner.frame > f0 + 100, 10, "corners after the abuse")
+            assert room.sim._thread.is_alive() and room.sim.stats.frames > sim0 + 100
             rooms = await http_json(srv, "/api/rooms")
             assert rooms["rooms"][0]["id"] == rid
             stats = await http_json(srv, "/api/stats")
