@@ -1,8 +1,8 @@
 """clothball.game: scenes, the cloth simulation facade, game logic and the clients."""
 
-from .cloth import Cloth, SimulationError, cuda_unavailable_reason
-from .oracle import ReferenceCloth
-from .scene import Scene, SceneError
+from .sim.cloth import Cloth, SimulationError, cuda_unavailable_reason
+from .sim.oracle import ReferenceCloth
+from .sim.scene import Scene, SceneError
 
 __all__ = [
     "Cloth",

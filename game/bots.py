@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .devices.base import CornerState, Reach
-from .net_client import NetClient, ServerError
+from .net.client import NetClient, ServerError
 
 log = logging.getLogger("clothball.bots")
 

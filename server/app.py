@@ -1,73 +1,38 @@
-"""The game server: one port, the websocket endpoint ``/ws`` and a small HTTP surface.
-
-HTTP (GET only):
-
-* ``/`` the spectator page (``assets/web/index.html``, or a placeholder until it exists)
-* ``/static/<path>`` files under ``assets/web/`` (no path traversal)
-* ``/healthz`` ``ok``
-* ``/api/rooms`` public rooms as JSON
-* ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=&player=&code=``)
-* ``/api/replays/<id>`` one replay file (see ``server.store``; a private room's: ``?code=``)
-* ``/api/stats`` the server's own counters (frame lateness, messages, CPU time)
-
-The websocket protocol is in ``docs/protocol.md``; handlers below are thin: they parse,
-check and hand over to the lobby and the rooms, and every bad message gets a JSON error
-while the room runs on. What a client may do is bounded by ``server.limits.Limits``
-(``docs/security.md``).
+"""The game server: one port serving the websocket endpoint ``/ws`` (``server.ws``) and a
+small HTTP surface (``server.http``). ``GameServer`` wires them to the lobby, the rooms, the
+bots and the replay index, and is the rooms' ``RoomHost``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
-import email.utils
-import http
 import json
 import logging
 import math
-import mimetypes
 import os
-import socket
 import sqlite3
 import time
-import urllib.parse
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from websockets.asyncio.server import Server, ServerConnection, serve
-from websockets.datastructures import Headers
-from websockets.exceptions import ConnectionClosed
-from websockets.http11 import Request, Response
+from websockets.asyncio.server import Server, serve
 
-from ..game.scene import ASSETS, Scene
-from . import protocol as P
-from .binary_hook import BinaryHook
+from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
+from .http import HttpSurface
 from .limits import DEFAULT, Limits
-from .lobby import Lobby, parse_settings
-from .protocol import ProtocolError
+from .lobby import Lobby
+from .replays import ReplayStore, access_key
 from .room import Room, RoomSettings
-from .store import ReplayStore, access_key
+from .ws import Connection, WsEndpoint
 
 log = logging.getLogger("clothball.server")
 
 WEB_DIR = ASSETS / "web"
 LOBBY_PUSH_S = 0.5  # how often lobby clients' room list is checked for changes
-
-PLACEHOLDER_PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>clothball</title></head>
-<body><h1>clothball</h1>
-<p>The spectator page is not installed yet. Live rooms: <a href="/api/rooms">/api/rooms</a>,
-recorded rounds: <a href="/api/replays">/api/replays</a>.</p></body></html>
-"""
-
-
-class _Connection(BinaryHook, ServerConnection):
-    """The server's connection: HIPs go straight to ``on_binary`` once the handler has set
-    it, when it starts its read loop (see ``binary_hook``)."""
-
 
 class GameServer:
     """The clothball server. ``await start()``, then ``await stop()`` (or ``run_forever``)."""
@@ -117,13 +82,15 @@ class GameServer:
                       "rounds_not_saved": 0, "refused_connections": 0, "rooms_stopped": 0}
         self._cpu0 = time.process_time()
         self._wall0 = time.perf_counter()
+        self.http = HttpSurface(self)
+        self.ws = WsEndpoint(self)
 
     # --- life -----------------------------------------------------------------------------
     async def start(self) -> tuple[str, int]:
         self._server = await serve(
-            self._handler, self.host, self.port, process_request=self._process_request,
+            self.ws.handler, self.host, self.port, process_request=self.http.process_request,
             max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
-            create_connection=_Connection,
+            create_connection=Connection,
             ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
             close_timeout=2,
         )
@@ -249,120 +216,6 @@ class GameServer:
         self._saves.add(t)
         t.add_done_callback(self._saves.discard)
 
-    # --- HTTP -----------------------------------------------------------------------------
-    def _response(self, status: int, body: bytes, content_type: str,
-                  extra: dict[str, str] | None = None) -> Response:
-        headers = Headers([
-            ("Date", email.utils.formatdate(usegmt=True)),
-            ("Connection", "close"),
-            ("Content-Length", str(len(body))),
-            ("Content-Type", content_type),
-            ("Cache-Control", "no-store"),
-            ("X-Content-Type-Options", "nosniff"),
-        ])
-        for k, v in (extra or {}).items():
-            headers[k] = v
-        st = http.HTTPStatus(status)
-        return Response(st.value, st.phrase, headers, body)
-
-    def _json(self, obj: Any, status: int = 200) -> Response:
-        return self._response(status, json.dumps(obj, allow_nan=False).encode(),
-                              "application/json")
-
-    def _error(self, status: int, message: str) -> Response:
-        return self._json({"error": message, "status": status}, status)
-
-    async def _process_request(self, connection: ServerConnection, request: Request
-                               ) -> Response | None:
-        # Split by hand: urlsplit reads "//host" as an authority and raises on "//[".
-        path, _, query = request.path.partition("#")[0].partition("?")
-        if path == "/ws":
-            origin = request.headers.get("Origin")
-            # Browsers always send Origin; other clients need not. The allow-list stops a
-            # page on another site from using a visitor's browser to play or watch here.
-            if self.origins is not None and origin is not None and origin not in self.origins:
-                self.stats["refused_connections"] += 1
-                return self._error(403, f"origin {origin[:100]!r} is not allowed here")
-            if len(self.clients) >= self.limits.max_clients:
-                self.stats["refused_connections"] += 1
-                return self._error(503, f"server full ({self.limits.max_clients} connections)")
-            return None
-        try:
-            if path == "/api/rooms":  # live state: read on the loop that changes it
-                return self._json({"rooms": self.lobby.listing()})
-            if path == "/api/stats":
-                if urllib.parse.parse_qs(query).get("reset") == ["1"]:
-                    for room in self.lobby.rooms.values():
-                        room.sim.stats.lateness.clear()
-                return self._json(self.stats_snapshot())
-            # Files and the index are read on a worker thread: the room loops go on.
-            return await asyncio.to_thread(self._route, path, urllib.parse.parse_qs(query))
-        except Exception:  # pragma: no cover - never take the server down on a request
-            log.exception("HTTP %s failed", path)
-            return self._error(500, "internal error")
-
-    def _route(self, path: str, query: dict[str, list[str]]) -> Response:
-        if path in ("/", "/index.html"):
-            index = self.web_dir / "index.html"
-            if index.is_file():
-                return self._response(200, index.read_bytes(), "text/html; charset=utf-8")
-            return self._response(200, PLACEHOLDER_PAGE.encode(), "text/html; charset=utf-8")
-        if path == "/healthz":
-            return self._response(200, b"ok\n", "text/plain; charset=utf-8")
-        if path == "/api/replays" or path.startswith("/api/replays/"):
-            return self._replays(path, query)
-        if path.startswith("/static/"):
-            return self._static(path[len("/static/"):])
-        return self._error(404, f"no such path {path[:200]!r}")
-
-    def _replays(self, path: str, query: dict[str, list[str]]) -> Response:
-        if self.store is None:
-            return self._error(503, f"recording is off: {self.recording_error}")
-
-        def one(key: str, max_len: int = 64) -> str | None:
-            v = query.get(key, [None])[0]
-            if v is not None and (len(v) > max_len or not v.isprintable()):
-                raise ValueError(f"{key}: at most {max_len} printable characters")
-            return v
-
-        try:
-            room, player, code = one("room"), one("player", 32), one("code")
-            limit = min(1000, max(1, int(query.get("limit", ["100"])[0])))
-            offset = min(2**62, max(0, int(query.get("offset", ["0"])[0])))
-        except ValueError as e:
-            msg = str(e) if ":" in str(e) else "limit and offset must be whole numbers"
-            return self._error(400, msg)
-        if path == "/api/replays":
-            return self._json({
-                "replays": self.store.list(limit, offset, room, player=player, code=code),
-                "total": self.store.count(room, player=player, code=code),
-            })
-        rid = path[len("/api/replays/"):]
-        if rid.endswith(".cbr"):
-            rid = rid[:-4]
-        p = self.store.path_of(rid, code=code)
-        if p is None:
-            return self._error(404, f"no replay {rid[:100]!r}")
-        return self._response(200, p.read_bytes(), "application/octet-stream", {
-            "Content-Disposition": f'attachment; filename="{rid}.cbr"',
-        })
-
-    def _static(self, rel: str) -> Response:
-        rel = urllib.parse.unquote(rel)
-        root = self.web_dir.resolve()
-        if "\x00" in rel or rel.startswith(("/", "\\")):
-            return self._error(404, "not found")
-        try:
-            target = (root / rel).resolve()
-        except (OSError, RuntimeError, ValueError):
-            return self._error(404, "not found")
-        if not target.is_relative_to(root) or not target.is_file():
-            return self._error(404, "not found")
-        ctype = mimetypes.guess_type(target.name)[0] or "application/octet-stream"
-        if ctype.startswith("text/") or ctype in ("application/javascript",):
-            ctype += "; charset=utf-8"
-        return self._response(200, target.read_bytes(), ctype)
-
     def stats_snapshot(self) -> dict[str, Any]:
         rooms = {}
         for rid, room in self.lobby.rooms.items():
@@ -383,259 +236,6 @@ class GameServer:
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             "rooms": rooms,
         }
-
-    # --- websocket ------------------------------------------------------------------------
-    async def _handler(self, ws: ServerConnection) -> None:
-        conn = Conn(ws, self.limits)
-        self.clients.add(conn)
-        sock = ws.transport.get_extra_info("socket") if ws.transport is not None else None
-        if sock is not None:
-            try:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF,
-                                self.limits.socket_send_buffer)
-            except OSError:  # pragma: no cover - not settable on this platform
-                pass
-        self.per_address[conn.address] += 1
-        try:
-            if self.per_address[conn.address] > self.limits.conns_per_address:
-                self.stats["refused_connections"] += 1
-                await ws.close(1008, f"too many connections from {conn.address} (limit "
-                                     f"{self.limits.conns_per_address})")
-                return
-            timeout = self.limits.hello_timeout
-            try:
-                first = await asyncio.wait_for(ws.recv(), timeout)
-            except TimeoutError:
-                conn.error("bad_message", f"no hello within {timeout:g} s")
-                await asyncio.sleep(0.05)
-                await ws.close(1008, "no hello")
-                return
-            if not await self._hello(conn, first):
-                await asyncio.sleep(0.05)  # let the error go out first
-                await ws.close(1008, "hello refused")
-                return
-            if isinstance(ws, _Connection):
-                ws.on_binary = lambda data: self._on_binary_now(conn, data)
-            async for message in ws:
-                self.stats["messages_in"] += 1
-                conn.received += 1
-                if isinstance(message, bytes):
-                    self._on_binary(conn, message)
-                else:
-                    self._on_text(conn, message)
-                if conn.closed:
-                    break
-        except ConnectionClosed:
-            pass
-        finally:
-            if isinstance(ws, _Connection):
-                ws.on_binary = None
-            self.clients.discard(conn)
-            self.per_address[conn.address] -= 1
-            if self.per_address[conn.address] <= 0:
-                del self.per_address[conn.address]
-            if conn.room is not None:
-                conn.room.disconnected(conn)
-            self.stats["messages_out"] += conn.sent
-            await conn.finish()
-
-    async def _hello(self, conn: Conn, first: str | bytes) -> bool:
-        """The first message must be a hello. True when the connection may go on."""
-        try:
-            if isinstance(first, bytes):
-                raise ProtocolError("bad_message", "the first message must be a JSON hello")
-            msg = P.decode_json(first, self.limits.max_control_bytes)
-            if msg["type"] != "hello":
-                raise ProtocolError("bad_message",
-                                    f"the first message must be a hello, got {msg['type']!r}")
-            version = msg.get("version")
-            if version != P.PROTOCOL_VERSION:
-                raise ProtocolError(
-                    "bad_version",
-                    f"protocol version {version!r} not supported; this server speaks "
-                    f"{P.PROTOCOL_VERSION}",
-                )
-            conn.name = P.field_str(msg, "name", "guest", max_len=32) or "guest"
-        except ProtocolError as e:
-            self.stats["bad_messages"] += 1
-            conn.error(e)
-            return False
-        conn.hello_done = True
-        conn.send_json({
-            "type": "welcome",
-            "version": P.PROTOCOL_VERSION,
-            "client": conn.id,
-            "name": conn.name,
-            "server_time": time.perf_counter() - self.epoch,
-            "scenes": sorted(self.scenes),
-            "rooms": self.lobby.listing(),
-            "re": P.request_id(msg),
-        })
-        role = msg.get("role", "lobby")
-        if role != "lobby" or "token" in msg:
-            # hello may carry a join: the same fields as a join message.
-            self._on_control(conn, {**msg, "type": "join"})
-        return True
-
-    def _on_text(self, conn: Conn, text: str) -> None:
-        if not conn.control_bucket.take():
-            self.stats["bad_messages"] += 1
-            conn.error("rate_limited", f"at most {conn.control_bucket.rate:g} control "
-                                       "messages a second; this one was dropped")
-            if conn.rate_dropped():
-                conn.drop("too many messages")
-            return
-        try:
-            msg = P.decode_json(text, self.limits.max_control_bytes)
-        except ProtocolError as e:
-            self.stats["bad_messages"] += 1
-            conn.error(e)
-            return
-        self._on_control(conn, msg)
-
-    def _on_binary_now(self, conn: Conn, data: bytes) -> None:
-        """A binary message handed over by ``_Connection`` as it arrives: what the read loop
-        of ``_handler`` does with one, which stops reading once the client is closed."""
-        if conn.closed:
-            return
-        self.stats["messages_in"] += 1
-        conn.received += 1
-        try:
-            self._on_binary(conn, data)
-        except Exception:  # pragma: no cover - a bug: like a failing handler, close 1011
-            log.exception("handling a binary message from client %s failed", conn.id)
-            conn.fail("internal error")
-
-    def _on_binary(self, conn: Conn, data: bytes) -> None:
-        if not conn.binary_bucket.take():
-            self.stats["bad_messages"] += 1
-            conn.error("rate_limited", f"at most {conn.binary_bucket.rate:g} binary "
-                                       "messages a second; the extra ones are dropped")
-            if conn.rate_dropped():
-                conn.drop("too many messages")
-            return
-        try:
-            if conn.role != "player" or conn.room is None:
-                raise ProtocolError("not_allowed",
-                                    f"binary messages are for seated players; you are {conn.role}")
-            hip = P.decode_hip(data)
-            conn.room.on_hip(conn, hip)
-        except ProtocolError as e:
-            self.stats["bad_messages"] += 1
-            conn.error(e)
-
-    def _on_control(self, conn: Conn, msg: dict[str, Any]) -> None:
-        t = msg["type"]
-        re = P.request_id(msg)
-        handler = getattr(self, f"_msg_{t}", None) if t.isidentifier() else None
-        try:
-            if handler is None:
-                raise ProtocolError("unknown_type", f"unknown message type {t!r}")
-            reply = handler(conn, msg)
-        except ProtocolError as e:
-            self.stats["bad_messages"] += 1
-            conn.error(e, re=re)
-            return
-        if reply is None and re is not None:
-            reply = {"type": "ok"}
-        if reply is not None:
-            if re is not None:
-                reply["re"] = re
-            conn.send_json(reply)
-
-    # --- control messages -----------------------------------------------------------------
-    def _msg_hello(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        raise ProtocolError("not_allowed", "hello was already received")
-
-    def _msg_ping(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        t = P.field_float(msg, "t", None, -1e12, 1e12)
-        return {"type": "pong", "t": t, "server_time": time.perf_counter() - self.epoch}
-
-    def _msg_list_rooms(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        return {"type": "rooms", "rooms": self.lobby.listing()}
-
-    def _msg_create_room(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        name = P.field_str(msg, "name", "room", max_len=48) or "room"
-        scene = P.field_str(msg, "scene", None, max_len=64)
-        public = P.field_bool(msg, "public", True)
-        settings = parse_settings(msg)
-        mine = self.lobby.rooms_of(conn.address)
-        if mine >= self.limits.rooms_per_address:
-            raise ProtocolError("too_many_rooms", f"{conn.address} already has {mine} open rooms "
-                                f"(limit {self.limits.rooms_per_address}); close one first")
-        room = self.lobby.create(name, scene, public=public, settings=settings, owner=conn.id,
-                                 address=conn.address)
-        return {"type": "room_created", "room": room.id, "code": room.code, "state": room.info()}
-
-    def _room_options(self, conn: Conn, msg: dict[str, Any]) -> None:
-        rate = P.field_float(msg, "corner_rate", 1000.0, 1.0, 1000.0)
-        assert rate is not None
-        conn.corner_interval = 0.0 if rate >= 1000.0 else 1.0 / rate - 1e-4
-        conn.want_mesh = P.field_bool(msg, "mesh", True)
-
-    def _msg_join(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        if conn.room is not None:
-            raise ProtocolError("not_allowed", f"already in room {conn.room.id}: leave first")
-        token = P.field_str(msg, "token", None, max_len=64)
-        role = P.field_str(msg, "role", "player" if token else "spectator", max_len=16)
-        self._room_options(conn, msg)
-        if token is not None:
-            room = self.lobby.get(msg.get("room")) if msg.get("room") is not None else None
-            rooms = [room] if room is not None else list(self.lobby.rooms.values())
-            for r in rooms:
-                try:
-                    return r.resume(conn, token)
-                except ProtocolError:
-                    continue
-            raise ProtocolError("bad_token", "reconnect token unknown or expired")
-        room = self.lobby.get(msg.get("room"))
-        code = P.field_str(msg, "code", None, max_len=64)
-        if role == "player":
-            seat = P.field_int(msg, "seat", None, -(2**31), 2**31)  # the room names bad seats
-            return room.join_player(conn, seat, conn.name, code)
-        if role == "spectator":
-            room.check_code(code)  # a private room's size is its own business
-            if len(room.spectators) >= self.limits.spectators_per_room:
-                raise ProtocolError("room_full", f"room {room.id} already has "
-                                    f"{len(room.spectators)} spectators (the limit)")
-            return room.join_spectator(conn, code)
-        raise ProtocolError("bad_message", f"role must be 'player' or 'spectator', got {role!r}")
-
-    def _in_room(self, conn: Conn) -> Room:
-        if conn.room is None:
-            raise ProtocolError("not_allowed", "not in a room: join one first")
-        return conn.room
-
-    def _msg_leave(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        room = self._in_room(conn)
-        room.leave(conn)
-        return {"type": "left", "room": room.id}
-
-    def _msg_ready(self, conn: Conn, msg: dict[str, Any]) -> None:
-        self._in_room(conn).set_ready(conn, P.field_bool(msg, "ready", True))
-
-    def _msg_start(self, conn: Conn, msg: dict[str, Any]) -> None:
-        self._in_room(conn).request_start(conn)
-
-    def _msg_add_bot(self, conn: Conn, msg: dict[str, Any]) -> None:
-        room = self._in_room(conn)
-        if not room.may_control(conn):
-            raise ProtocolError("not_allowed", "only the room's host can add bots")
-        seat = P.field_int(msg, "seat", None, 0, 3)
-        difficulty = P.field_float(msg, "difficulty", room.settings.bot_difficulty, 0.0, 1.0)
-        assert difficulty is not None
-        room.add_bot(seat, difficulty)
-
-    def _msg_remove_bot(self, conn: Conn, msg: dict[str, Any]) -> None:
-        room = self._in_room(conn)
-        if not room.may_control(conn):
-            raise ProtocolError("not_allowed", "only the room's host can remove bots")
-        seat = P.field_int(msg, "seat", None, 0, 3, required=True)
-        assert seat is not None
-        room.remove_bot(seat)
-
-    def _msg_state(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        return {"type": "room", **self._in_room(conn).info()}
 
 
 def _percentiles(values: np.ndarray) -> dict[str, float]:

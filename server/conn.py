@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING, Any
 
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
-from websockets.protocol import OPEN
 
-from . import protocol as P
+from ..game.net.fastpath import try_send_binary
+from ..game.wire import protocol as P
 from .limits import DEFAULT, Limits
 
 if TYPE_CHECKING:
@@ -134,13 +134,8 @@ class Conn:
         sent, a backed-up socket, a closing connection) False: the sender task does it."""
         if not self._idle or self._control or self._corner is not None or self._mesh is not None:
             return False
-        ws = self.ws
-        transport = ws.transport
-        if (transport is None or transport.is_closing() or ws.protocol.state is not OPEN
-                or transport.get_write_buffer_size()):
+        if not try_send_binary(self.ws, data):
             return False
-        ws.protocol.send_binary(data)
-        ws.send_data()
         self.sent += 1
         return True
 

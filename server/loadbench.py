@@ -80,7 +80,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 async def _serve(args: argparse.Namespace) -> None:
-    from ..game.scene import Scene
+    from ..game.sim.scene import Scene
     from .app import GameServer
     from .limits import Limits
     from .room import RoomSettings
@@ -100,7 +100,7 @@ async def _serve(args: argparse.Namespace) -> None:
         room = srv.main_room
         probe = room.sim.cloth if room is not None else None
         if probe is None:  # no room yet: a throw-away cloth says what a room will run
-            from ..game.cloth import Cloth
+            from ..game.sim.cloth import Cloth
 
             probe = Cloth(scene, backend=args.server_backend, threads=1)
         print(json.dumps({"port": srv.port, "room": room.id if room is not None else None,
@@ -117,7 +117,7 @@ async def _serve(args: argparse.Namespace) -> None:
 
 
 async def _spectate(args: argparse.Namespace) -> None:
-    from ..game.net_client import NetClient
+    from ..game.net.client import NetClient
 
     room = json.loads(args.url)["room"]
     url = json.loads(args.url)["ws"]
@@ -167,7 +167,7 @@ async def _drive(i: int, p: Any, rate: float, stop_at: list[float], sent: list[i
 
 async def _play(ws_url: str, room: str, n_players: int, rate: float, seconds: float,
                 reset_stats: Any) -> dict[str, Any]:
-    from ..game.net_client import NetClient
+    from ..game.net.client import NetClient
 
     players = [await NetClient.connect(ws_url, name=f"p{i}", role="player", room=room, seat=i,
                                        record_latency=True, mesh=False)
@@ -371,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
 async def _room_clients(args: argparse.Namespace) -> None:
     """One room's clients: 4 players (ready, HIP at --hip-rate) and --load-spectators
     spectators, until stdin closes."""
-    from ..game.net_client import NetClient
+    from ..game.net.client import NetClient
 
     where = json.loads(args.url)
     ws, room = where["ws"], where["room"]
@@ -394,7 +394,7 @@ async def _room_clients(args: argparse.Namespace) -> None:
 
 
 async def _create_room(ws: str) -> str:
-    from ..game.net_client import NetClient
+    from ..game.net.client import NetClient
 
     c = await NetClient.connect(ws, name="load")
     try:

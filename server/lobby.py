@@ -8,9 +8,9 @@ import secrets
 from collections.abc import Callable
 from typing import Any
 
-from ..game.scene import Scene
-from . import protocol as P
-from .protocol import ProtocolError
+from ..game.sim.scene import Scene
+from ..game.wire import protocol as P
+from ..game.wire.protocol import ProtocolError
 from .room import Room, RoomHost, RoomSettings
 
 log = logging.getLogger("clothball.server")

@@ -14,25 +14,38 @@ import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from ..game.rules import EDGE_NAMES, SEATS, IllegalMove, Match, edge_of_seat
-from ..game.scene import Scene
-from . import protocol as P
-from .protocol import ProtocolError
+from ..game.sim.scene import Scene
+from ..game.wire import protocol as P
+from ..game.wire.protocol import ProtocolError
+from ..game.wire.replay import REPLAY_VERSION, new_round_id
 from .sim import FrameResult, RoomSim
-from .store import REPLAY_VERSION, new_round_id
-
-if TYPE_CHECKING:
-    from .conn import Conn
 
 log = logging.getLogger("clothball.server")
 
 REACH_FRACTION = 0.3  # a hand may move this fraction of the cloth's size from its anchor
 RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
 MESH_FANOUT_CHUNK = 8  # connections offered a new MESH per pass of the event loop
+
+
+class Peer(Protocol):
+    """What a room needs from a connection (``server.conn.Conn`` is the one there is): who it
+    is, where it sits, and how to send it something. The room never imports it."""
+
+    id: str
+    room: Room | None
+    seat: int | None
+    role: str  # "lobby", "player" or "spectator"
+
+    def send_json(self, msg: dict[str, Any]) -> None: ...
+    def offer_corner(self, data: bytes, server_time: float) -> None: ...
+    def offer_mesh(self, data: bytes) -> None: ...
+    def error(self, err: ProtocolError | str, message: str = "", re: object = None) -> None: ...
+    def kicked(self, reason: str) -> None: ...
 
 
 class RoomHost(Protocol):
@@ -66,7 +79,7 @@ class Seat:
     kind: str = "empty"  # "empty", "human", "bot"
     name: str = ""
     token: str | None = None
-    conn: Conn | None = None
+    conn: Peer | None = None
     ready: bool = False
     held_until: float | None = None  # disconnected: seat held until this loop time
     grace_timer: asyncio.TimerHandle | None = None
@@ -112,7 +125,7 @@ class Room:
         self.host = host
         self.match = Match(first_to=self.settings.first_to)
         self.seats = [Seat(i, difficulty=self.settings.bot_difficulty) for i in range(SEATS)]
-        self.spectators: set[Conn] = set()
+        self.spectators: set[Peer] = set()
         self.mesh_hz = mesh_hz
         self.track_hz = track_hz
         self.rng = rng or np.random.default_rng()
@@ -182,7 +195,7 @@ class Room:
             "edges": list(EDGE_NAMES),
         }
 
-    def conns(self) -> list[Conn]:
+    def conns(self) -> list[Peer]:
         out = [s.conn for s in self.seats if s.conn is not None]
         return out + list(self.spectators)
 
@@ -214,7 +227,7 @@ class Room:
         if self.code is not None and not (code and secrets.compare_digest(code, self.code)):
             raise ProtocolError("bad_code", f"room {self.id} is private: a valid 'code' is needed")
 
-    def join_player(self, conn: Conn, seat: int | None, name: str, code: str | None
+    def join_player(self, conn: Peer, seat: int | None, name: str, code: str | None
                     ) -> dict[str, Any]:
         self.check_code(code)
         if seat is None:
@@ -235,7 +248,7 @@ class Room:
         self.broadcast_state()
         return self._joined(target)
 
-    def resume(self, conn: Conn, token: str) -> dict[str, Any]:
+    def resume(self, conn: Peer, token: str) -> dict[str, Any]:
         """Take a held seat back (a reconnect, or a bot claiming the seat it was given)."""
         for s in self.seats:
             if s.token is not None and secrets.compare_digest(s.token, token):
@@ -253,7 +266,7 @@ class Room:
                 return self._joined(s)
         raise ProtocolError("bad_token", "reconnect token unknown or expired")
 
-    def _attach(self, seat: Seat, conn: Conn) -> None:
+    def _attach(self, seat: Seat, conn: Peer) -> None:
         seat.conn = conn
         conn.room, conn.seat, conn.role = self, seat.index, "player"
         self.last_active = self.loop.time()
@@ -283,7 +296,7 @@ class Room:
             "code": self.code,
         }
 
-    def join_spectator(self, conn: Conn, code: str | None) -> dict[str, Any]:
+    def join_spectator(self, conn: Peer, code: str | None) -> dict[str, Any]:
         self.check_code(code)
         self.spectators.add(conn)
         conn.room, conn.seat, conn.role = self, None, "spectator"
@@ -292,7 +305,7 @@ class Room:
         return {"type": "joined", "room": self.id, "role": "spectator",
                 "geometry": self.geometry(), "state": self.info()}
 
-    def leave(self, conn: Conn) -> None:
+    def leave(self, conn: Peer) -> None:
         """The connection leaves on purpose: its seat is freed at once."""
         if conn in self.spectators:
             self.spectators.discard(conn)
@@ -304,7 +317,7 @@ class Room:
             self._detach(seat)
             self._free(seat, "left")
 
-    def disconnected(self, conn: Conn) -> None:
+    def disconnected(self, conn: Peer) -> None:
         """The connection dropped: a player's seat is held for the grace period."""
         if conn in self.spectators:
             self.spectators.discard(conn)
@@ -376,19 +389,19 @@ class Room:
             conn.kicked("bot removed")
 
     # --- control --------------------------------------------------------------------------
-    def may_control(self, conn: Conn) -> bool:
+    def may_control(self, conn: Peer) -> bool:
         if self.owner is not None:
             return conn.id == self.owner
         return conn.seat is not None
 
-    def set_ready(self, conn: Conn, ready: bool) -> None:
+    def set_ready(self, conn: Peer, ready: bool) -> None:
         if conn.seat is None:
             raise ProtocolError("not_allowed", "only a seated player can be ready")
         self.seats[conn.seat].ready = ready
         self.broadcast_state()
         self._maybe_start()
 
-    def request_start(self, conn: Conn) -> None:
+    def request_start(self, conn: Peer) -> None:
         if not self.may_control(conn):
             raise ProtocolError("not_allowed", "only the room's host can start the match")
         self._start_match()
@@ -513,7 +526,7 @@ class Room:
         self._closed = True
         self.host.room_stopped(self, reason)
 
-    def _fan_out_mesh(self, mesh: bytes, conns: list[Conn], start: int) -> None:
+    def _fan_out_mesh(self, mesh: bytes, conns: list[Peer], start: int) -> None:
         """Offer a MESH to ``conns[start:]``, ``MESH_FANOUT_CHUNK`` per pass of the event
         loop, so that the players' HIPs are read between the passes: fifty spectators' sends
         in one pass held the HIPs arriving just after it up by about 2 ms (median)."""
@@ -523,7 +536,7 @@ class Room:
         if end < len(conns) and not self._closed:
             self.loop.call_soon(self._fan_out_mesh, mesh, conns, end)
 
-    def on_hip(self, conn: Conn, hip: P.Hip) -> None:
+    def on_hip(self, conn: Peer, hip: P.Hip) -> None:
         seat = conn.seat
         if seat is None or self.seats[seat].conn is not conn:
             raise ProtocolError("not_allowed", "HIP messages are for seated players only")

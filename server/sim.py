@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
-from ..game.cloth import Cloth, SimulationError, corners_of, rest_positions
 from ..game.rules import exit_edge_fast
-from ..game.scene import Scene
-from . import protocol as P
+from ..game.sim.cloth import Cloth, SimulationError, corners_of, rest_positions
+from ..game.sim.scene import Scene
+from ..game.wire import protocol as P
 
 log = logging.getLogger("clothball.server")
 

@@ -1,7 +1,7 @@
 """The CPU backend's speed targets, measured in one run on this machine:
 
 1. at n = 64, time per substep of the CPU backend against a vectorised NumPy step of the
-   same equations (the oracle, clothball.game.oracle.ReferenceCloth);
+   same equations (the oracle, clothball.game.sim.oracle.ReferenceCloth);
 2. substeps per second at n = 135.
 
 Both on the classic scene, float32, at its automatic substep count. Medians of repeats.
@@ -15,8 +15,8 @@ import time
 
 from clothball import _native
 from clothball.game import Cloth, ReferenceCloth, Scene
-from clothball.game.bench import time_substep
-from clothball.game.stability import auto_substeps
+from clothball.game.sim.stability import auto_substeps
+from clothball.game.study.bench import time_substep
 
 
 def numpy_substep_s(scene: Scene, repeats: int = 7) -> float:

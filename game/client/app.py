@@ -27,15 +27,7 @@ import pyglet
 
 from ..devices.mouse import MouseDevice
 from .camera import OrbitCamera
-from .interp import (
-    BACKGROUND,
-    EDGE_NAMES,
-    SEAT_COLOURS,
-    FrameBuffer,
-    RenderFrame,
-    Sample,
-    assemble,
-)
+from .interp import BACKGROUND, EDGE_NAMES, SEAT_COLOURS, FrameBuffer, RenderFrame, Sample, assemble
 from .lobby_ui import Action, LobbyUI
 from .model import ClientModel
 from .netthread import NetThread

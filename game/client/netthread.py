@@ -34,9 +34,9 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any, Generic, TypeVar
 
-from ...server import protocol as P
 from ..devices.base import CornerState, Device
-from ..net_client import NetClient, ServerError
+from ..net.client import NetClient, ServerError
+from ..wire import protocol as P
 from .interp import MeshFrame
 
 log = logging.getLogger("clothball.client")

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from ...server import protocol as P
-from ...server.store import ReplayError, read_replay
+from ..wire import protocol as P
+from ..wire.replay import ReplayError, read_replay
 from .interp import MeshFrame, Sample, Timeline
 
 SPEEDS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 
 from clothball.game import Cloth, Scene
-from clothball.game.cloth import native_config
+from clothball.game.sim.cloth import native_config
 
 SIZES = (25, 50, 85, 100, 135, 150, 200, 250, 300, 400, 500, 1024, 2048, 4096)
 FIELDS = (
@@ -38,7 +38,7 @@ def main() -> None:
 
 
 def _substeps(scene: Scene) -> int:
-    from clothball.game.stability import auto_substeps
+    from clothball.game.sim.stability import auto_substeps
 
     return auto_substeps(scene, 0.0)
 

@@ -1,0 +1,1 @@
+"""The asyncio websocket client (``client``) and the websockets fast paths (``fastpath``)."""

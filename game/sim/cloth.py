@@ -1,0 +1,344 @@
+"""The simulation facade: a cloth stepped by the native CPU or CUDA backend.
+
+``Cloth`` validates every argument (a bad one raises ``ValueError`` naming it and changes
+nothing), converts between the documented array shapes and the native engine, and picks
+the substep count from the stability bound unless the scene fixes it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+
+from ... import _native  # type: ignore[attr-defined]
+from .scene import EFFECTS, Scene, SceneError
+from .stability import auto_substeps, stable_dt
+
+log = logging.getLogger("clothball")
+
+BACKENDS = ("auto", "cpu", "cuda")
+CPU_MAX_N = 4096  # largest cloth the CPU backend is built and tested for (16.8 M nodes)
+MAX_FRAMES_PER_CALL = 10_000_000
+# The engines count one call's substeps in a 32-bit int: longer requests go in chunks.
+MAX_SUBSTEPS_PER_CALL = 2**31 - 1
+
+
+class SimulationError(RuntimeError):
+    """The simulation state became non-finite; the cloth must be reset or dropped."""
+
+
+class UnstableSceneWarning(UserWarning):
+    """A scene fixes a substep beyond the stability bound and sets allow_unstable."""
+
+
+def cuda_unavailable_reason() -> str:
+    """Empty when the CUDA backend can run here, else why not."""
+    return _native.cuda_unavailable_reason()
+
+
+def native_config(scene: Scene, threads: int = 0) -> _native.Config:
+    """The native engine's view of a scene."""
+    c = _native.Config()
+    cloth, ball = scene["cloth"], scene["ball"]
+    c.n = scene.n
+    c.rest_len = scene.rest_length
+    c.node_mass = scene.node_mass
+    c.k_struct = cloth["k_structural"]
+    c.k_shear = cloth["k_shear"]
+    c.k_bend = cloth["k_bend"]
+    c.struct_compress = 1.0 if cloth["structural_two_sided"] else 0.0
+    c.gravity = list(scene["sim"]["gravity"])
+    c.damping = cloth["damping"]
+    c.ball_radius = ball["radius"]
+    c.ball_mass = ball["mass"]
+    c.ball_k = ball["stiffness"]
+    c.ball_damping = ball["damping"]
+    c.ball_edges = ball["contact"] == "edges"
+    c.coupling_k = scene["coupling"]["stiffness"]
+    wind = scene["wind"]
+    c.air_density = wind["air_density"]
+    c.drag = wind["drag"]
+    c.lift = wind["lift"]
+    c.max_strain = scene["strain_limit"]["max_strain"]
+    c.strain_iterations = scene["strain_limit"]["iterations"]
+    c.threads = threads
+    c.integrator = _native.INTEGRATOR_IDS[scene["sim"]["integrator"]]
+    c.cg_max_iterations = scene["sim"]["cg_max_iterations"]
+    c.cg_tolerance = scene["sim"]["cg_tolerance"]
+    c.effects = effect_bits(scene.effects)
+    return c
+
+
+def effect_bits(effects: frozenset[str] | Sequence[str]) -> int:
+    """The native bit mask of an effect set."""
+    bits = 0
+    for e in effects:
+        bits |= _native.EFFECT_BITS[e]
+    return bits
+
+
+def effect_names(bits: int) -> frozenset[str]:
+    """The effect names of a native bit mask."""
+    return frozenset(e for e in EFFECTS if bits & _native.EFFECT_BITS[e])
+
+
+def rest_positions(scene: Scene) -> np.ndarray:
+    """Node (i, j) rests at x = -size/2 + j L, y = height, z = -size/2 + i L."""
+    n, size = scene.n, scene["cloth"]["size"]
+    L = scene.rest_length
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    pos = np.empty((n, n, 3))
+    pos[..., 0] = -size / 2 + j * L
+    pos[..., 1] = scene["cloth"]["height"]
+    pos[..., 2] = -size / 2 + i * L
+    return pos
+
+
+CORNER_INDEX = ((0, 0), (0, -1), (-1, -1), (-1, 0))  # (0,0), (0,n-1), (n-1,n-1), (n-1,0)
+
+
+def corners_of(mesh: np.ndarray) -> np.ndarray:
+    """The 4 corner rows of an (n, n, 3) array, in the documented corner order."""
+    return np.stack([mesh[i, j] for i, j in CORNER_INDEX])
+
+
+def _as_finite(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name}: expected numbers of shape {shape}: {e}") from None
+    if arr.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: must be finite (got NaN or Inf)")
+    return arr
+
+
+class Cloth:
+    """A cloth simulation of ``scene`` on the CPU or CUDA backend.
+
+    ``backend="auto"`` picks CUDA when a GPU is present, else the CPU, and logs which
+    (``backend_note`` says why). ``precision`` overrides the scene's ``sim.precision``.
+    ``threads`` caps the CPU backend's threads (default: all cores); a server that shares
+    the cores with its network loop may want 1.
+    Not thread-safe: one thread steps it at a time (stepping releases the GIL).
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        backend: str = "auto",
+        precision: str | None = None,
+        threads: int | None = None,
+    ) -> None:
+        if not isinstance(scene, Scene):
+            raise ValueError(f"scene: expected a Scene, got {type(scene).__name__}")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend: must be one of {', '.join(BACKENDS)}, got {backend!r}")
+        if precision is None:
+            precision = scene["sim"]["precision"]
+        if precision not in ("float32", "float64"):
+            raise ValueError(f"precision: must be 'float32' or 'float64', got {precision!r}")
+        if threads is not None and (
+            isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= 1024
+        ):
+            raise ValueError(f"threads: must be a whole number in 1..1024, got {threads!r}")
+        why_not = cuda_unavailable_reason()
+        if backend == "auto":
+            backend = "cuda" if not why_not else "cpu"
+            self.backend_note = (
+                "CUDA device found" if backend == "cuda" else f"using the CPU backend: {why_not}"
+            )
+            log.info("clothball backend: %s (%s)", backend, self.backend_note)
+        elif backend == "cuda" and why_not:
+            raise ValueError(f"backend: 'cuda' requested but {why_not}")
+        else:
+            self.backend_note = f"{backend} requested"
+        if backend == "cpu" and scene.n > CPU_MAX_N:
+            raise ValueError(
+                f"scene: n = {scene.n} is larger than the CPU backend supports "
+                f"(n <= {CPU_MAX_N}); use backend='cuda'"
+            )
+        self.scene = scene
+        self.backend = backend
+        self.precision = precision
+        self._fixed_substeps = scene["sim"]["substeps"]
+        self._frame_dt = float(scene["sim"]["frame_dt"])
+        if self._fixed_substeps is not None:
+            self._check_fixed_dt(scene)
+        self._engine = _native.Engine(
+            backend, precision == "float64", native_config(scene, threads or 0)
+        )
+        self._coupled = "coupling" in scene.effects
+        self._has_ball = "ball" in scene.effects
+        self._k = float(scene["coupling"]["stiffness"]) if self._coupled else 0.0
+        wind = scene["wind"]
+        self._wind = np.array(wind["velocity"], dtype=np.float64)
+        self._gusts = "wind" in scene.effects and wind["gust_amplitude"] > 0.0
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the scene's start: cloth at rest, hands at the corners, ball placed."""
+        rest = rest_positions(self.scene)
+        self._engine.set_state(rest, np.zeros_like(rest))
+        self._hips = corners_of(rest)
+        self._engine.set_hips(self._hips)
+        ball = self.scene["ball"]
+        self._engine.set_ball(np.array([*ball["position"], *ball["velocity"]], dtype=np.float64))
+        self.frame = 0
+        self._apply_wind()
+        self._refresh_substeps()
+
+    def _check_fixed_dt(self, scene: Scene) -> None:
+        dt = self._frame_dt / self._fixed_substeps
+        bound = stable_dt(scene)
+        if dt <= bound:
+            return
+        need = auto_substeps(scene)
+        msg = (
+            f"sim.substeps = {self._fixed_substeps} gives dt = {dt:.3g} s, beyond the stability "
+            f"bound {bound:.3g} s of this scene (use at least {need} substeps, or leave "
+            f"sim.substeps out for automatic substeps)"
+        )
+        if not scene["sim"]["allow_unstable"]:
+            raise SceneError(msg)
+        warnings.warn(
+            msg + "; accepted because sim.allow_unstable = true", UnstableSceneWarning, stacklevel=3
+        )
+
+    def wind_at(self, t: float) -> np.ndarray:
+        """The wind velocity at simulated time t (gusts: x (1 + a sin(2 pi t / T)))."""
+        wind = self.scene["wind"]
+        a, period = wind["gust_amplitude"], wind["gust_period"]
+        return self._wind * (1.0 + a * math.sin(2.0 * math.pi * t / period))
+
+    def _apply_wind(self) -> None:
+        self._engine.set_wind(self.wind_at(self.frame * self._frame_dt))
+
+    @property
+    def ball_contact_active(self) -> bool:
+        """Whether the next substep computes ball contact: False while no node can reach
+        the ball (it is off the cloth), when the kernels run compiled without contact.
+        Always True with edge contact (ball.contact = "edges")."""
+        return self._engine.ball_contact_on()
+
+    @property
+    def compiled_effects(self) -> frozenset[str]:
+        """The effect set the running kernels were compiled for."""
+        return effect_names(self._engine.compiled_effects())
+
+    # --- stepping -------------------------------------------------------------------------
+    def _refresh_substeps(self) -> None:
+        if self._fixed_substeps is not None:
+            self._substeps = int(self._fixed_substeps)
+        else:
+            speed = float(np.linalg.norm(self._engine.ball()[3:])) if self._has_ball else 0.0
+            self._substeps = auto_substeps(self.scene, speed)
+
+    @property
+    def substeps(self) -> int:
+        """Substeps per frame (chosen from the stability bound unless the scene fixes it)."""
+        return self._substeps
+
+    @property
+    def dt(self) -> float:
+        """Substep length in seconds: frame_dt / substeps."""
+        return self._frame_dt / self._substeps
+
+    @property
+    def frame_dt(self) -> float:
+        return self._frame_dt
+
+    def step(self, frames: int = 1) -> None:
+        """Advance ``frames`` frames of ``frame_dt`` each, ``substeps`` substeps a frame."""
+        if isinstance(frames, bool) or not isinstance(frames, int | np.integer):
+            raise ValueError(f"frames: expected a whole number, got {frames!r}")
+        if not 1 <= frames <= MAX_FRAMES_PER_CALL:
+            raise ValueError(f"frames: must be in 1..{MAX_FRAMES_PER_CALL}, got {frames}")
+        remaining = int(frames)
+        while remaining:
+            # Auto substeps follow the ball's speed, so re-check at least every 10 frames;
+            # gusts change the wind every frame.
+            chunk = remaining if self._fixed_substeps is not None else min(remaining, 10)
+            chunk = min(chunk, max(1, MAX_SUBSTEPS_PER_CALL // self._substeps))
+            if self._gusts:
+                chunk = 1
+                self._apply_wind()
+            self._engine.step(chunk, self._substeps, self.dt)
+            self.frame += chunk
+            remaining -= chunk
+            self._check_finite()
+            if self._fixed_substeps is None:
+                self._refresh_substeps()
+
+    def _check_finite(self) -> None:
+        ball = self._engine.ball()
+        if not (self._engine.state_finite() and np.all(np.isfinite(ball))):
+            raise SimulationError(
+                f"simulation state became non-finite by frame {self.frame} "
+                f"(backend {self.backend}, {self.precision}, {self._substeps} substeps)"
+            )
+
+    # --- inputs ---------------------------------------------------------------------------
+    def set_hips(self, h: object) -> None:
+        """Hand positions (4, 3) in metres, corner order (0,0), (0,n-1), (n-1,n-1), (n-1,0)."""
+        hips = _as_finite("h", h, (4, 3))
+        self._engine.set_hips(hips)
+        self._hips = hips
+
+    def set_state(self, positions: object, velocities: object) -> None:
+        """Replace every node's position and velocity, each (n, n, 3)."""
+        n = self.scene.n
+        pos = _as_finite("positions", positions, (n, n, 3))
+        vel = _as_finite("velocities", velocities, (n, n, 3))
+        self._engine.set_state(pos, vel)
+
+    def set_ball(self, position: object, velocity: object = (0.0, 0.0, 0.0)) -> None:
+        """Place the ball (centre, m) with a velocity (m/s)."""
+        if not self._has_ball:
+            raise ValueError("set_ball: this scene has no 'ball' effect")
+        p = _as_finite("position", position, (3,))
+        v = _as_finite("velocity", velocity, (3,))
+        self._engine.set_ball(np.concatenate([p, v]))
+        self._refresh_substeps()
+
+    # --- outputs --------------------------------------------------------------------------
+    def positions(self) -> np.ndarray:
+        return self._engine.positions()
+
+    def velocities(self) -> np.ndarray:
+        return self._engine.velocities()
+
+    def normals(self) -> np.ndarray:
+        """Unit normals (n, n, 3) from the cross product of the grid tangents."""
+        return self._engine.normals()
+
+    def hips(self) -> np.ndarray:
+        return self._hips.copy()
+
+    def corners(self) -> tuple[np.ndarray, np.ndarray]:
+        """Corner positions and velocities, each (4, 3): all that leaves the GPU per frame."""
+        c = self._engine.corners()
+        return c[:, :3].copy(), c[:, 3:].copy()
+
+    def corner_forces(self) -> np.ndarray:
+        """Force on each device (4, 3), N: -K (h - c) (eq. 7)."""
+        if not self._coupled:
+            return np.zeros((4, 3))
+        c = self._engine.corners()[:, :3]
+        return -self._k * (self._hips - c)
+
+    def ball(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ball centre (m) and velocity (m/s)."""
+        b = self._engine.ball()
+        return b[:3].copy(), b[3:].copy()
+
+    def __repr__(self) -> str:
+        return (
+            f"Cloth({self.scene.name!r}, n={self.scene.n}, backend={self.backend!r}, "
+            f"precision={self.precision!r}, substeps={self.substeps})"
+        )

@@ -1,0 +1,349 @@
+"""Scenes: what a cloth simulation is made of, loaded from TOML files or dicts.
+
+A scene names only what it changes; every key but ``cloth.n`` has a default (see
+``SCHEMA`` and ``docs/scenes.md``). Keys are SI units. Anything unknown, mistyped,
+non-finite or out of range is refused with a ``SceneError`` naming the key.
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib.resources
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+# Package data of the wheel (clothball/assets: scenes and the web page), a directory on disk.
+ASSETS = Path(str(importlib.resources.files("clothball") / "assets"))
+SCENES_DIR = ASSETS / "scenes"
+
+INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "implicit_euler")
+PRECISIONS = ("float32", "float64")
+CONTACTS = ("nodes", "edges")  # ball.contact: eq. (4) on nodes, or on structural edges
+EFFECTS = (
+    "structural",
+    "shear",
+    "bend",
+    "gravity",
+    "damping",
+    "ball",
+    "coupling",
+    "wind",
+    "strain_limit",
+)
+DEFAULT_EFFECTS = ("structural", "gravity", "damping", "ball", "coupling")
+
+
+class SceneError(ValueError):
+    """A scene file or dict is malformed; the message names the offending key."""
+
+
+@dataclass(frozen=True)
+class Key:
+    """One scene key: its default, its kind and its allowed range."""
+
+    default: Any
+    kind: str  # "int", "float", "bool", "str", "vec3", "effects"
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False  # lo itself is not allowed
+    choices: tuple[str, ...] = ()
+    effect: str | None = None  # setting this key means the scene must name this effect
+    doc: str = ""
+
+
+# The schema: section -> key -> Key. Defaults give the paper's set-up ("classic").
+SCHEMA: dict[str, dict[str, Key]] = {
+    "cloth": {
+        "n": Key(None, "int", 2, 8192, doc="nodes per side (required)"),
+        "size": Key(1.0, "float", 0.0, 100.0, lo_open=True, doc="side length, m"),
+        "mass": Key(0.5, "float", 0.0, 1e4, lo_open=True, doc="total mass, kg"),
+        "height": Key(1.0, "float", -100.0, 100.0, doc="rest height y of the cloth, m"),
+        "k_structural": Key(2000.0, "float", 0.0, 1e9, doc="structural spring stiffness, N/m"),
+        "structural_two_sided": Key(
+            False, "bool", doc="structural springs also push when compressed (eq. 2: tension only)"
+        ),
+        "k_shear": Key(200.0, "float", 0.0, 1e9, effect="shear", doc="shear spring stiffness, N/m"),
+        "k_bend": Key(50.0, "float", 0.0, 1e9, effect="bend", doc="bending spring stiffness, N/m"),
+        "damping": Key(
+            0.002, "float", 0.0, 1e3, effect="damping", doc="velocity damping beta1 per node, N s/m"
+        ),
+    },
+    "ball": {
+        "radius": Key(0.08, "float", 0.0, 100.0, lo_open=True, effect="ball", doc="m"),
+        "mass": Key(0.2, "float", 0.0, 1e5, lo_open=True, effect="ball", doc="kg"),
+        "stiffness": Key(5000.0, "float", 0.0, 1e9, effect="ball", doc="contact k_b, N/m"),
+        "damping": Key(0.01, "float", 0.0, 1e3, effect="ball", doc="beta2, N s/m"),
+        "position": Key(
+            None, "vec3", -1e3, 1e3, effect="ball", doc="start, m (default: 0.4 m above the centre)"
+        ),
+        "velocity": Key((0.0, 0.0, 0.0), "vec3", -1e3, 1e3, effect="ball", doc="start, m/s"),
+        "contact": Key(
+            "nodes", "str", choices=CONTACTS, effect="ball",
+            doc="nodes: eq. (4) on each node inside the ball (the paper; a ball can slip "
+            "between nodes through the springs); edges: eq. (4) at each structural spring's "
+            "point nearest the centre, shared by its two nodes by distance (the ball cannot "
+            "pass a spring; contact is never skipped; costs more; not with implicit_euler)",
+        ),
+    },
+    "coupling": {
+        "stiffness": Key(
+            1000.0, "float", 0.0, 1e7, effect="coupling", doc="corner-to-HIP spring K (eq. 7), N/m"
+        ),
+    },
+    "wind": {
+        "velocity": Key(
+            (3.0, 0.0, 0.0), "vec3", -100.0, 100.0, effect="wind", doc="mean wind, m/s"
+        ),
+        "air_density": Key(1.2, "float", 0.0, 100.0, effect="wind", doc="rho, kg/m^3"),
+        "drag": Key(1.0, "float", 0.0, 10.0, effect="wind", doc="drag coefficient C_d"),
+        "lift": Key(0.3, "float", 0.0, 10.0, effect="wind", doc="lift coefficient C_l"),
+        "gust_amplitude": Key(
+            0.0, "float", 0.0, 10.0, effect="wind", doc="gusts: wind x (1 + a sin(2 pi t / T))"
+        ),
+        "gust_period": Key(2.0, "float", 0.0, 1e4, lo_open=True, effect="wind", doc="T, s"),
+    },
+    "strain_limit": {
+        "max_strain": Key(
+            0.1, "float", 0.0, 10.0, effect="strain_limit", doc="longest spring: (1 + this) L"
+        ),
+        "iterations": Key(
+            10, "int", 1, 1000, effect="strain_limit", doc="passes (rows, then columns) per substep"
+        ),
+    },
+    "sim": {
+        "frame_dt": Key(0.001, "float", 0.0, 0.1, lo_open=True, doc="simulated time per frame, s"),
+        "substeps": Key(None, "int", 1, 100000, doc="substeps per frame (default: automatic)"),
+        "integrator": Key(
+            "semi_implicit_euler", "str", choices=INTEGRATORS,
+            doc="time integrator (docs/accuracy.md); strain_limit needs semi_implicit_euler",
+        ),
+        "cg_max_iterations": Key(
+            200, "int", 1, 100000,
+            doc="implicit_euler: conjugate-gradient iterations per substep, at most",
+        ),
+        "cg_tolerance": Key(
+            1e-5, "float", 0.0, 1.0,
+            doc="implicit_euler: CG stops at residual <= this x right-hand side (relative)",
+        ),
+        "precision": Key("float32", "str", choices=PRECISIONS),
+        "gravity": Key((0.0, -9.81, 0.0), "vec3", -1e3, 1e3, effect="gravity", doc="m/s^2"),
+        "effects": Key(DEFAULT_EFFECTS, "effects", doc="effects this scene simulates"),
+        "allow_unstable": Key(
+            False, "bool", doc="accept a fixed substep count beyond the stability bound (warns)"
+        ),
+    },
+}
+
+
+def _check_value(where: str, key: Key, value: Any) -> Any:
+    kind = key.kind
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise SceneError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if kind == "str":
+        if not isinstance(value, str):
+            raise SceneError(f"{where}: expected a string, got {value!r}")
+        if key.choices and value not in key.choices:
+            raise SceneError(f"{where}: {value!r} is not one of {', '.join(key.choices)}")
+        return value
+    if kind == "effects":
+        if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
+            raise SceneError(f"{where}: expected a list of effect names, got {value!r}")
+        unknown = [v for v in value if v not in EFFECTS]
+        if unknown:
+            raise SceneError(
+                f"{where}: unknown effect(s) {', '.join(unknown)}; known: {', '.join(EFFECTS)}"
+            )
+        if len(set(value)) != len(value):
+            raise SceneError(f"{where}: an effect is named twice in {list(value)!r}")
+        return tuple(value)
+    if kind == "vec3":
+        if not isinstance(value, list | tuple) or len(value) != 3:
+            raise SceneError(f"{where}: expected 3 numbers, got {value!r}")
+        return tuple(_check_number(f"{where}[{i}]", key, v, "float") for i, v in enumerate(value))
+    return _check_number(where, key, value, kind)
+
+
+def _check_number(where: str, key: Key, value: Any, kind: str) -> float | int:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise SceneError(f"{where}: expected a number, got {value!r}")
+    if kind == "int":
+        if isinstance(value, float):
+            if not math.isfinite(value) or value != int(value):
+                raise SceneError(f"{where}: expected a whole number, got {value!r}")
+            value = int(value)
+    else:
+        value = float(value)
+        if not math.isfinite(value):
+            raise SceneError(f"{where}: must be finite, got {value!r}")
+    if key.lo is not None and (value < key.lo or (key.lo_open and value == key.lo)):
+        op = ">" if key.lo_open else ">="
+        raise SceneError(f"{where}: must be {op} {key.lo}, got {value!r}")
+    if key.hi is not None and value > key.hi:
+        raise SceneError(f"{where}: must be <= {key.hi}, got {value!r}")
+    return value
+
+
+class Scene:
+    """A validated scene. Read values as ``scene["cloth"]["k_structural"]`` or the
+    properties below; ``scene.explicit`` holds what the source actually set."""
+
+    def __init__(self, data: Mapping[str, Any], name: str = "custom") -> None:
+        if not isinstance(data, Mapping):
+            raise SceneError(f"scene: expected a table of sections, got {type(data).__name__}")
+        self.name = name
+        explicit: dict[str, dict[str, Any]] = {}
+        for section, table in data.items():
+            if section not in SCHEMA:
+                raise SceneError(
+                    f"unknown section [{section}]; known: {', '.join(f'[{s}]' for s in SCHEMA)}"
+                )
+            if not isinstance(table, Mapping):
+                raise SceneError(f"[{section}]: expected a table, got {table!r}")
+            for key, value in table.items():
+                if key not in SCHEMA[section]:
+                    known = ", ".join(SCHEMA[section])
+                    raise SceneError(f"{section}.{key}: unknown key; [{section}] knows {known}")
+                checked = _check_value(f"{section}.{key}", SCHEMA[section][key], value)
+                explicit.setdefault(section, {})[key] = checked
+        if "n" not in explicit.get("cloth", {}):
+            raise SceneError("cloth.n: required (nodes per side), e.g. n = 60")
+        self.explicit = explicit
+        values = {s: {k: key.default for k, key in keys.items()} for s, keys in SCHEMA.items()}
+        for section, table in explicit.items():
+            values[section].update(table)
+        if values["ball"]["position"] is None:
+            values["ball"]["position"] = (0.0, values["cloth"]["height"] + 0.4, 0.0)
+        self._values = values
+        effects = set(values["sim"]["effects"])
+        for section, table in explicit.items():
+            for key in table:
+                needs = SCHEMA[section][key].effect
+                if needs is not None and needs not in effects:
+                    raise SceneError(
+                        f"{section}.{key}: set, but the scene does not name the '{needs}' effect "
+                        f"in sim.effects (add it, or remove the key)"
+                    )
+        integrator = values["sim"]["integrator"]
+        if "strain_limit" in effects and integrator != "semi_implicit_euler":
+            # Velocity Verlet keeps F(x) between substeps and the projection would move x under
+            # it; implicit Euler needs no limiter to stay stable.
+            raise SceneError(
+                f"sim.integrator: {integrator!r} does not support the 'strain_limit' effect "
+                f"(use semi_implicit_euler, or remove strain_limit from sim.effects)"
+            )
+        if values["ball"]["contact"] == "edges" and integrator == "implicit_euler":
+            # Implicit Euler's Jacobian linearises node contact only (integrators.hpp).
+            raise SceneError(
+                "ball.contact: 'edges' is not supported by the implicit_euler integrator "
+                "(its Jacobian linearises node contact); use nodes or an explicit integrator"
+            )
+
+    # --- constructors ---------------------------------------------------------------------
+    @classmethod
+    def load(cls, name_or_path: str | Path) -> Scene:
+        """Load a scene by name (a file in ``assets/scenes``) or by path to a TOML file."""
+        path = Path(name_or_path)
+        if not path.suffix and not path.exists():
+            path = SCENES_DIR / f"{name_or_path}.toml"
+            if not path.exists():
+                raise SceneError(
+                    f"scene '{name_or_path}': no such scene; available: {', '.join(available())}"
+                )
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as e:
+            raise SceneError(f"scene '{name_or_path}': cannot read {path}: {e.strerror}") from e
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise SceneError(f"scene '{path}': not valid TOML: {e}") from e
+        try:
+            return cls(data, name=path.stem)
+        except SceneError as e:
+            raise SceneError(f"scene '{path}': {e}") from e
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], name: str = "custom") -> Scene:
+        """Build a scene from a dict with the TOML file's structure."""
+        return cls(copy.deepcopy(dict(d)), name=name)
+
+    def with_changes(self, changes: Mapping[str, Mapping[str, Any]]) -> Scene:
+        """A copy of this scene with some keys changed (same structure as the TOML)."""
+        data = copy.deepcopy(self.explicit)
+        for section, table in changes.items():
+            data.setdefault(section, {}).update(table)
+        return Scene(data, name=self.name)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """The explicit keys: loading this dict gives the same scene."""
+        return copy.deepcopy(self.explicit)
+
+    # --- values ---------------------------------------------------------------------------
+    def __getitem__(self, section: str) -> dict[str, Any]:
+        return dict(self._values[section])
+
+    @property
+    def n(self) -> int:
+        return int(self._values["cloth"]["n"])
+
+    @property
+    def rest_length(self) -> float:
+        return self._values["cloth"]["size"] / (self.n - 1)
+
+    @property
+    def node_mass(self) -> float:
+        return self._values["cloth"]["mass"] / (self.n * self.n)
+
+    @property
+    def effects(self) -> frozenset[str]:
+        return frozenset(self._values["sim"]["effects"])
+
+    def __repr__(self) -> str:
+        return f"Scene({self.name!r}, n={self.n}, effects={sorted(self.effects)})"
+
+
+def available() -> list[str]:
+    """Names of the scenes shipped in ``assets/scenes``."""
+    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
+def schema_markdown() -> str:
+    """docs/scenes.md, generated from SCHEMA so that the documentation stays true."""
+    lines = [
+        "# Scene files",
+        "",
+        "A scene is a TOML file in `assets/scenes/` (load it by name) or anywhere (by path).",
+        "Every key but `cloth.n` has a default, so a scene names only what it changes. Units are",
+        "SI. Unknown sections or keys, wrong types, NaN/Inf and out-of-range values are refused",
+        "with an error naming the key. A key that belongs to an effect the scene does not name in",
+        "`sim.effects` is refused too (it is almost always a mistake).",
+        "",
+        "Effects: " + ", ".join(f"`{e}`" for e in EFFECTS) + ".",
+        "",
+        "Regenerate this file with `clothball scenes --markdown > docs/scenes.md`.",
+        "",
+    ]
+    for section, keys in SCHEMA.items():
+        lines += [
+            f"## [{section}]",
+            "",
+            "| key | default | range / choices | effect | meaning |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for name, key in keys.items():
+            if key.choices:
+                rng = ", ".join(key.choices)
+            elif key.lo is not None:
+                rng = f"{'(' if key.lo_open else '['}{key.lo:g}, {key.hi:g}]"
+            else:
+                rng = ""
+            d = list(key.default) if isinstance(key.default, tuple) else key.default
+            lines.append(f"| `{name}` | `{d}` | {rng} | {key.effect or ''} | {key.doc} |")
+        lines.append("")
+    return "\n".join(lines)

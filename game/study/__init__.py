@@ -1,0 +1,1 @@
+"""The physics lab: accuracy against cost, reference integrators, energy, benchmarks."""

@@ -1,0 +1,594 @@
+"""What accuracy costs in time: error against a float64 reference, and wall time, for each
+integrator, precision, substep size and grid size.
+
+The study (``clothball accuracy`` runs it; ``docs/accuracy.md`` explains the results):
+
+* **Trajectory error**, the paper's Fig. 4 scenario: the cloth hangs at rest from hands at
+  its rest corners (its exact static equilibrium, from ``static_equilibrium``), the ball is
+  let go at the scene's start position, and the run lasts ``duration`` seconds. Every
+  ``sample_ms`` the node positions, and every frame the ball, are compared with a float64
+  run of the same integrator whose step is 16 times smaller than the smallest step of the
+  sweep: ``error_rms_m`` is the RMS node distance over all nodes and samples,
+  ``ball_error_m`` the RMS ball distance over the frames.
+* **Steady-state sag**: the hanging cloth's centre sag from Newton's method on F(x) = 0
+  (``static_equilibrium``), and how it converges as the grid is refined
+  (``sag_convergence``): the spatial error, which no time step removes. Every integrator
+  here has that equilibrium as its fixed point (v = 0 with F(x) = 0 is a fixed point of each
+  update, whatever dt), so time stepping cannot bias the steady state; what can is
+  rounding. ``sag_error_m`` is how far the centre's sag is from Newton's after the cloth
+  (no ball) is started at the float64 equilibrium and run for ``hold_s`` seconds in the
+  precision under test. (Settling from a flat start would mostly measure how slowly the
+  scene's light damping, c / m, dies away.)
+* **Energy drift**: the Fig. 4 run with every damping switched off; the largest change of
+  total mechanical energy over the run, relative to the energy the ball gains falling onto
+  the cloth (``energy_drift``).
+* **Cost**: wall time per simulated millisecond (``us_per_sim_ms``), the median over the
+  trajectory run's frames (stepped one at a time, as the game's 1 kHz loop does) after a
+  few warm-up frames, on the same machine in the same run.
+
+Substep sizes: each integrator starts at its own bound (``stability.py``: the explicit
+stability bound for semi-implicit Euler and velocity Verlet, the ball-tunnelling bound
+capped at one substep per frame for implicit Euler) and halves. Implicit Euler runs with
+the scene's CG settings; its reference solves CG to ``REFERENCE_CG_TOLERANCE``.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..sim.cloth import Cloth, SimulationError, corners_of, rest_positions
+from ..sim.scene import INTEGRATORS as NATIVE_INTEGRATORS
+from ..sim.scene import Scene
+from ..sim.stability import auto_substeps
+from .integrators_ref import (
+    INTEGRATORS,
+    IntegratingCloth,
+    centre_sag,
+    kinetic_energy,
+    potential_energy,
+    static_equilibrium,
+    with_effects,
+)
+
+PRECISIONS = ("float32", "float64")
+REFERENCE_FACTOR = 16  # the reference step is this many times smaller than the finest step
+# Implicit Euler's reference: CG to this relative residual. Its steps are 16x smaller than
+# the finest, where the system is nearly the mass matrix and CG needs few iterations.
+REFERENCE_CG_TOLERANCE = 1e-10
+REFERENCE_CG_ITERATIONS = 100
+
+
+# --- simulations ----------------------------------------------------------------------------
+class RefSim:
+    """``IntegratingCloth`` (NumPy float64) behind the ``Cloth`` methods the study uses."""
+
+    def __init__(self, scene: Scene, integrator: str, substeps: int) -> None:
+        self.ref = IntegratingCloth(scene, integrator)
+        self.substeps = substeps
+        self.frame_dt = float(scene["sim"]["frame_dt"])
+
+    def set_state(self, positions: np.ndarray, velocities: np.ndarray) -> None:
+        self.ref.pos = np.array(positions, dtype=np.float64)
+        self.ref.vel = np.array(velocities, dtype=np.float64)
+
+    def set_ball(self, position: Sequence[float], velocity: Sequence[float]) -> None:
+        self.ref.ball_pos = np.array(position, dtype=np.float64)
+        self.ref.ball_vel = np.array(velocity, dtype=np.float64)
+
+    def step(self, frames: int = 1) -> None:
+        self.ref.step(frames, self.substeps)
+        if not (np.all(np.isfinite(self.ref.pos)) and np.all(np.isfinite(self.ref.ball_pos))):
+            raise SimulationError("reference simulation became non-finite")
+
+    def positions(self) -> np.ndarray:
+        return self.ref.pos.copy()
+
+    def velocities(self) -> np.ndarray:
+        return self.ref.vel.copy()
+
+    def ball(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.ref.ball_pos.copy(), self.ref.ball_vel.copy()
+
+    def corner_forces(self) -> np.ndarray:
+        return self.ref.corner_forces()
+
+
+def native_integrators() -> tuple[str, ...]:
+    """Integrators the native engine (both backends) implements."""
+    return tuple(NATIVE_INTEGRATORS)
+
+
+def make_sim(
+    scene: Scene, integrator: str, precision: str, substeps: int, backend: str,
+    reference: bool = False,
+) -> tuple[Any, str]:
+    """A simulation of ``scene`` with fixed substeps, and the engine that runs it.
+
+    The native engine where it implements the integrator; else the NumPy reference
+    (float64 only, and far slower: its timings are not the engine's). ``reference``: the
+    study's reference run (implicit Euler then solves CG tightly)."""
+    changes: dict[str, Any] = {"substeps": int(substeps)}
+    if integrator != "semi_implicit_euler":
+        changes["integrator"] = integrator
+    if reference and integrator == "implicit_euler":
+        changes["cg_tolerance"] = REFERENCE_CG_TOLERANCE
+        changes["cg_max_iterations"] = REFERENCE_CG_ITERATIONS
+    if integrator in native_integrators():
+        sim = Cloth(scene.with_changes({"sim": changes}), backend=backend, precision=precision)
+        return sim, f"native-{sim.backend}"
+    if precision != "float64":
+        raise ValueError(f"{integrator} in {precision}: the native engine lacks it and the "
+                         f"NumPy reference is float64 only")
+    return RefSim(scene, integrator, substeps), "numpy"
+
+
+# --- scenarios ----------------------------------------------------------------------------
+def undamped(scene: Scene) -> Scene:
+    """The scene with the cloth's and the ball's damping off (energy is then conserved)."""
+    s = with_effects(scene, ["damping"])
+    if "ball" in s.effects:
+        s = s.with_changes({"ball": {"damping": 0.0}})
+    return s
+
+
+@dataclass
+class Start:
+    """The Fig. 4 start: the cloth at rest in equilibrium, the ball let go above it."""
+
+    pos: np.ndarray
+    ball_pos: np.ndarray
+    ball_vel: np.ndarray
+    hips: np.ndarray
+    sag_m: float
+    newton_iterations: int
+
+
+def fig4_start(scene: Scene) -> Start:
+    x, info = static_equilibrium(scene)
+    ball = scene["ball"]
+    return Start(
+        pos=x,
+        ball_pos=np.array(ball["position"], dtype=np.float64),
+        ball_vel=np.array(ball["velocity"], dtype=np.float64),
+        hips=corners_of(rest_positions(scene)),
+        sag_m=centre_sag(scene, x),
+        newton_iterations=int(info["iterations"]),
+    )
+
+
+def impact_speed(scene: Scene, start: Start) -> float:
+    """Speed of the ball when it reaches the resting cloth's centre (free fall)."""
+    g = float(np.linalg.norm(scene["sim"]["gravity"])) if "gravity" in scene.effects else 0.0
+    top = scene["cloth"]["height"] - start.sag_m + scene["ball"]["radius"]
+    drop = max(0.0, float(start.ball_pos[1]) - top)
+    return math.sqrt(float(start.ball_vel @ start.ball_vel) + 2.0 * g * drop)
+
+
+def drop_energy(scene: Scene, start: Start) -> float:
+    """The drift's yardstick: the ball's kinetic energy on reaching the resting cloth plus
+    the weight times its radius (what sinking into the cloth releases); never zero."""
+    g = float(np.linalg.norm(scene["sim"]["gravity"])) if "gravity" in scene.effects else 0.0
+    m, r = scene["ball"]["mass"], scene["ball"]["radius"]
+    return 0.5 * m * impact_speed(scene, start) ** 2 + m * max(g, 1e-9) * r
+
+
+def start_substeps(scene: Scene, integrator: str, ball_speed: float) -> int:
+    """Substeps per frame at the largest step the integrator may take in this scene (its
+    own bound, ``stability.py``), at the ball's impact speed."""
+    return auto_substeps(scene.with_changes({"sim": {"integrator": integrator}}), ball_speed)
+
+
+@dataclass
+class Trajectory:
+    """A run of the Fig. 4 scenario: the ball and the hand force every frame, the mesh (and
+    the energy) every ``sample_frames`` frames, the wall time of every frame."""
+
+    times_s: list[float] = field(default_factory=list)  # every frame
+    ball: list[np.ndarray] = field(default_factory=list)
+    corner_force: list[float] = field(default_factory=list)  # |F| on hand 0, N
+    sample_times_s: list[float] = field(default_factory=list)  # every sample
+    pos: list[np.ndarray] = field(default_factory=list)
+    energy: list[float] = field(default_factory=list)
+    frame_s: list[float] = field(default_factory=list)  # wall time of each frame
+    failed: str = ""
+
+
+def run_trajectory(
+    sim: Any,
+    scene: Scene,
+    start: Start,
+    duration_s: float,
+    sample_frames: int,
+    energy: bool = False,
+) -> Trajectory:
+    """Step frame by frame, as the game's 1 kHz loop does, timing each frame."""
+    sim.set_state(start.pos, np.zeros_like(start.pos))
+    if "ball" in scene.effects:
+        sim.set_ball(start.ball_pos, start.ball_vel)
+    frame_dt = float(scene["sim"]["frame_dt"])
+    frames = max(1, round(duration_s / frame_dt))
+    out = Trajectory()
+
+    def record(frame: int) -> None:
+        bp, bv = sim.ball()
+        out.times_s.append(frame * frame_dt)
+        out.ball.append(bp)
+        out.corner_force.append(float(np.linalg.norm(sim.corner_forces()[0])))
+        if frame % sample_frames == 0 or frame == frames:
+            pos = sim.positions()
+            out.sample_times_s.append(frame * frame_dt)
+            out.pos.append(pos)
+            if energy:
+                vel = sim.velocities()
+                out.energy.append(kinetic_energy(scene, vel, bv)
+                                  + potential_energy(scene, pos, bp, start.hips))
+
+    record(0)
+    for frame in range(1, frames + 1):
+        t0 = time.perf_counter()
+        try:
+            sim.step(1)
+        except SimulationError as e:
+            out.failed = str(e)
+            break
+        out.frame_s.append(time.perf_counter() - t0)
+        record(frame)
+    return out
+
+
+def trajectory_errors(run: Trajectory, ref: Trajectory) -> tuple[float, float]:
+    """(RMS node distance over the mesh samples, RMS ball distance over the frames), t > 0."""
+    if run.failed:
+        return math.inf, math.inf
+    k = min(len(run.pos), len(ref.pos))
+    node = [np.sum((run.pos[i] - ref.pos[i]) ** 2, axis=-1).mean() for i in range(1, k)]
+    kb = min(len(run.ball), len(ref.ball))
+    ball = [float(np.sum((run.ball[i] - ref.ball[i]) ** 2)) for i in range(1, kb)]
+    if not node or not (np.all(np.isfinite(node)) and np.all(np.isfinite(ball))):
+        return math.inf, math.inf
+    return math.sqrt(float(np.mean(node))), math.sqrt(float(np.mean(ball)))
+
+
+def energy_drift(run: Trajectory, scale: float) -> float:
+    if run.failed or not run.energy or not np.all(np.isfinite(run.energy)):
+        return math.inf
+    e = np.asarray(run.energy)
+    return float(np.max(np.abs(e - e[0])) / scale)
+
+
+def cost_us_per_sim_ms(run: Trajectory, frame_dt: float, warmup: int = 5) -> float:
+    """Median wall time per simulated ms over the frames after the first few (warm-up)."""
+    frames = run.frame_s[warmup:] or run.frame_s
+    if not frames:
+        return math.nan
+    return statistics.median(frames) / (frame_dt * 1e3) * 1e6
+
+
+def steady_sag(sim: Any, scene: Scene, start: np.ndarray, hold_s: float) -> float:
+    """The cloth (no ball) started at the exact equilibrium ``start`` and run ``hold_s``:
+    its centre sag then. Each integrator's fixed point is F(x) = 0, so this shows where
+    rounding (and any instability) leaves the steady state."""
+    sim.set_state(start, np.zeros_like(start))
+    frame_dt = float(scene["sim"]["frame_dt"])
+    sim.step(max(1, round(hold_s / frame_dt)))
+    return centre_sag(scene, sim.positions())
+
+
+# --- the sweep ------------------------------------------------------------------------------
+@dataclass
+class Row:
+    integrator: str
+    precision: str
+    n: int
+    substeps: int
+    dt_us: float
+    level: int  # 0: the largest step; k: 2^-k of it
+    error_rms_m: float
+    ball_error_m: float
+    sag_error_m: float
+    energy_drift: float
+    us_per_sim_ms: float
+    engine: str
+    reference_substeps: int
+    note: str = ""
+
+
+@dataclass
+class Study:
+    rows: list[Row]
+    sag_convergence: list[dict[str, float]]
+    fig4: dict[str, Any]
+    meta: dict[str, Any]
+
+    def to_json(self) -> dict[str, Any]:
+        def clean(v: Any) -> Any:
+            if isinstance(v, float) and not math.isfinite(v):
+                return None
+            return v
+
+        rows = [{k: clean(v) for k, v in asdict(r).items()} for r in self.rows]
+        return {"rows": rows, "sag_convergence": self.sag_convergence, "fig4": self.fig4,
+                "meta": self.meta}
+
+
+@dataclass
+class Plan:
+    scene: Scene
+    sizes: Sequence[int]
+    integrators: Sequence[str]
+    precisions: Sequence[str]
+    levels: int = 4
+    duration_s: float = 1.0
+    sample_ms: int = 5
+    backend: str = "cpu"
+    sag_sizes: Sequence[int] = (9, 17, 33)
+    energy: bool = True
+    sag: bool = True
+    hold_s: float = 1.0
+
+    def cases(self) -> int:
+        per_n = len(self.integrators) * (len(self.precisions) * self.levels + 1)
+        return len(self.sizes) * per_n
+
+
+def sized(scene: Scene, n: int) -> Scene:
+    return scene.with_changes({"cloth": {"n": n}})
+
+
+def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Study:
+    """Run the whole sweep; ``progress`` is called once per finished run with a label."""
+    tick = progress or (lambda label: None)
+    rows: list[Row] = []
+    fig4: dict[str, Any] = {}
+    sample_frames = max(1, round(plan.sample_ms * 1e-3 / float(plan.scene["sim"]["frame_dt"])))
+    frame_dt = float(plan.scene["sim"]["frame_dt"])
+    sag_conv: dict[int, dict[str, float]] = {}
+    for n in plan.sizes:
+        scene = sized(plan.scene, n)
+        start = fig4_start(scene)
+        sag_conv[n] = {"n": n, "sag_m": start.sag_m, "newton_iterations": start.newton_iterations}
+        speed = impact_speed(scene, start)
+        e_scale = drop_energy(scene, start) if "ball" in scene.effects else 1.0
+        quiet = with_effects(scene, ["ball"])
+        eq_quiet = start.pos  # static_equilibrium leaves the ball out
+        for integ in plan.integrators:
+            s0 = start_substeps(scene, integ, speed)
+            finest = s0 * 2 ** (plan.levels - 1)
+            s_ref = finest * REFERENCE_FACTOR
+            ref_sim, ref_engine = make_sim(scene, integ, "float64", s_ref, plan.backend,
+                                           reference=True)
+            ref = run_trajectory(ref_sim, scene, start, plan.duration_s, sample_frames)
+            del ref_sim
+            tick(f"n={n} {integ} reference ({s_ref} substeps/frame)")
+            for prec in plan.precisions:
+                for level in range(plan.levels):
+                    s = s0 * 2**level
+                    label = f"n={n} {integ} {prec} {s} substeps/frame"
+                    try:
+                        sim, engine = make_sim(scene, integ, prec, s, plan.backend)
+                    except ValueError as e:
+                        rows.append(Row(integ, prec, n, s, frame_dt / s * 1e6, level, math.nan,
+                                        math.nan, math.nan, math.nan, math.nan, "-", s_ref,
+                                        note=str(e)))
+                        tick(label)
+                        continue
+                    run = run_trajectory(sim, scene, start, plan.duration_s, sample_frames)
+                    err, berr = trajectory_errors(run, ref)
+                    cost = cost_us_per_sim_ms(run, frame_dt)
+                    del sim
+                    drift = math.nan
+                    if plan.energy:
+                        esim, _ = make_sim(undamped(scene), integ, prec, s, plan.backend)
+                        erun = run_trajectory(esim, undamped(scene), start, plan.duration_s,
+                                              sample_frames, energy=True)
+                        drift = energy_drift(erun, e_scale)
+                        del esim
+                    sag_err = math.nan
+                    note = run.failed
+                    if plan.sag and level == 0:
+                        ssim, _ = make_sim(quiet, integ, prec, s, plan.backend)
+                        try:
+                            sag = steady_sag(ssim, quiet, eq_quiet, plan.hold_s)
+                            sag_err = abs(sag - centre_sag(quiet, eq_quiet))
+                        except SimulationError as e:
+                            note = note or str(e)
+                        del ssim
+                    rows.append(Row(integ, prec, n, s, frame_dt / s * 1e6, level, err, berr,
+                                    sag_err, drift, cost, engine, s_ref, note=note))
+                    if n == plan.sizes[0] and level == 0:
+                        fig4[f"{integ} {prec} {s} substeps"] = {
+                            "t_s": run.times_s, "ball_y_m": [float(b[1]) for b in run.ball],
+                            "corner_force_n": run.corner_force}
+                    tick(label)
+            if n == plan.sizes[0]:
+                fig4[f"{integ} reference float64 {s_ref} substeps"] = {
+                    "t_s": ref.times_s, "ball_y_m": [float(b[1]) for b in ref.ball],
+                    "corner_force_n": ref.corner_force}
+    if plan.sag:
+        for n in plan.sag_sizes:
+            if n not in sag_conv:
+                sc = with_effects(sized(plan.scene, n), ["ball"])
+                x, info = static_equilibrium(sc)
+                sag_conv[n] = {"n": n, "sag_m": centre_sag(sc, x),
+                               "newton_iterations": int(info["iterations"])}
+                tick(f"n={n} Newton equilibrium")
+    conv = [sag_conv[k] for k in sorted(sag_conv)]
+    for a, b in zip(conv, conv[1:], strict=False):
+        b["change_from_previous_m"] = b["sag_m"] - a["sag_m"]
+    meta = {
+        "scene": plan.scene.name,
+        "effects": sorted(plan.scene.effects),
+        "backend": plan.backend,
+        "duration_s": plan.duration_s,
+        "sample_ms": plan.sample_ms,
+        "levels": plan.levels,
+        "reference_factor": REFERENCE_FACTOR,
+        "hold_s": plan.hold_s,
+    }
+    return Study(rows, conv, fig4, meta)
+
+
+# --- analysis -------------------------------------------------------------------------------
+def fitted_order(dts: Sequence[float], errors: Sequence[float]) -> float:
+    """Least-squares slope of log(error) against log(dt)."""
+    x, y = np.log(np.asarray(dts)), np.log(np.asarray(errors))
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats in both cost and error (lower is
+    better), sorted by cost."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], math.inf
+    for i in order:
+        c, e = points[i]
+        if math.isfinite(c) and math.isfinite(e) and e < best:
+            front.append(i)
+            best = e
+    return front
+
+
+def orders(rows: Sequence[Row]) -> dict[tuple[str, str, int], float]:
+    """Fitted error order of each (integrator, precision, n) curve."""
+    out = {}
+    keys = sorted({(r.integrator, r.precision, r.n) for r in rows})
+    for key in keys:
+        pts = [(r.dt_us, r.error_rms_m) for r in rows
+               if (r.integrator, r.precision, r.n) == key
+               and math.isfinite(r.error_rms_m) and r.error_rms_m > 0]
+        if len(pts) >= 2:
+            out[key] = fitted_order([p[0] for p in pts], [p[1] for p in pts])
+    return out
+
+
+def table(study: Study) -> str:
+    head = (f"{'integrator':<20} {'prec':<7} {'n':>4} {'subst':>5} {'dt us':>8} "
+            f"{'err rms m':>10} {'ball err m':>10} {'sag err m':>10} {'E drift':>9} "
+            f"{'us/sim ms':>10}  engine")
+    lines = [head, "-" * len(head)]
+
+    def f(v: float, w: int = 10) -> str:
+        return f"{'-':>{w}}" if not math.isfinite(v) else f"{v:>{w}.3g}"
+
+    for r in study.rows:
+        lines.append(
+            f"{r.integrator:<20} {r.precision:<7} {r.n:>4} {r.substeps:>5} {r.dt_us:>8.2f} "
+            f"{f(r.error_rms_m)} {f(r.ball_error_m)} {f(r.sag_error_m)} {f(r.energy_drift, 9)} "
+            f"{f(r.us_per_sim_ms)}  {r.engine}{'  ' + r.note if r.note else ''}")
+    lines.append("")
+    lines.append("fitted order (slope of log error vs log dt):")
+    for (integ, prec, n), p in orders(study.rows).items():
+        lines.append(f"  {integ:<20} {prec:<7} n={n:<4} {p:5.2f}")
+    if study.sag_convergence:
+        lines.append("")
+        lines.append("static sag (Newton) against grid size:")
+        for c in study.sag_convergence:
+            ch = c.get("change_from_previous_m")
+            extra = f"   change {ch * 1e3:+.2f} mm" if ch is not None else ""
+            lines.append(f"  n={int(c['n']):<4} sag {c['sag_m'] * 1e3:8.2f} mm{extra}")
+    return "\n".join(lines)
+
+
+# --- plots ----------------------------------------------------------------------------------
+STYLE = {"semi_implicit_euler": ("tab:blue", "o"), "velocity_verlet": ("tab:green", "s"),
+         "implicit_euler": ("tab:red", "^")}
+
+
+PLOT_HINT = "plots need matplotlib: pip install 'clothball[study]'"
+
+
+def pyplot() -> Any:
+    """matplotlib.pyplot on the file-only backend; ``RuntimeError(PLOT_HINT)`` without it
+    (an optional extra: the game does not need it)."""
+    try:
+        import matplotlib  # noqa: PLC0415
+    except ImportError:
+        raise RuntimeError(PLOT_HINT) from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    return plt
+
+
+def plot_error_vs_cost(study: Study, path: str) -> None:
+    plt = pyplot()
+
+    sizes = sorted({r.n for r in study.rows})
+    fig, axes = plt.subplots(2, len(sizes), figsize=(5.5 * len(sizes), 8.5), squeeze=False)
+    for col, n in enumerate(sizes):
+        for row, (attr, what) in enumerate((("error_rms_m", "RMS node error (m)"),
+                                            ("ball_error_m", "RMS ball error (m)"))):
+            ax = axes[row][col]
+            pts, all_rows = [], []
+            for integ in INTEGRATORS:
+                for prec in PRECISIONS:
+                    rs = [r for r in study.rows
+                          if (r.integrator, r.precision, r.n) == (integ, prec, n)
+                          and math.isfinite(getattr(r, attr)) and getattr(r, attr) > 0
+                          and math.isfinite(r.us_per_sim_ms)]
+                    if not rs:
+                        continue
+                    color, marker = STYLE.get(integ, ("k", "x"))
+                    ax.plot([r.us_per_sim_ms for r in rs], [getattr(r, attr) for r in rs],
+                            color=color, marker=marker,
+                            linestyle="-" if prec == "float64" else "--",
+                            markerfacecolor=color if prec == "float64" else "none",
+                            label=f"{integ} {prec}")
+                    for r in rs:
+                        pts.append((r.us_per_sim_ms, getattr(r, attr)))
+                        all_rows.append(r)
+            front = pareto_front(pts)
+            if front:
+                fx = [pts[i][0] for i in front]
+                fy = [pts[i][1] for i in front]
+                ax.step(fx, fy, where="post", color="k", linewidth=1, alpha=0.6)
+                ax.scatter(fx, fy, s=160, facecolors="none", edgecolors="k", linewidths=1.5,
+                           label="Pareto front", zorder=5)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("wall time per simulated ms (us)")
+            ax.set_ylabel(what)
+            ax.set_title(f"n = {n}")
+            ax.grid(True, which="both", alpha=0.3)
+            if col == 0 and row == 0:
+                ax.legend(fontsize=7)
+    fig.suptitle(f"clothball accuracy vs cost ({study.meta.get('backend')}, "
+                 f"{study.meta.get('scene')}; step halves along each curve)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_fig4(study: Study, path: str) -> None:
+    plt = pyplot()
+
+    fig, (a, b) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    for label, d in study.fig4.items():
+        integ = label.split()[0]
+        color, _ = STYLE.get(integ, ("k", "x"))
+        ref = "reference" in label
+        kw = {"color": "k" if ref else color, "linewidth": 2.2 if ref else 1.0,
+              "linestyle": "-" if ref or "float64" in label else "--", "alpha": 0.8}
+        if ref and integ != "velocity_verlet" and any(
+                "velocity_verlet reference" in k for k in study.fig4):
+            continue  # one reference curve is enough: they agree to plotting accuracy
+        a.plot(d["t_s"], d["ball_y_m"], label=label, **kw)
+        b.plot(d["t_s"], d["corner_force_n"], label=label, **kw)
+    a.set_ylabel("ball height y (m)")
+    a.set_title("Fig. 4 (a): ball dropped on the resting cloth")
+    b.set_ylabel("|force| on hand 0 (N)")
+    b.set_xlabel("time (s)")
+    b.set_title("Fig. 4 (b): force on the haptic device at a corner")
+    a.legend(fontsize=7)
+    for ax in (a, b):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

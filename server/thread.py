@@ -1,0 +1,107 @@
+"""A game server on a thread of its own, for callers that are not async: ``clothball play
+--local``, the tests and the tools. The one helper for that; the server itself is
+``server.app.GameServer``, run by an asyncio loop on a daemon thread."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from .app import GameServer
+
+
+class ServerThread:
+    """``GameServer(data_dir, **kw)`` (loopback and a free port unless ``kw`` says
+    otherwise) on its own event loop thread. ``start()`` returns once it listens; use it as
+    a context manager to stop it on the way out."""
+
+    def __init__(self, data_dir: Path | str, **kw: Any) -> None:
+        kw.setdefault("host", "127.0.0.1")
+        kw.setdefault("port", 0)
+        self.data_dir = Path(data_dir)
+        self.kw = kw
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.server: GameServer | None = None
+        self._thread: threading.Thread | None = None
+        self._started = threading.Event()
+        self._stop: asyncio.Event | None = None
+        self._error: BaseException | None = None
+
+    def start(self, timeout: float = 60.0) -> ServerThread:
+        self._thread = threading.Thread(target=self._run, name="clothball-server", daemon=True)
+        self._thread.start()
+        if not self._started.wait(timeout):
+            raise RuntimeError(f"the server did not start within {timeout:g} s")
+        if self._error is not None:
+            raise RuntimeError(f"the server did not start: {self._error}") from self._error
+        return self
+
+    def _run(self) -> None:
+        async def main() -> None:
+            self.loop = asyncio.get_running_loop()
+            self._stop = asyncio.Event()
+            srv = GameServer(self.data_dir, **self.kw)
+            try:
+                await srv.start()
+            except BaseException:
+                if srv.store is not None:
+                    srv.store.close()
+                raise
+            self.server = srv
+            self._started.set()
+            try:
+                await self._stop.wait()
+            finally:
+                await srv.stop()
+
+        try:
+            asyncio.run(main())
+        except BaseException as e:  # noqa: BLE001 - reported by start()
+            self._error = e
+        finally:
+            self._started.set()
+
+    @property
+    def port(self) -> int:
+        assert self.server is not None, "not started"
+        return self.server.port
+
+    @property
+    def url(self) -> str:
+        """The HTTP address (spectator page, API)."""
+        assert self.server is not None, "not started"
+        return self.server.http_url
+
+    @property
+    def ws_url(self) -> str:
+        assert self.server is not None, "not started"
+        return self.server.ws_url
+
+    def call(self, fn: Callable[[GameServer], Any], timeout: float = 10.0) -> Any:
+        """Run ``fn(server)`` on the server's loop (its state is not thread-safe) and return
+        its result."""
+        assert self.loop is not None and self.server is not None, "not started"
+        srv = self.server
+
+        async def go() -> Any:
+            return fn(srv)
+
+        return asyncio.run_coroutine_threadsafe(go(), self.loop).result(timeout)
+
+    def stop(self, timeout: float = 30.0) -> None:
+        if self.loop is not None and self._stop is not None and not self.loop.is_closed():
+            try:
+                self.loop.call_soon_threadsafe(self._stop.set)
+            except RuntimeError:  # the loop closed meanwhile
+                pass
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def __enter__(self) -> ServerThread:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -1,0 +1,321 @@
+"""The game server's websocket endpoint ``/ws``: one task per connection reads its
+messages; the first must be a ``hello``, then control messages (JSON) go through a table of
+handlers and binary ones (HIPs) straight to the player's room.
+
+Handlers are thin: they parse, check and hand over to the lobby and the rooms, and every bad
+message gets a JSON error while the room runs on. What a client may do is bounded by
+``server.limits.Limits`` (``docs/security.md``); the protocol is ``docs/protocol.md``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import socket
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from websockets.asyncio.server import ServerConnection
+from websockets.exceptions import ConnectionClosed
+
+from ..game.net.fastpath import BinaryHook
+from ..game.wire import protocol as P
+from ..game.wire.protocol import ProtocolError
+from .conn import Conn
+from .limits import Limits
+from .lobby import Lobby, parse_settings
+from .room import Room
+
+log = logging.getLogger("clothball.server")
+
+
+class Connection(BinaryHook, ServerConnection):
+    """The server's connection: HIPs go straight to ``on_binary`` once the handler has set
+    it, when it starts its read loop (see ``game.net.fastpath``)."""
+
+
+class WsHost(Protocol):
+    """What the endpoint uses of its server (``server.app.GameServer``)."""
+
+    clients: set[Conn]
+    per_address: collections.Counter[str]
+    limits: Limits
+    lobby: Lobby
+    scenes: dict[str, Any]
+    epoch: float
+    stats: dict[str, int]
+
+
+class WsEndpoint:
+    """Serves a server's websocket connections (websockets' connection handler)."""
+
+    def __init__(self, srv: WsHost) -> None:
+        self.srv = srv
+        self.handlers: dict[str, Callable[[Conn, dict[str, Any]], dict[str, Any] | None]] = {
+            "hello": self._msg_hello,
+            "ping": self._msg_ping,
+            "list_rooms": self._msg_list_rooms,
+            "create_room": self._msg_create_room,
+            "join": self._msg_join,
+            "leave": self._msg_leave,
+            "ready": self._msg_ready,
+            "start": self._msg_start,
+            "add_bot": self._msg_add_bot,
+            "remove_bot": self._msg_remove_bot,
+            "state": self._msg_state,
+        }
+
+    async def handler(self, ws: ServerConnection) -> None:
+        conn = Conn(ws, self.srv.limits)
+        self.srv.clients.add(conn)
+        sock = ws.transport.get_extra_info("socket") if ws.transport is not None else None
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF,
+                                self.srv.limits.socket_send_buffer)
+            except OSError:  # pragma: no cover - not settable on this platform
+                pass
+        self.srv.per_address[conn.address] += 1
+        try:
+            if self.srv.per_address[conn.address] > self.srv.limits.conns_per_address:
+                self.srv.stats["refused_connections"] += 1
+                await ws.close(1008, f"too many connections from {conn.address} (limit "
+                                     f"{self.srv.limits.conns_per_address})")
+                return
+            timeout = self.srv.limits.hello_timeout
+            try:
+                first = await asyncio.wait_for(ws.recv(), timeout)
+            except TimeoutError:
+                conn.error("bad_message", f"no hello within {timeout:g} s")
+                await asyncio.sleep(0.05)
+                await ws.close(1008, "no hello")
+                return
+            if not await self._hello(conn, first):
+                await asyncio.sleep(0.05)  # let the error go out first
+                await ws.close(1008, "hello refused")
+                return
+            if isinstance(ws, Connection):
+                ws.on_binary = lambda data: self._on_binary_now(conn, data)
+            async for message in ws:
+                self.srv.stats["messages_in"] += 1
+                conn.received += 1
+                if isinstance(message, bytes):
+                    self._on_binary(conn, message)
+                else:
+                    self._on_text(conn, message)
+                if conn.closed:
+                    break
+        except ConnectionClosed:
+            pass
+        finally:
+            if isinstance(ws, Connection):
+                ws.on_binary = None
+            self.srv.clients.discard(conn)
+            self.srv.per_address[conn.address] -= 1
+            if self.srv.per_address[conn.address] <= 0:
+                del self.srv.per_address[conn.address]
+            if conn.room is not None:
+                conn.room.disconnected(conn)
+            self.srv.stats["messages_out"] += conn.sent
+            await conn.finish()
+
+    async def _hello(self, conn: Conn, first: str | bytes) -> bool:
+        """The first message must be a hello. True when the connection may go on."""
+        try:
+            if isinstance(first, bytes):
+                raise ProtocolError("bad_message", "the first message must be a JSON hello")
+            msg = P.decode_json(first, self.srv.limits.max_control_bytes)
+            if msg["type"] != "hello":
+                raise ProtocolError("bad_message",
+                                    f"the first message must be a hello, got {msg['type']!r}")
+            version = msg.get("version")
+            if version != P.PROTOCOL_VERSION:
+                raise ProtocolError(
+                    "bad_version",
+                    f"protocol version {version!r} not supported; this server speaks "
+                    f"{P.PROTOCOL_VERSION}",
+                )
+            conn.name = P.field_str(msg, "name", "guest", max_len=32) or "guest"
+        except ProtocolError as e:
+            self.srv.stats["bad_messages"] += 1
+            conn.error(e)
+            return False
+        conn.hello_done = True
+        conn.send_json({
+            "type": "welcome",
+            "version": P.PROTOCOL_VERSION,
+            "client": conn.id,
+            "name": conn.name,
+            "server_time": time.perf_counter() - self.srv.epoch,
+            "scenes": sorted(self.srv.scenes),
+            "rooms": self.srv.lobby.listing(),
+            "re": P.request_id(msg),
+        })
+        role = msg.get("role", "lobby")
+        if role != "lobby" or "token" in msg:
+            # hello may carry a join: the same fields as a join message.
+            self._on_control(conn, {**msg, "type": "join"})
+        return True
+
+    def _on_text(self, conn: Conn, text: str) -> None:
+        if not conn.control_bucket.take():
+            self.srv.stats["bad_messages"] += 1
+            conn.error("rate_limited", f"at most {conn.control_bucket.rate:g} control "
+                                       "messages a second; this one was dropped")
+            if conn.rate_dropped():
+                conn.drop("too many messages")
+            return
+        try:
+            msg = P.decode_json(text, self.srv.limits.max_control_bytes)
+        except ProtocolError as e:
+            self.srv.stats["bad_messages"] += 1
+            conn.error(e)
+            return
+        self._on_control(conn, msg)
+
+    def _on_binary_now(self, conn: Conn, data: bytes) -> None:
+        """A binary message handed over by ``Connection`` as it arrives: what the read loop
+        of ``_handler`` does with one, which stops reading once the client is closed."""
+        if conn.closed:
+            return
+        self.srv.stats["messages_in"] += 1
+        conn.received += 1
+        try:
+            self._on_binary(conn, data)
+        except Exception:  # pragma: no cover - a bug: like a failing handler, close 1011
+            log.exception("handling a binary message from client %s failed", conn.id)
+            conn.fail("internal error")
+
+    def _on_binary(self, conn: Conn, data: bytes) -> None:
+        if not conn.binary_bucket.take():
+            self.srv.stats["bad_messages"] += 1
+            conn.error("rate_limited", f"at most {conn.binary_bucket.rate:g} binary "
+                                       "messages a second; the extra ones are dropped")
+            if conn.rate_dropped():
+                conn.drop("too many messages")
+            return
+        try:
+            if conn.role != "player" or conn.room is None:
+                raise ProtocolError("not_allowed",
+                                    f"binary messages are for seated players; you are {conn.role}")
+            hip = P.decode_hip(data)
+            conn.room.on_hip(conn, hip)
+        except ProtocolError as e:
+            self.srv.stats["bad_messages"] += 1
+            conn.error(e)
+
+    def _on_control(self, conn: Conn, msg: dict[str, Any]) -> None:
+        t = msg["type"]
+        re = P.request_id(msg)
+        handler = self.handlers.get(t)
+        try:
+            if handler is None:
+                raise ProtocolError("unknown_type", f"unknown message type {t!r}")
+            reply = handler(conn, msg)
+        except ProtocolError as e:
+            self.srv.stats["bad_messages"] += 1
+            conn.error(e, re=re)
+            return
+        if reply is None and re is not None:
+            reply = {"type": "ok"}
+        if reply is not None:
+            if re is not None:
+                reply["re"] = re
+            conn.send_json(reply)
+
+    # --- control messages (the table in __init__ names them) -----------------------------
+    def _msg_hello(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        raise ProtocolError("not_allowed", "hello was already received")
+
+    def _msg_ping(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        t = P.field_float(msg, "t", None, -1e12, 1e12)
+        return {"type": "pong", "t": t, "server_time": time.perf_counter() - self.srv.epoch}
+
+    def _msg_list_rooms(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        return {"type": "rooms", "rooms": self.srv.lobby.listing()}
+
+    def _msg_create_room(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        name = P.field_str(msg, "name", "room", max_len=48) or "room"
+        scene = P.field_str(msg, "scene", None, max_len=64)
+        public = P.field_bool(msg, "public", True)
+        settings = parse_settings(msg)
+        mine = self.srv.lobby.rooms_of(conn.address)
+        if mine >= self.srv.limits.rooms_per_address:
+            raise ProtocolError("too_many_rooms", f"{conn.address} already has {mine} open rooms "
+                                f"(limit {self.srv.limits.rooms_per_address}); close one first")
+        room = self.srv.lobby.create(name, scene, public=public, settings=settings, owner=conn.id,
+                                 address=conn.address)
+        return {"type": "room_created", "room": room.id, "code": room.code, "state": room.info()}
+
+    def _room_options(self, conn: Conn, msg: dict[str, Any]) -> None:
+        rate = P.field_float(msg, "corner_rate", 1000.0, 1.0, 1000.0)
+        assert rate is not None
+        conn.corner_interval = 0.0 if rate >= 1000.0 else 1.0 / rate - 1e-4
+        conn.want_mesh = P.field_bool(msg, "mesh", True)
+
+    def _msg_join(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        if conn.room is not None:
+            raise ProtocolError("not_allowed", f"already in room {conn.room.id}: leave first")
+        token = P.field_str(msg, "token", None, max_len=64)
+        role = P.field_str(msg, "role", "player" if token else "spectator", max_len=16)
+        self._room_options(conn, msg)
+        if token is not None:
+            room = self.srv.lobby.get(msg.get("room")) if msg.get("room") is not None else None
+            rooms = [room] if room is not None else list(self.srv.lobby.rooms.values())
+            for r in rooms:
+                try:
+                    return r.resume(conn, token)
+                except ProtocolError:
+                    continue
+            raise ProtocolError("bad_token", "reconnect token unknown or expired")
+        room = self.srv.lobby.get(msg.get("room"))
+        code = P.field_str(msg, "code", None, max_len=64)
+        if role == "player":
+            seat = P.field_int(msg, "seat", None, -(2**31), 2**31)  # the room names bad seats
+            return room.join_player(conn, seat, conn.name, code)
+        if role == "spectator":
+            room.check_code(code)  # a private room's size is its own business
+            if len(room.spectators) >= self.srv.limits.spectators_per_room:
+                raise ProtocolError("room_full", f"room {room.id} already has "
+                                    f"{len(room.spectators)} spectators (the limit)")
+            return room.join_spectator(conn, code)
+        raise ProtocolError("bad_message", f"role must be 'player' or 'spectator', got {role!r}")
+
+    def _in_room(self, conn: Conn) -> Room:
+        if conn.room is None:
+            raise ProtocolError("not_allowed", "not in a room: join one first")
+        return conn.room
+
+    def _msg_leave(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        room = self._in_room(conn)
+        room.leave(conn)
+        return {"type": "left", "room": room.id}
+
+    def _msg_ready(self, conn: Conn, msg: dict[str, Any]) -> None:
+        self._in_room(conn).set_ready(conn, P.field_bool(msg, "ready", True))
+
+    def _msg_start(self, conn: Conn, msg: dict[str, Any]) -> None:
+        self._in_room(conn).request_start(conn)
+
+    def _msg_add_bot(self, conn: Conn, msg: dict[str, Any]) -> None:
+        room = self._in_room(conn)
+        if not room.may_control(conn):
+            raise ProtocolError("not_allowed", "only the room's host can add bots")
+        seat = P.field_int(msg, "seat", None, 0, 3)
+        difficulty = P.field_float(msg, "difficulty", room.settings.bot_difficulty, 0.0, 1.0)
+        assert difficulty is not None
+        room.add_bot(seat, difficulty)
+
+    def _msg_remove_bot(self, conn: Conn, msg: dict[str, Any]) -> None:
+        room = self._in_room(conn)
+        if not room.may_control(conn):
+            raise ProtocolError("not_allowed", "only the room's host can remove bots")
+        seat = P.field_int(msg, "seat", None, 0, 3, required=True)
+        assert seat is not None
+        room.remove_bot(seat)
+
+    def _msg_state(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        return {"type": "room", **self._in_room(conn).info()}
+

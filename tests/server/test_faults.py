@@ -1,0 +1,364 @@
+"""Faults: clients that vanish or stop reading, the server killed with SIGKILL mid-round,
+a data directory that is full, read-only or unusable, a simulation that turns non-finite.
+The server keeps running and loses nothing it had stored."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import os
+import random
+import signal
+import socket
+import sqlite3
+import struct
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import pytest
+from clothball.game.net.client import NetClient
+from clothball.game.sim.scene import Scene
+from clothball.game.wire.replay import read_replay
+from clothball.server.app import GameServer
+from clothball.server.limits import Limits
+from clothball.server.replays import ReplayStore
+from clothball.server.room import RoomSettings
+
+from tests.conftest import FAST, TINY, http_get, http_json, run, until
+from tests.server.conftest import LiveServer, live_server
+
+HERE = Path(__file__).parent
+
+
+# --- a websocket client by hand: one that can stop reading or vanish ------------------------------
+
+
+def raw_client(port: int, hello: dict[str, Any], rcvbuf: int | None = None) -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    if rcvbuf:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    s.settimeout(10)
+    s.connect(("127.0.0.1", port))
+    key = base64.b64encode(os.urandom(16))
+    s.sendall(b"GET /ws HTTP/1.1\r\nHost: localhost\r\nUpgrade: websocket\r\n"
+              b"Connection: Upgrade\r\nSec-WebSocket-Key: " + key +
+              b"\r\nSec-WebSocket-Version: 13\r\n\r\n")
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += s.recv(1)
+    assert b" 101 " in head.split(b"\r\n")[0], head
+    payload = json.dumps(hello).encode()
+    mask = os.urandom(4)
+    n = len(payload)
+    frame = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0xFE]) +
+                             struct.pack(">H", n))
+    s.sendall(frame + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
+    return s
+
+
+def conn_of(ls: LiveServer, seat: int) -> Any:
+    room = ls.srv.main_room
+    assert room is not None
+    return ls.call(lambda: room.seats[seat].conn)
+
+
+def wait(pred: Any, timeout: float, what: str) -> float:
+    t0 = time.monotonic()
+    while not pred():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.02)
+    return time.monotonic() - t0
+
+
+def test_a_client_that_vanishes_without_a_close(tmp_path) -> None:
+    limits = Limits(ping_interval=0.5, ping_timeout=0.5)
+    with live_server(tmp_path, limits=limits) as ls:
+        room = ls.srv.main_room
+        assert room is not None
+        hello = {"type": "hello", "version": 1, "role": "player", "room": room.id,
+                 "corner_rate": 50, "mesh": False}
+        # 1. the TCP connection is reset (a crashed client): noticed at once
+        s = raw_client(ls.srv.port, {**hello, "seat": 2})
+        wait(lambda: conn_of(ls, 2) is not None, 5, "seat 2 taken")
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        s.close()
+        wait(lambda: conn_of(ls, 2) is None, 5, "the reset client's seat released")
+        assert ls.call(lambda: room.seats[2].held_until) is not None  # held for its return
+        # 2. the client goes silent (a pulled cable): the pings go unanswered
+        s = raw_client(ls.srv.port, {**hello, "seat": 3})
+        wait(lambda: conn_of(ls, 3) is not None, 5, "seat 3 taken")
+        took = wait(lambda: conn_of(ls, 3) is None, 10, "the silent client dropped")
+        assert took < 5
+        s.close()
+        wait(lambda: ls.call(lambda: len(ls.srv.clients)) == 0, 5, "no clients left")
+        assert room.sim._thread.is_alive() and ls.errors.texts() == []
+
+
+def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_path) -> None:
+    limits = Limits(slow_drop_s=1.0, socket_send_buffer=16384)
+    with live_server(tmp_path, limits=limits) as ls:
+        room = ls.srv.main_room
+        assert room is not None
+        skipped0 = room.sim.stats.skipped_frames
+        f0, t0 = room.sim.stats.frames, time.monotonic()
+        s = raw_client(ls.srv.port, {"type": "hello", "version": 1, "role": "player",
+                                     "room": room.id, "seat": 1}, rcvbuf=4096)
+        wait(lambda: conn_of(ls, 1) is not None, 5, "the slow client seated")
+        conn = conn_of(ls, 1)
+        peak_buffer, peak_queue = 0, 0
+        while conn_of(ls, 1) is conn:  # never read: CORNER at 1 kHz and MESH pile up
+            tr = conn.ws.transport
+            if tr is not None:
+                peak_buffer = max(peak_buffer, ls.call(tr.get_write_buffer_size))
+            peak_queue = max(peak_queue, len(conn._control))
+            assert time.monotonic() - t0 < 60, "the slow client was never dropped"
+            time.sleep(0.05)
+        dropped_after = time.monotonic() - t0
+        frames = room.sim.stats.frames - f0
+        s.close()
+        # the server held a bounded amount for it: one socket's worth, a short queue
+        assert peak_buffer <= limits.max_write_buffer + 128 * 1024, peak_buffer
+        assert peak_queue <= limits.max_control_queue
+        # and the room kept its pace: 1 kHz of frames the whole time, none skipped
+        assert room.sim.stats.skipped_frames == skipped0
+        assert frames >= 0.9 * 1000 * (dropped_after - 0.2), (frames, dropped_after)
+        assert room.sim._thread.is_alive() and ls.errors.texts() == []
+
+
+# --- SIGKILL mid-round --------------------------------------------------------------------------
+
+
+def start_server(data: Path, *args: str) -> tuple[subprocess.Popen[str], int, str]:
+    proc = subprocess.Popen([sys.executable, str(HERE / "server_proc.py"), str(data), *args],
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    if not line:
+        proc.kill()
+        raise AssertionError("the server process did not start")
+    info = json.loads(line)
+    return proc, info["port"], info["recording"]
+
+
+def stop(proc: subprocess.Popen[str]) -> None:
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
+def get(port: int, path: str) -> bytes:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=10) as r:
+        return r.read()
+
+
+def replays(port: int) -> dict[str, Any]:
+    return json.loads(get(port, "/api/replays?limit=1000"))
+
+
+def check_data_dir(data: Path) -> set[str]:
+    """The index is a sound database and every finished file parses; the ids it holds."""
+    db = sqlite3.connect(data / "index.sqlite")
+    try:
+        assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        ids = {r[0] for r in db.execute("SELECT id FROM rounds")}
+    finally:
+        db.close()
+    for f in (data / "replays").glob("*.cbr"):
+        header, records = read_replay(f.read_bytes())
+        assert header["id"] == f.stem and records
+    return ids
+
+
+@pytest.mark.slow
+def test_sigkill_mid_round_and_restart_keep_the_index_and_every_earlier_round(tmp_path) -> None:
+    data = tmp_path / "data"
+    kept: dict[str, bytes] = {}
+    rng = random.Random()
+    for _ in range(3):
+        proc, port, _ = start_server(data)
+        try:
+            # every round recorded before any kill is listed and byte-for-byte the same
+            listed = {r["id"] for r in replays(port)["replays"]}
+            assert set(kept) <= listed
+            for rid, body in kept.items():
+                assert get(port, f"/api/replays/{rid}") == body
+            assert not list((data / "replays").glob("*.tmp"))  # cleared at start-up
+            target = len(listed) + 2
+            wait(lambda p=port, n=target: replays(p)["total"] >= n, 60, "two more rounds")
+            for r in replays(port)["replays"]:
+                body = get(port, f"/api/replays/{r['id']}")
+                assert read_replay(body)[0]["id"] == r["id"]
+                kept[r["id"]] = body
+            time.sleep(rng.uniform(0.0, 2.0))  # rounds last about a second: kill in one
+        finally:
+            stop(proc)
+        assert set(kept) <= check_data_dir(data)
+    assert len(kept) >= 6
+
+
+@pytest.mark.slow
+def test_sigkill_while_writing_replays_leaves_them_complete_or_absent(tmp_path) -> None:
+    """Kill a process that does nothing but save large rounds, at random moments: what it
+    reported saved is there and intact; the round being written is complete or absent."""
+    writer = (
+        "import sys, os\n"
+        "from clothball.server.replays import ReplayStore\n"
+        "from clothball.game.wire.replay import new_round_id\n"
+        "store = ReplayStore(sys.argv[1])\n"
+        "while True:\n"
+        "    rid = new_round_id()\n"
+        "    header = dict(id=rid, room_id='r', room_name='r', scene='tiny', round=1,\n"
+        "                  players=[], scores=[0, 0, 0, 0], started_at=0.0, ended_at=1.0,\n"
+        "                  duration_s=1.0)\n"
+        "    store.save(header, [(1, os.urandom(4096)) for _ in range(200)])\n"
+        "    print(rid, flush=True)\n"
+    )
+    data = tmp_path / "data"
+    saved: list[str] = []
+    for _ in range(4):
+        proc = subprocess.Popen([sys.executable, "-c", writer, str(data)],
+                                stdout=subprocess.PIPE, text=True)
+        assert proc.stdout is not None
+        saved.append(proc.stdout.readline().strip())  # at least one round per life
+        time.sleep(random.uniform(0.05, 0.5))
+        proc.send_signal(signal.SIGKILL)
+        out, _ = proc.communicate()
+        saved += out.split()
+        store = ReplayStore(data)  # start-up: recovery
+        try:
+            assert not list((data / "replays").glob("*.tmp"))
+            for rid in saved:
+                p = store.path_of(rid)
+                assert p is not None, rid
+                assert len(read_replay(p.read_bytes())[1]) == 200
+            assert store.count() == len(list((data / "replays").glob("*.cbr")))
+        finally:
+            store.close()
+        check_data_dir(data)
+
+
+# --- the data directory full, read-only or unusable -----------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_full_disk_loses_the_round_not_the_match(tmp_path) -> None:
+    data = tmp_path / "data"
+    proc, port, recording = start_server(data, "--fsize", "40000")
+    try:
+        assert recording == "on"
+
+        async def main() -> str:
+            spec = await NetClient.connect(f"ws://127.0.0.1:{port}/ws", role="spectator",
+                                           room="main")
+            failed = await spec.wait_event("replay_failed", timeout=60)
+            assert "could not write the replay" in failed["reason"]
+            assert "File too large" in failed["reason"] or "No space" in failed["reason"]
+            await spec.wait_event("score", timeout=30, since=spec.received_total)
+            await spec.close()
+            return str(failed["id"])
+
+        lost = run(main())
+        stats = json.loads(get(port, "/api/stats"))
+        assert stats["rounds_not_saved"] >= 1 and stats["rooms"]["main"]["frames"] > 0
+        assert replays(port)["total"] == stats["rounds_saved"]  # the index still answers
+        # no half-written file kept, nothing indexed for it
+        assert not (data / "replays" / f"{lost}.cbr.tmp").exists()
+        assert not (data / "replays" / f"{lost}.cbr").exists()
+        assert lost not in [r["id"] for r in replays(port)["replays"]]
+    finally:
+        stop(proc)
+
+
+@pytest.mark.parametrize("kind", ["not-a-directory", "read-only"])
+def test_an_unusable_data_directory_turns_recording_off_and_play_goes_on(tmp_path, kind) -> None:
+    if kind == "not-a-directory":
+        (tmp_path / "a-file").write_text("not a directory")
+        data = tmp_path / "a-file" / "data"
+    else:
+        if os.geteuid() != 0:
+            data = tmp_path / "ro"
+            data.mkdir()
+            data.chmod(0o500)
+        elif any(m.split()[1] == "/sys" and m.split()[3].split(",")[0] == "ro"
+                 for m in Path("/proc/mounts").read_text().splitlines()):
+            data = Path("/sys/clothball-data")  # a read-only filesystem, even for root
+        else:
+            pytest.skip("root on a writable /sys: no read-only directory to be had here")
+
+    async def main() -> None:
+        settings = RoomSettings(**{**FAST, "first_to": 99}, autoplay=True)
+        srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", port=0, bots=4,
+                         room_settings=settings)
+        await srv.start()
+        try:
+            assert srv.store is None and srv.recording_error
+            stats = await http_json(srv, "/api/stats")
+            assert stats["recording"].startswith("off: data directory")
+            status, body, _ = await http_get(srv, "/api/replays")
+            assert status == 503 and b"recording is off" in body
+            spec = await NetClient.connect(srv.ws_url, role="spectator", room="main")
+            failed = await spec.wait_event("replay_failed", timeout=40)
+            assert failed["reason"].startswith("recording is off")
+            await spec.wait_event("score", timeout=30, since=spec.received_total)
+            await spec.close()
+        finally:
+            await srv.stop()
+
+    run(main())
+
+
+# --- a simulation that turns non-finite --------------------------------------------------------
+
+
+@pytest.mark.filterwarnings("ignore::clothball.game.sim.cloth.UnstableSceneWarning")
+def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_path) -> None:
+    # Far past the stability bound on purpose: stiff springs, one substep per frame.
+    unstable = Scene.load("classic").with_changes(
+        {"cloth": {"n": 12, "k_structural": 5e4}, "sim": {"substeps": 1,
+                                                          "allow_unstable": True}})
+    unstable.name = "unstable"
+
+    async def main() -> None:
+        srv = GameServer(tmp_path, scenes={"tiny": TINY, "unstable": unstable}, backend="cpu",
+                         port=0, room_settings=RoomSettings(bots_allowed=False))
+        await srv.start()
+        try:
+            main_room = srv.main_room
+            assert main_room is not None
+            watcher = await NetClient.connect(srv.ws_url, role="spectator", room="main")
+            owner = await NetClient.connect(srv.ws_url)
+            made = await owner.request("create_room", scene="unstable")
+            rid = made["room"]
+            player = await NetClient.connect(srv.ws_url, role="player", room=rid)
+            spec = await NetClient.connect(srv.ws_url, role="spectator", room=rid)
+            for c in (player, spec):
+                ev = await c.wait_event("room_stopped", timeout=30, since=0)
+                assert "non-finite" in ev["reason"]
+                err = await c.wait_for(lambda m: m["type"] == "error", since=0)
+                assert err["code"] == "room_stopped" and rid in err["message"]
+            await until(lambda: rid not in srv.lobby.rooms, 5, "the room closed")
+            assert srv.stats["rooms_stopped"] == 1
+            # the clients are back in the lobby, connected, and can go elsewhere
+            assert rid not in [r["id"] for r in (await player.request("list_rooms"))["rooms"]]
+            again = await player.join("main", role="spectator")
+            assert again["room"] == "main"
+            # the other room never noticed
+            f0 = main_room.sim.stats.frames
+            await asyncio.sleep(0.3)
+            assert main_room.sim.stats.frames > f0 + 200 and main_room.sim._thread.is_alive()
+            assert watcher._reader is not None and not watcher._reader.done()
+            stats = await http_json(srv, "/api/stats")
+            assert rid not in stats["rooms"] and "main" in stats["rooms"]
+            for c in (watcher, owner, player, spec):
+                await c.close()
+        finally:
+            await srv.stop()
+
+    run(main())
