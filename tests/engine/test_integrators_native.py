@@ -23,7 +23,8 @@ import pytest
 from clothball.game import Cloth, Scene, SceneError
 from clothball.game.sim.stability import auto_substeps, stable_dt
 from clothball.game.study.integrators_ref import IntegratingCloth
-from test_engine_vs_oracle import (
+
+from tests.engine.test_engine_vs_oracle import (
     CASES,
     FRAMES,
     HIPS_MOVE,
