@@ -368,10 +368,10 @@ def test_reconnects_with_backoff_after_a_server_restart(tmp_path, driver) -> Non
 
 
 def test_bench_module_measures_decode_and_upload(live: ServerThread, driver) -> None:
-    """tools/web_bench.py's in-page part runs (what it measures is reported, not asserted)."""
+    """tests/web/web_bench.py's in-page part runs (what it measures is reported, not asserted)."""
     import base64
 
-    from web_vectors import messages
+    from tests.web.web_vectors import messages
 
     frames = [base64.b64encode(d).decode() for name, d in messages()
               if name in ("mesh_n16_zlib", "mesh_n16_raw")]
