@@ -27,10 +27,11 @@ class ServerThread:
         self.server: GameServer | None = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
-        self._stop: asyncio.Event | None = None
         self._error: BaseException | None = None
 
     def start(self, timeout: float = 60.0) -> ServerThread:
+        if self._thread is not None:
+            raise RuntimeError("this ServerThread was started already")
         self._thread = threading.Thread(target=self._run, name="clothball-server", daemon=True)
         self._thread.start()
         if not self._started.wait(timeout):
@@ -40,29 +41,26 @@ class ServerThread:
         return self
 
     def _run(self) -> None:
-        async def main() -> None:
-            self.loop = asyncio.get_running_loop()
-            self._stop = asyncio.Event()
-            srv = GameServer(self.data_dir, **self.kw)
-            try:
-                await srv.start()
-            except BaseException:
-                if srv.store is not None:
-                    srv.store.close()
-                raise
-            self.server = srv
-            self._started.set()
-            try:
-                await self._stop.wait()
-            finally:
-                await srv.stop()
-
+        loop = asyncio.new_event_loop()
+        asyncio.set_event_loop(loop)
+        self.loop = loop
+        srv = GameServer(self.data_dir, **self.kw)
         try:
-            asyncio.run(main())
+            loop.run_until_complete(srv.start())
         except BaseException as e:  # noqa: BLE001 - reported by start()
+            if srv.store is not None:
+                srv.store.close()
             self._error = e
-        finally:
             self._started.set()
+            loop.close()
+            return
+        self.server = srv
+        self._started.set()
+        try:
+            loop.run_forever()  # until stop()
+        finally:
+            loop.run_until_complete(srv.stop())
+            loop.close()
 
     @property
     def port(self) -> int:
@@ -92,9 +90,11 @@ class ServerThread:
         return asyncio.run_coroutine_threadsafe(go(), self.loop).result(timeout)
 
     def stop(self, timeout: float = 30.0) -> None:
-        if self.loop is not None and self._stop is not None and not self.loop.is_closed():
+        """Stop the server (its rooms, connections and the writes under way) and the
+        thread."""
+        if self.loop is not None and self.server is not None and not self.loop.is_closed():
             try:
-                self.loop.call_soon_threadsafe(self._stop.set)
+                self.loop.call_soon_threadsafe(self.loop.stop)
             except RuntimeError:  # the loop closed meanwhile
                 pass
         if self._thread is not None:

@@ -17,7 +17,7 @@ from clothball.game.client.netthread import FrameInbox, Latest, NetThread
 from clothball.game.client.replay import ReplayData, ReplayPlayer, fetch
 from clothball.game.devices.mouse import MouseDevice
 
-from tests.conftest import FAST, TINY, local_server
+from tests.server.conftest import FAST, TINY, local_server
 
 
 def wait(pred: Callable[[], bool], timeout: float = 10.0, what: str = "") -> None:

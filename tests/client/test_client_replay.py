@@ -19,7 +19,7 @@ from clothball.game.sim.cloth import rest_positions
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import ReplayError, write_replay
 
-from tests.conftest import TINY, run, server
+from tests.server.conftest import TINY, run, server
 
 T0 = 50.0  # server time the recording starts
 MESH_HZ, TRACK_HZ, DURATION = 30.0, 100.0, 2.0

@@ -83,7 +83,7 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
     from clothball.game.client.netthread import NetThread
 
     from tests.client.test_client_net import Pump
-    from tests.conftest import local_server
+    from tests.server.conftest import local_server
 
     # no bots: nothing else shakes the cloth, so the picture's middle is cloth for sure
     srv = local_server(tmp_path / "data")

@@ -13,7 +13,7 @@ from clothball.game.devices import falcon as F
 from clothball.game.net.client import NetClient
 from clothball.server.room import RoomSettings
 
-from tests.conftest import run, server, until
+from tests.server.conftest import run, server, until
 
 KIN = f.Kinematics()
 

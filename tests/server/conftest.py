@@ -1,23 +1,93 @@
-"""Server test helpers: a real game server on its own thread and event loop, for tests
-that drive it from plain (blocking) code: hypothesis examples, raw sockets. Errors the
-server logs are collected, so a test can assert that no exception escaped a connection
-handler."""
+"""Server test helpers, also used by the client and Falcon tests: a real server on
+loopback (port 0) and real clients; a server on a thread of its own for tests that drive it
+from plain (blocking) code (hypothesis examples, raw sockets), with the errors it logs
+collected, so a test can assert that no exception escaped a connection handler."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import socket
-import threading
-from collections.abc import Iterator
+import urllib.error
+import urllib.request
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
+from clothball.game.sim.scene import Scene
 from clothball.server.app import GameServer
 from clothball.server.room import RoomSettings
+from clothball.server.thread import ServerThread
 
-from tests.conftest import TINY
+T = TypeVar("T")
+
+# A small cloth keeps the room threads cheap on a 2-core machine.
+TINY = Scene.load("classic").with_changes({"cloth": {"n": 16}})
+TINY.name = "tiny"
+
+# Rounds that end fast: the ball is thrown sideways off the cloth at the start.
+FAST = dict(first_to=2, countdown=0.2, reset_speed=3.0, grace=1.0, restart_delay=30.0)
+
+
+def run(coro: Awaitable[T], timeout: float = 90.0) -> T:
+    async def wrapped() -> T:
+        return await asyncio.wait_for(coro, timeout)
+
+    return asyncio.run(wrapped())
+
+
+@contextlib.asynccontextmanager
+async def server(data: Path, *, bots: int = 0, settings: RoomSettings | None = None,
+                 **kw: Any) -> AsyncIterator[GameServer]:
+    srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", host="127.0.0.1", port=0,
+                     bots=bots, room_settings=settings or RoomSettings(), **kw)
+    await srv.start()
+    try:
+        yield srv
+    finally:
+        await srv.stop()
+
+
+async def http_get(srv: GameServer, path: str) -> tuple[int, bytes, dict[str, str]]:
+    url = srv.http_url.rstrip("/") + path
+
+    def get() -> tuple[int, bytes, dict[str, str]]:
+        try:
+            with urllib.request.urlopen(url, timeout=10) as r:
+                return r.status, r.read(), dict(r.headers)
+        except urllib.error.HTTPError as e:
+            with e:
+                return e.code, e.read(), dict(e.headers)
+
+    return await asyncio.to_thread(get)
+
+
+async def http_json(srv: GameServer, path: str) -> Any:
+    status, body, _ = await http_get(srv, path)
+    assert status == 200, body
+    return json.loads(body)
+
+
+async def until(pred: Callable[[], bool], timeout: float = 10.0, what: str = "") -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not pred():
+        if loop.time() > end:
+            raise AssertionError(f"timed out waiting for {what or pred}")
+        await asyncio.sleep(0.01)
+
+
+def local_server(data: Path, *, bots: int = 0, **settings: Any) -> ServerThread:
+    """A server with room ``main`` (scene TINY, CPU) on its own thread, not started: what
+    ``clothball play --local`` runs. ``settings``: the main room's ``RoomSettings``."""
+    settings.setdefault("autoplay", True)
+    return ServerThread(data, scenes={TINY.name: TINY}, backend="cpu", bots=bots,
+                        room_settings=RoomSettings(**settings))
+
+
+# --- a server on a thread, for blocking test code, with the errors it logs ---------------
 
 
 class ErrorLog(logging.Handler):
@@ -35,16 +105,13 @@ class ErrorLog(logging.Handler):
 
 
 class LiveServer:
-    def __init__(self, srv: GameServer, loop: asyncio.AbstractEventLoop, errors: ErrorLog
-                 ) -> None:
-        self.srv, self.loop, self.errors = srv, loop, errors
+    def __init__(self, st: ServerThread, errors: ErrorLog) -> None:
+        assert st.server is not None and st.loop is not None
+        self.st, self.srv, self.loop, self.errors = st, st.server, st.loop, errors
 
     def call(self, fn: Any, *args: Any) -> Any:
         """Run ``fn(*args)`` on the server's loop (its state is not thread-safe) and wait."""
-        async def go() -> Any:
-            return fn(*args)
-
-        return asyncio.run_coroutine_threadsafe(go(), self.loop).result(10)
+        return self.st.call(lambda _srv: fn(*args))
 
     def http(self, raw: bytes, timeout: float = 5.0) -> bytes:
         """Send raw bytes to the HTTP port; the whole answer (until the server closes)."""
@@ -69,27 +136,14 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
     loggers = [logging.getLogger("clothball"), logging.getLogger("websockets.server")]
     for lg in loggers:
         lg.addHandler(errors)
-    loop = asyncio.new_event_loop()
     kw.setdefault("room_settings", RoomSettings(bots_allowed=False))
-    srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", host="127.0.0.1", port=0, **kw)
-    started = threading.Event()
-
-    def run() -> None:
-        asyncio.set_event_loop(loop)
-        loop.run_until_complete(srv.start())
-        started.set()
-        loop.run_forever()
-        loop.run_until_complete(srv.stop())
-        loop.close()
-
-    t = threading.Thread(target=run, name="live-server", daemon=True)
-    t.start()
-    if not started.wait(30):
-        raise RuntimeError("the live server did not start")
+    st = ServerThread(data, scenes={"tiny": TINY}, backend="cpu", **kw)
     try:
-        yield LiveServer(srv, loop, errors)
+        st.start(30)
+        try:
+            yield LiveServer(st, errors)
+        finally:
+            st.stop()
     finally:
-        loop.call_soon_threadsafe(loop.stop)
-        t.join(30)
         for lg in loggers:
             lg.removeHandler(errors)

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from clothball.server.app import GameServer  # noqa: E402
 from clothball.server.room import RoomSettings  # noqa: E402
 
-from tests.conftest import FAST, TINY  # noqa: E402
+from tests.server.conftest import FAST, TINY  # noqa: E402
 
 
 async def main(data: str) -> None:

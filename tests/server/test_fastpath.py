@@ -15,7 +15,7 @@ from websockets.asyncio.messages import Assembler
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.protocol import OPEN, Protocol
 
-from tests.conftest import run
+from tests.server.conftest import run
 
 
 def test_the_internals_the_fast_paths_use_are_there() -> None:

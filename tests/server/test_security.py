@@ -19,7 +19,7 @@ from clothball.server.room import RoomSettings
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from tests.conftest import FAST, http_get, http_json, run, server, until
+from tests.server.conftest import FAST, http_get, http_json, run, server, until
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
 

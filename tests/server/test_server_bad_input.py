@@ -17,7 +17,7 @@ from clothball.server.room import RoomSettings
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
-from tests.conftest import http_json, run, server, until
+from tests.server.conftest import http_json, run, server, until
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
 

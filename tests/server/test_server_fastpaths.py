@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from websockets.asyncio.client import connect
 
-from tests.conftest import run, server, until
+from tests.server.conftest import run, server, until
 
 _f64 = st.floats(allow_nan=True, allow_infinity=True, width=64)
 _vec = st.tuples(_f64, _f64, _f64)

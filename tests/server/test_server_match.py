@@ -10,7 +10,7 @@ from clothball.game.wire.replay import read_replay, write_replay
 from clothball.server.replays import ReplayStore
 from clothball.server.room import RoomSettings
 
-from tests.conftest import FAST, http_get, http_json, run, server, until
+from tests.server.conftest import FAST, http_get, http_json, run, server, until
 
 
 def test_bots_play_a_match_to_the_end_and_rounds_are_recorded(tmp_path) -> None:

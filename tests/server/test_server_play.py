@@ -12,7 +12,7 @@ from clothball.game.devices.base import Device
 from clothball.game.net.client import NetClient, ServerError
 from clothball.server.room import RoomSettings
 
-from tests.conftest import http_get, http_json, run, server, until
+from tests.server.conftest import http_get, http_json, run, server, until
 
 
 def test_player_moves_its_corner_and_the_cloth_follows(tmp_path) -> None:

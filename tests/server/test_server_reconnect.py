@@ -10,7 +10,7 @@ import pytest
 from clothball.game.net.client import NetClient, ServerError
 from clothball.server.room import RoomSettings
 
-from tests.conftest import run, server, until
+from tests.server.conftest import run, server, until
 
 
 def test_reconnect_within_the_grace_period_keeps_the_seat(tmp_path) -> None:

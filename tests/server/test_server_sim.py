@@ -12,7 +12,7 @@ from clothball.server import room as room_mod
 from clothball.server.room import RoomSettings
 from clothball.server.sim import RoomSim
 
-from tests.conftest import TINY, run, server
+from tests.server.conftest import TINY, run, server
 
 
 class ManualClock:
