@@ -1,4 +1,4 @@
-"""Type stub for clothball._native, the compiled core (see native/bindings.cpp).
+"""Type stub for clothball._native, the compiled core (see native/binding/module.cpp).
 
 Use it through clothball.game.Cloth, which validates arguments; this module trusts them.
 """
@@ -10,7 +10,7 @@ import numpy.typing as npt
 
 EFFECT_BITS: dict[str, int]
 INTEGRATOR_IDS: dict[str, int]  # Config.integrator of each scene integrator name
-falcon: ModuleType  # the Novint Falcon driver (native/falcon/bind_falcon.cpp)
+falcon: ModuleType  # the Novint Falcon driver (native/binding/falcon.cpp)
 
 class Config:
     n: int

@@ -1,4 +1,4 @@
-// Error types of the Falcon driver. Each maps to a Python exception in bind_falcon.cpp, and
+// Error types of the Falcon driver. Each maps to a Python exception in binding/falcon.cpp, and
 // every message says what the user can do about it.
 #pragma once
 #include <stdexcept>

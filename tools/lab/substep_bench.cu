@@ -1,5 +1,5 @@
 // Lab (not built with the package): times the production CUDA backend of
-// native/cloth_cuda.cu on the classic scene with no Python in the loop, compiled for the
+// native/cuda/cloth.cu on the classic scene with no Python in the loop, compiled for the
 // classic effect set only (CB_LAB_EFFECT_SET), so a kernel change builds in seconds here
 // and runs on the GPU machine without the package's 3-minute build.
 // Configurations come from tools/lab/classic_configs.py (the package's own scene code).
@@ -12,8 +12,8 @@
 //   stream:  all frames in one call (the GPU's own rate)
 #define CB_REAL float
 #define CB_LAB_EFFECT_SET (STRUCTURAL | GRAVITY | DAMPING | BALL | COUPLING)
-#include "../../native/cloth_cuda.cu"
-#include "../../native/cuda_device.cu"
+#include "../../native/cuda/cloth.cu"
+#include "../../native/cuda/device.cu"
 
 #include <chrono>
 #include <fstream>

@@ -16,15 +16,16 @@
 #include <vector>
 
 #include "core/backend.hpp"
-#include "cuda_check.hpp"
+#include "cuda/check.hpp"
 #include "core/forces.hpp"
-#include "cuda_integrators.hpp"
+#include "cuda/integrators.hpp"
+#include "cuda/reduce.cuh"
 
 namespace cb {
 namespace {
 
-
-constexpr int kBlock = 256;
+using ci::kBlock;
+using ci::warp_sum;
 
 // Per-frame readback: 4 corners (position, velocity), the ball (position, velocity), a flag.
 constexpr int kReadback = 4 * 6 + 6 + 1;  // + the non-finite flag
@@ -126,12 +127,6 @@ __device__ inline void follow_previous_launch() {
   asm volatile("griddepcontrol.launch_dependents;" ::: "memory");
   asm volatile("griddepcontrol.wait;" ::: "memory");
 #endif
-}
-
-template <class R>
-__device__ R warp_sum(R v) {
-  for (int o = 16; o > 0; o >>= 1) v += __shfl_down_sync(0xffffffffu, v, o);
-  return v;
 }
 
 template <class R>

@@ -5,7 +5,7 @@
 #include <pybind11/stl.h>
 
 #include "core/backend.hpp"
-#include "falcon/bind_falcon.hpp"
+#include "binding/falcon.hpp"
 
 namespace py = pybind11;
 using Array = py::array_t<double, py::array::c_style | py::array::forcecast>;

@@ -11,7 +11,7 @@
 
 #include "core/backend.hpp"
 #include "core/integrators.hpp"
-#include "cpu_integrators.hpp"
+#include "cpu/integrators.hpp"
 
 namespace cb {
 namespace {

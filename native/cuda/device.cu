@@ -7,7 +7,7 @@
 #include <vector>
 
 #include "core/backend.hpp"
-#include "cuda_check.hpp"
+#include "cuda/check.hpp"
 
 namespace cb {
 

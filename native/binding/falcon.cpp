@@ -1,18 +1,18 @@
 // Python bindings of the Falcon driver (clothball._native.falcon): declarations and small
 // conversions only; the logic lives in codec, kinematics, transport_*, emulator, firmware,
 // coupling and driver. Blocking calls release the GIL.
-#include "bind_falcon.hpp"
+#include "binding/falcon.hpp"
 
 #include <pybind11/stl.h>
 
-#include "codec.hpp"
-#include "coupling.hpp"
-#include "driver.hpp"
-#include "emulator.hpp"
-#include "errors.hpp"
-#include "firmware.hpp"
-#include "kinematics.hpp"
-#include "transport.hpp"
+#include "falcon/codec.hpp"
+#include "falcon/coupling.hpp"
+#include "falcon/driver.hpp"
+#include "falcon/emulator.hpp"
+#include "falcon/errors.hpp"
+#include "falcon/firmware.hpp"
+#include "falcon/kinematics.hpp"
+#include "falcon/transport.hpp"
 
 namespace py = pybind11;
 

@@ -1,7 +1,7 @@
 // The CPU backend's integrators other than semi-implicit Euler (velocity Verlet, implicit
-// Euler). Each lives in its own translation units (verlet_cpu.cpp, implicit_cpu.cpp, built
+// Euler). Each lives in its own translation units (cpu/verlet.cpp, cpu/implicit.cpp, built
 // once per real type), so their effect-set specialisations compile in parallel with the
-// backend's own; cloth_cpu.cpp only hands them its state through CpuView.
+// backend's own; cpu/cloth.cpp only hands them its state through CpuView.
 #pragma once
 #include <memory>
 #include <vector>

@@ -1,6 +1,6 @@
 // The CUDA backend's integrators other than semi-implicit Euler (velocity Verlet, implicit
-// Euler), each in its own translation units (verlet_cuda.cu, implicit_cuda.cu, built once
-// per real type). cloth_cuda.cu hands them its device state through CudaView and captures
+// Euler), each in its own translation units (cuda/verlet.cu, cuda/implicit.cu, built once
+// per real type). cuda/cloth.cu hands them its device state through CudaView and captures
 // what they enqueue into the frame's CUDA graph. Included by .cu files only.
 #pragma once
 #include <cuda_runtime.h>

@@ -1,6 +1,6 @@
-// Device helpers shared by verlet_cuda.cu and implicit_cuda.cu: grid-wide sums with one
-// atomic per block and value, and the last-block pattern that lets the block that finishes
-// last act on the totals within the same launch.
+// The CUDA units' reductions, defined once: the block size, warp sums, grid-wide sums with
+// one atomic per block and value, and the last-block pattern that lets the block that
+// finishes last act on the totals within the same launch.
 #pragma once
 #include <cuda_runtime.h>
 

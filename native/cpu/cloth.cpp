@@ -12,7 +12,7 @@
 
 #include "core/backend.hpp"
 #include "core/forces.hpp"
-#include "cpu_integrators.hpp"
+#include "cpu/integrators.hpp"
 
 #ifndef CB_PARTS
 #define CB_PARTS 1

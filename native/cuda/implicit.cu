@@ -11,9 +11,9 @@
 
 #include "core/backend.hpp"
 #include "core/integrators.hpp"
-#include "cuda_check.hpp"
-#include "cuda_integrators.hpp"
-#include "integrators_cuda.cuh"
+#include "cuda/check.hpp"
+#include "cuda/integrators.hpp"
+#include "cuda/reduce.cuh"
 
 namespace cb {
 namespace {
