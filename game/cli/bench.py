@@ -10,14 +10,17 @@ from pathlib import Path
 
 from ... import _native  # type: ignore[attr-defined]
 from ...server import loadbench
-from ..sim.scene import SceneError
+from ..sim.scene import Scene, SceneError
+from ..study import rooms
 from ..study.bench import (
+    csv_list,
     gpu_target_verdicts,
     print_effects,
     print_skip_check,
     print_table,
     run_effects,
     run_table,
+    select_backends,
 )
 
 
@@ -35,6 +38,15 @@ def configure(p: argparse.ArgumentParser) -> None:
         help="time each effect alone and added one at a time (on --scene, default classic)",
     )
     p.add_argument(
+        "--rooms", action="store_true",
+        help="how many rooms (batched cloths, hands in and corners out, no network) one "
+             "engine steps at 1 kHz, per backend and n (--sizes; default 16,60)",
+    )
+    p.add_argument("--rooms-frames", type=int, default=300, metavar="F",
+                   help="--rooms: frames timed per room count (default %(default)s)")
+    p.add_argument("--max-rooms", type=int, default=4096, metavar="K",
+                   help="--rooms: stop growing at K rooms (default %(default)s)")
+    p.add_argument(
         "--server", action="store_true", help="benchmark the game server instead (see --help)"
     )
     p.add_argument(
@@ -47,6 +59,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.server or args.load:
         return loadbench.run_load(args) if args.load else loadbench.run(args)
+    if args.rooms:
+        return run_rooms_cmd(args)
     if args.effects:
         try:
             rows = run_effects(args)
@@ -78,5 +92,37 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         out = {"rows": rows, "copy_gbs": copy_gbs, "argv": sys.argv[1:]}
         Path(args.json).write_text(json.dumps(out, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def run_rooms_cmd(args: argparse.Namespace) -> int:
+    from tqdm import tqdm  # noqa: PLC0415
+
+    try:
+        base = Scene.load(args.scene)
+        backends = select_backends(args)
+        precisions = (["float32"] if args.precisions == "float32,float64"
+                      else csv_list(args.precisions, "precisions", ("float32", "float64")))
+        sizes = [int(s) for s in csv_list(args.sizes or "16,60", "sizes")]
+        if any(not 2 <= s <= 512 for s in sizes):
+            raise ValueError("--sizes: each n must be in 2..512 for --rooms")
+        if not 10 <= args.rooms_frames <= 100_000:
+            raise ValueError("--rooms-frames: must be in 10..100000")
+        if not 1 <= args.max_rooms <= 65_536:
+            raise ValueError("--max-rooms: must be in 1..65536")
+    except (ValueError, SceneError) as e:
+        print(f"clothball bench: {e}", file=sys.stderr)
+        return 2
+    cases = [(b, p, n) for b in backends for p in precisions for n in sizes]
+    with tqdm(desc="rooms", unit="count", file=sys.stderr) as bar:
+        def progress(label: str) -> None:
+            bar.set_postfix_str(label[:70])
+            bar.update(1)
+
+        rows = rooms.run_rooms(base, cases, args.rooms_frames, args.max_rooms, progress)
+    rooms.print_rooms(rows)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=2))
         print(f"wrote {args.json}")
     return 0

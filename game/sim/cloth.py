@@ -118,6 +118,65 @@ def _as_finite(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
+def resolve_backend(scene: Scene, backend: str, precision: str | None
+                    ) -> tuple[str, str, str]:
+    """(backend, precision, note) for a cloth of ``scene``: ``"auto"`` is CUDA when a GPU is
+    present, else the CPU (logged, with why); ``precision`` None is the scene's. Bad
+    arguments raise ``ValueError`` naming the argument."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene: expected a Scene, got {type(scene).__name__}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend: must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if precision is None:
+        precision = scene["sim"]["precision"]
+    if precision not in ("float32", "float64"):
+        raise ValueError(f"precision: must be 'float32' or 'float64', got {precision!r}")
+    why_not = cuda_unavailable_reason()
+    if backend == "auto":
+        backend = "cuda" if not why_not else "cpu"
+        note = "CUDA device found" if backend == "cuda" else f"using the CPU backend: {why_not}"
+        log.info("clothball backend: %s (%s)", backend, note)
+    elif backend == "cuda" and why_not:
+        raise ValueError(f"backend: 'cuda' requested but {why_not}")
+    else:
+        note = f"{backend} requested"
+    if backend == "cpu" and scene.n > CPU_MAX_N:
+        raise ValueError(
+            f"scene: n = {scene.n} is larger than the CPU backend supports "
+            f"(n <= {CPU_MAX_N}); use backend='cuda'"
+        )
+    return backend, precision, note
+
+
+def wind_at(scene: Scene, t: float) -> np.ndarray:
+    """The wind velocity at simulated time t (gusts: x (1 + a sin(2 pi t / T)))."""
+    wind = scene["wind"]
+    a, period = wind["gust_amplitude"], wind["gust_period"]
+    return np.array(wind["velocity"], dtype=np.float64) * (
+        1.0 + a * math.sin(2.0 * math.pi * t / period))
+
+
+def check_fixed_dt(scene: Scene) -> None:
+    """A scene's fixed substep count must keep dt within the stability bound, unless the
+    scene allows it (then a warning)."""
+    fixed = scene["sim"]["substeps"]
+    dt = float(scene["sim"]["frame_dt"]) / fixed
+    bound = stable_dt(scene)
+    if dt <= bound:
+        return
+    need = auto_substeps(scene)
+    msg = (
+        f"sim.substeps = {fixed} gives dt = {dt:.3g} s, beyond the stability "
+        f"bound {bound:.3g} s of this scene (use at least {need} substeps, or leave "
+        f"sim.substeps out for automatic substeps)"
+    )
+    if not scene["sim"]["allow_unstable"]:
+        raise SceneError(msg)
+    warnings.warn(
+        msg + "; accepted because sim.allow_unstable = true", UnstableSceneWarning, stacklevel=3
+    )
+
+
 class Cloth:
     """A cloth simulation of ``scene`` on the CPU or CUDA backend.
 
@@ -135,50 +194,25 @@ class Cloth:
         precision: str | None = None,
         threads: int | None = None,
     ) -> None:
-        if not isinstance(scene, Scene):
-            raise ValueError(f"scene: expected a Scene, got {type(scene).__name__}")
-        if backend not in BACKENDS:
-            raise ValueError(f"backend: must be one of {', '.join(BACKENDS)}, got {backend!r}")
-        if precision is None:
-            precision = scene["sim"]["precision"]
-        if precision not in ("float32", "float64"):
-            raise ValueError(f"precision: must be 'float32' or 'float64', got {precision!r}")
+        backend, precision, self.backend_note = resolve_backend(scene, backend, precision)
         if threads is not None and (
             isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= 1024
         ):
             raise ValueError(f"threads: must be a whole number in 1..1024, got {threads!r}")
-        why_not = cuda_unavailable_reason()
-        if backend == "auto":
-            backend = "cuda" if not why_not else "cpu"
-            self.backend_note = (
-                "CUDA device found" if backend == "cuda" else f"using the CPU backend: {why_not}"
-            )
-            log.info("clothball backend: %s (%s)", backend, self.backend_note)
-        elif backend == "cuda" and why_not:
-            raise ValueError(f"backend: 'cuda' requested but {why_not}")
-        else:
-            self.backend_note = f"{backend} requested"
-        if backend == "cpu" and scene.n > CPU_MAX_N:
-            raise ValueError(
-                f"scene: n = {scene.n} is larger than the CPU backend supports "
-                f"(n <= {CPU_MAX_N}); use backend='cuda'"
-            )
         self.scene = scene
         self.backend = backend
         self.precision = precision
         self._fixed_substeps = scene["sim"]["substeps"]
         self._frame_dt = float(scene["sim"]["frame_dt"])
         if self._fixed_substeps is not None:
-            self._check_fixed_dt(scene)
+            check_fixed_dt(scene)
         self._engine = _native.Engine(
             backend, precision == "float64", native_config(scene, threads or 0)
         )
         self._coupled = "coupling" in scene.effects
         self._has_ball = "ball" in scene.effects
         self._k = float(scene["coupling"]["stiffness"]) if self._coupled else 0.0
-        wind = scene["wind"]
-        self._wind = np.array(wind["velocity"], dtype=np.float64)
-        self._gusts = "wind" in scene.effects and wind["gust_amplitude"] > 0.0
+        self._gusts = "wind" in scene.effects and scene["wind"]["gust_amplitude"] > 0.0
         self.reset()
 
     def reset(self) -> None:
@@ -193,28 +227,9 @@ class Cloth:
         self._apply_wind()
         self._refresh_substeps()
 
-    def _check_fixed_dt(self, scene: Scene) -> None:
-        dt = self._frame_dt / self._fixed_substeps
-        bound = stable_dt(scene)
-        if dt <= bound:
-            return
-        need = auto_substeps(scene)
-        msg = (
-            f"sim.substeps = {self._fixed_substeps} gives dt = {dt:.3g} s, beyond the stability "
-            f"bound {bound:.3g} s of this scene (use at least {need} substeps, or leave "
-            f"sim.substeps out for automatic substeps)"
-        )
-        if not scene["sim"]["allow_unstable"]:
-            raise SceneError(msg)
-        warnings.warn(
-            msg + "; accepted because sim.allow_unstable = true", UnstableSceneWarning, stacklevel=3
-        )
-
     def wind_at(self, t: float) -> np.ndarray:
         """The wind velocity at simulated time t (gusts: x (1 + a sin(2 pi t / T)))."""
-        wind = self.scene["wind"]
-        a, period = wind["gust_amplitude"], wind["gust_period"]
-        return self._wind * (1.0 + a * math.sin(2.0 * math.pi * t / period))
+        return wind_at(self.scene, t)
 
     def _apply_wind(self) -> None:
         self._engine.set_wind(self.wind_at(self.frame * self._frame_dt))

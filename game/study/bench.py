@@ -48,7 +48,7 @@ LARGE_N, LARGE_COPY = 2048, 0.80
 RATIO_N, RATIO_MAX = 1024, 2.5
 
 
-def _csv(text: str, what: str, allowed: tuple[str, ...] | None = None) -> list[str]:
+def csv_list(text: str, what: str, allowed: tuple[str, ...] | None = None) -> list[str]:
     items = [t.strip() for t in text.split(",") if t.strip()]
     if not items:
         raise ValueError(f"--{what}: empty list")
@@ -85,7 +85,7 @@ def select_backends(args: argparse.Namespace) -> list[str]:
     cuda_missing = cuda_unavailable_reason()
     if args.backends == "auto":
         return ["cpu"] + ([] if cuda_missing else ["cuda"])
-    backends = _csv(args.backends, "backends", ("cpu", "cuda"))
+    backends = csv_list(args.backends, "backends", ("cpu", "cuda"))
     if "cuda" in backends and cuda_missing:
         raise ValueError(f"--backends: cuda requested but {cuda_missing}")
     return backends
@@ -94,10 +94,10 @@ def select_backends(args: argparse.Namespace) -> list[str]:
 def plan(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     """The (backend, precision, n) cases to run, in order."""
     backends = select_backends(args)
-    precisions = _csv(args.precisions, "precisions", ("float32", "float64"))
+    precisions = csv_list(args.precisions, "precisions", ("float32", "float64"))
     if args.sizes:
         try:
-            sizes = [int(s) for s in _csv(args.sizes, "sizes")]
+            sizes = [int(s) for s in csv_list(args.sizes, "sizes")]
         except ValueError as e:
             raise ValueError(f"--sizes: expected whole numbers: {e}") from None
         if any(not 2 <= s <= 8192 for s in sizes):
@@ -190,10 +190,10 @@ def run_effects(args: argparse.Namespace) -> list[dict[str, Any]]:
     from tqdm import tqdm  # noqa: PLC0415
 
     base = Scene.load(args.scene)
-    n = int(_csv(args.sizes, "sizes")[0]) if args.sizes else base.n
+    n = int(csv_list(args.sizes, "sizes")[0]) if args.sizes else base.n
     full = base.with_changes({"cloth": {"n": n}, "sim": {"effects": list(EFFECT_ORDER)}})
     substeps = auto_substeps(full)
-    precisions = _csv(args.precisions, "precisions", ("float32", "float64"))
+    precisions = csv_list(args.precisions, "precisions", ("float32", "float64"))
     backends = select_backends(args)
     repeats = args.repeats or (3 if args.quick else 7)
     cases = effect_cases(base)

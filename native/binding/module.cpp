@@ -8,6 +8,7 @@
 #include "binding/falcon.hpp"
 
 namespace py = pybind11;
+void bind_batch(py::module_& m);  // binding/batch.cpp
 using Array = py::array_t<double, py::array::c_style | py::array::forcecast>;
 
 namespace {
@@ -117,6 +118,8 @@ PYBIND11_MODULE(_native, m) {
       .def("ball", &Engine::ball)
       .def("corners", &Engine::corners)
       .def("step", &Engine::step, py::arg("frames"), py::arg("substeps"), py::arg("dt"));
+
+  bind_batch(m);
 
   py::dict effects;
   effects["structural"] = unsigned(cb::STRUCTURAL);

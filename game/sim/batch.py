@@ -1,0 +1,274 @@
+"""``ClothBatch``: many cloths of one scene stepped by one call, for a server that runs many
+rooms. Every slot is the same simulation as a lone ``Cloth`` of the scene (the same native
+code; on the CPU a slot is bit for bit a ``Cloth`` with ``threads=1``), and a frame for all
+slots costs one call in (``set_hips_all``), one step and one call out (``corners_all``).
+
+Slots share the substep count: with automatic substeps the batch takes the largest any
+occupied slot needs (a fast ball needs more). A slot whose state turns non-finite is
+reported by ``step`` and reset (or freed, ``on_failure="remove"``) alone; the others step
+on.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+import numpy as np
+
+from ... import _native  # type: ignore[attr-defined]
+from .cloth import (
+    MAX_FRAMES_PER_CALL,
+    MAX_SUBSTEPS_PER_CALL,
+    _as_finite,
+    check_fixed_dt,
+    corners_of,
+    native_config,
+    resolve_backend,
+    rest_positions,
+    wind_at,
+)
+from .scene import Scene
+from .stability import auto_substeps
+
+log = logging.getLogger("clothball.sim")
+
+MAX_CAPACITY = 65_536
+
+
+class ClothBatch:
+    """Up to ``capacity`` cloths of ``scene`` (same n, effect set, precision, substeps).
+
+    ``add()`` takes a free slot (its cloth starts as ``Cloth.reset()`` leaves one) and
+    ``remove(slot)`` frees it; neither touches the other slots. ``step(frames)`` advances
+    every occupied slot and returns the slots that failed (non-finite state) in that call.
+    Not thread-safe: one thread calls it at a time (stepping releases the GIL).
+    """
+
+    def __init__(self, scene: Scene, capacity: int, backend: str = "auto",
+                 precision: str | None = None,
+                 on_failure: Literal["reset", "remove"] = "reset") -> None:
+        backend, precision, self.backend_note = resolve_backend(scene, backend, precision)
+        if isinstance(capacity, bool) or not isinstance(capacity, int | np.integer) or not (
+                1 <= capacity <= MAX_CAPACITY):
+            raise ValueError(f"capacity: must be a whole number in 1..{MAX_CAPACITY}, "
+                             f"got {capacity!r}")
+        if on_failure not in ("reset", "remove"):
+            raise ValueError(f"on_failure: must be 'reset' or 'remove', got {on_failure!r}")
+        self.scene = scene
+        self.backend = backend
+        self.precision = precision
+        self.capacity = int(capacity)
+        self.on_failure = on_failure
+        self._fixed_substeps = scene["sim"]["substeps"]
+        if self._fixed_substeps is not None:
+            check_fixed_dt(scene)
+        self._frame_dt = float(scene["sim"]["frame_dt"])
+        self._engine = _native.BatchEngine(backend, precision == "float64",
+                                           native_config(scene), self.capacity)
+        self._coupled = "coupling" in scene.effects
+        self._has_ball = "ball" in scene.effects
+        self._k = float(scene["coupling"]["stiffness"]) if self._coupled else 0.0
+        self._gusts = "wind" in scene.effects and scene["wind"]["gust_amplitude"] > 0.0
+        self._rest = rest_positions(scene)
+        self._hips = np.zeros((self.capacity, 4, 3))
+        self._frames = np.zeros(self.capacity, dtype=np.int64)  # frames since each reset
+        self._used = np.zeros(self.capacity, dtype=bool)
+        self._slot_substeps = np.ones(self.capacity, dtype=np.int64)
+        self._corners: np.ndarray | None = None  # (capacity, 4, 6), as of the last step
+        self._balls: np.ndarray | None = None
+        self.failures = 0  # slots reset or removed for a non-finite state, in all
+
+    # --- slots ----------------------------------------------------------------------------
+    def add(self) -> int:
+        """A free slot, its cloth at the scene's start. ``ValueError`` when all are taken."""
+        free = np.flatnonzero(~self._used)
+        if free.size == 0:
+            raise ValueError(f"add: all {self.capacity} slots are taken; remove one first")
+        slot = int(free[0])
+        self._engine.open(slot)
+        self._used[slot] = True
+        self.reset(slot)
+        return slot
+
+    def remove(self, slot: int) -> None:
+        """Free a slot (its memory too); the other slots are not touched."""
+        self._check(slot)
+        self._engine.close(slot)
+        self._used[slot] = False
+        self._corners = self._balls = None
+
+    def slots(self) -> list[int]:
+        """The occupied slots, in order."""
+        return [int(s) for s in np.flatnonzero(self._used)]
+
+    def reset(self, slot: int) -> None:
+        """Back to the scene's start, as ``Cloth.reset``."""
+        self._check(slot)
+        e = self._engine
+        e.set_state(slot, self._rest, np.zeros_like(self._rest))
+        self._hips[slot] = corners_of(self._rest)
+        e.set_hips(slot, self._hips[slot])
+        ball = self.scene["ball"]
+        e.set_ball(slot, np.array([*ball["position"], *ball["velocity"]], dtype=np.float64))
+        self._frames[slot] = 0
+        e.set_wind(slot, wind_at(self.scene, 0.0))
+        self._refresh_substeps(slot)
+        self._corners = self._balls = None
+
+    def _check(self, slot: object) -> int:
+        if isinstance(slot, bool) or not isinstance(slot, int | np.integer):
+            raise ValueError(f"slot: expected a whole number, got {slot!r}")
+        if not 0 <= slot < self.capacity or not self._used[slot]:
+            raise ValueError(f"slot: {slot} is not an occupied slot (occupied: "
+                             f"{self.slots()})")
+        return int(slot)
+
+    # --- stepping -------------------------------------------------------------------------
+    def _refresh_substeps(self, slot: int) -> None:
+        if self._fixed_substeps is not None:
+            self._slot_substeps[slot] = int(self._fixed_substeps)
+        else:
+            speed = (float(np.linalg.norm(self._engine.ball(slot)[3:]))
+                     if self._has_ball else 0.0)
+            self._slot_substeps[slot] = auto_substeps(self.scene, speed)
+
+    @property
+    def substeps(self) -> int:
+        """Substeps per frame for every slot: the largest any occupied slot needs."""
+        if not self._used.any():
+            return int(self._fixed_substeps or 1)
+        return int(self._slot_substeps[self._used].max())
+
+    @property
+    def dt(self) -> float:
+        return self._frame_dt / self.substeps
+
+    @property
+    def frame_dt(self) -> float:
+        return self._frame_dt
+
+    def step(self, frames: int = 1) -> list[int]:
+        """Advance every occupied slot ``frames`` frames. Returns the slots whose state
+        turned non-finite (reset or removed, as ``on_failure`` says); the others step on."""
+        if isinstance(frames, bool) or not isinstance(frames, int | np.integer):
+            raise ValueError(f"frames: expected a whole number, got {frames!r}")
+        if not 1 <= frames <= MAX_FRAMES_PER_CALL:
+            raise ValueError(f"frames: must be in 1..{MAX_FRAMES_PER_CALL}, got {frames}")
+        failed: list[int] = []
+        remaining = int(frames)
+        while remaining and self._used.any():
+            substeps = self.substeps
+            # As Cloth: auto substeps follow the balls, so re-check every 10 frames at most;
+            # gusts change the wind every frame.
+            chunk = remaining if self._fixed_substeps is not None else min(remaining, 10)
+            chunk = min(chunk, max(1, MAX_SUBSTEPS_PER_CALL // substeps))
+            if self._gusts:
+                chunk = 1
+                t = self._frames * self._frame_dt
+                self._engine.set_wind_all(np.stack([wind_at(self.scene, x) for x in t]))
+            finite = self._engine.step(chunk, substeps, self._frame_dt / substeps)
+            self._frames[self._used] += chunk
+            remaining -= chunk
+            for slot in np.flatnonzero(self._used & ~finite):
+                failed.append(int(slot))
+                self._fail(int(slot), substeps)
+            if self._fixed_substeps is None:
+                for slot in np.flatnonzero(self._used):
+                    self._refresh_substeps(int(slot))
+        self._corners = self._balls = None
+        return failed
+
+    def _fail(self, slot: int, substeps: int) -> None:
+        self.failures += 1
+        log.warning("batch slot %d: state became non-finite by frame %d (backend %s, %s, "
+                    "%d substeps); %s", slot, self._frames[slot], self.backend,
+                    self.precision, substeps,
+                    "reset" if self.on_failure == "reset" else "removed")
+        if self.on_failure == "reset":
+            self.reset(slot)
+        else:
+            self.remove(slot)
+
+    # --- inputs ---------------------------------------------------------------------------
+    def set_hips(self, slot: int, h: object) -> None:
+        """One slot's hand positions (4, 3), metres, in the corner order of ``Cloth``."""
+        slot = self._check(slot)
+        hips = _as_finite("h", h, (4, 3))
+        self._engine.set_hips(slot, hips)
+        self._hips[slot] = hips
+
+    def set_hips_all(self, h: object) -> None:
+        """Every slot's hands at once, (capacity, 4, 3); rows of free slots are ignored."""
+        hips = _as_finite("h", h, (self.capacity, 4, 3))
+        self._engine.set_hips_all(hips)
+        self._hips[self._used] = hips[self._used]
+
+    def set_ball(self, slot: int, position: object,
+                 velocity: object = (0.0, 0.0, 0.0)) -> None:
+        slot = self._check(slot)
+        if not self._has_ball:
+            raise ValueError("set_ball: this scene has no 'ball' effect")
+        p = _as_finite("position", position, (3,))
+        v = _as_finite("velocity", velocity, (3,))
+        self._engine.set_ball(slot, np.concatenate([p, v]))
+        self._refresh_substeps(slot)
+        self._balls = None
+
+    def set_state(self, slot: int, positions: object, velocities: object) -> None:
+        slot = self._check(slot)
+        n = self.scene.n
+        pos = _as_finite("positions", positions, (n, n, 3))
+        vel = _as_finite("velocities", velocities, (n, n, 3))
+        self._engine.set_state(slot, pos, vel)
+        self._corners = None
+
+    # --- outputs --------------------------------------------------------------------------
+    def _outputs(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._corners is None or self._balls is None:
+            self._corners, self._balls = self._engine.corners_all()
+        return self._corners, self._balls
+
+    def corners_all(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every slot at once: corner positions and velocities (capacity, 4, 3) each, and
+        the balls (capacity, 6: position, velocity); free slots read 0."""
+        c, b = self._outputs()
+        return c[:, :, :3].copy(), c[:, :, 3:].copy(), b.copy()
+
+    def corners(self, slot: int) -> tuple[np.ndarray, np.ndarray]:
+        slot = self._check(slot)
+        c = self._outputs()[0][slot]
+        return c[:, :3].copy(), c[:, 3:].copy()
+
+    def corner_forces(self, slot: int) -> np.ndarray:
+        """Force on each of the slot's devices (4, 3), N: -K (h - c) (eq. 7)."""
+        slot = self._check(slot)
+        if not self._coupled:
+            return np.zeros((4, 3))
+        return -self._k * (self._hips[slot] - self._outputs()[0][slot][:, :3])
+
+    def ball(self, slot: int) -> tuple[np.ndarray, np.ndarray]:
+        slot = self._check(slot)
+        b = self._outputs()[1][slot]
+        return b[:3].copy(), b[3:].copy()
+
+    def hips(self, slot: int) -> np.ndarray:
+        return self._hips[self._check(slot)].copy()
+
+    def positions(self, slot: int) -> np.ndarray:
+        return self._engine.positions(self._check(slot))
+
+    def velocities(self, slot: int) -> np.ndarray:
+        return self._engine.velocities(self._check(slot))
+
+    def normals(self, slot: int) -> np.ndarray:
+        return self._engine.normals(self._check(slot))
+
+    def frame(self, slot: int) -> int:
+        """Frames the slot has stepped since it was added or last reset."""
+        return int(self._frames[self._check(slot)])
+
+    def __repr__(self) -> str:
+        return (f"ClothBatch({self.scene.name!r}, n={self.scene.n}, {len(self.slots())}/"
+                f"{self.capacity} slots, backend={self.backend!r}, "
+                f"precision={self.precision!r}, substeps={self.substeps})")

@@ -1,0 +1,109 @@
+// Many cloths of one configuration (same n, effect set, precision) stepped by one call: the
+// engine behind clothball.game.ClothBatch. Each occupied slot is a Backend of its own, so a
+// slot runs exactly the code a lone cloth runs (the same core, no second copy of the
+// equations). On the CPU the slots are shared among the cores in one parallel region, each
+// slot on one thread (no barrier between its substeps); inputs and outputs cross for all
+// slots at once, one array each way.
+#pragma once
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "backend.hpp"
+
+namespace cb {
+
+class Batch {
+ public:
+  using Factory = std::function<std::unique_ptr<Backend>(const Config&)>;
+
+  // `parallel`: step the slots on the OpenMP threads (CPU backends, each made with one
+  // thread); else one after another (CUDA backends, which queue their own work).
+  Batch(Factory make, const Config& c, int capacity, bool parallel)
+      : make_(std::move(make)), cfg_(c), slots_(size_t(capacity)), parallel_(parallel) {
+    if (capacity < 1) throw std::invalid_argument("capacity must be at least 1");
+  }
+
+  int capacity() const { return int(slots_.size()); }
+  bool occupied(int s) const { return slots_.at(size_t(s)) != nullptr; }
+
+  // A slot's cloth is made when the slot is opened and freed when it is closed: an idle
+  // slot costs no memory. The caller sets its state (Cloth.reset's start).
+  void open(int s) {
+    if (!slots_.at(size_t(s))) slots_[size_t(s)] = make_(cfg_);
+  }
+  void close(int s) { slots_.at(size_t(s)).reset(); }
+
+  Backend& at(int s) {
+    Backend* b = slots_.at(size_t(s)).get();
+    if (!b) throw std::out_of_range("slot " + std::to_string(s) + " is free");
+    return *b;
+  }
+
+  // hips: capacity x 12 (4 corners x 3); rows of free slots are ignored.
+  void set_hips_all(const double* h) {
+    for (size_t s = 0; s < slots_.size(); ++s)
+      if (slots_[s]) slots_[s]->set_hips(h + 12 * s);
+  }
+  void set_wind_all(const double* w) {  // capacity x 3
+    for (size_t s = 0; s < slots_.size(); ++s)
+      if (slots_[s]) slots_[s]->set_wind(w + 3 * s);
+  }
+  // corners: capacity x 24 (4 x position, velocity); balls: capacity x 6. Free slots: 0.
+  void get_corners_all(double* corners, double* balls) {
+    for (size_t s = 0; s < slots_.size(); ++s) {
+      double* c = corners + 24 * s;
+      double* b = balls + 6 * s;
+      if (slots_[s]) {
+        slots_[s]->get_corners(c);
+        slots_[s]->get_ball(b);
+      } else {
+        std::fill(c, c + 24, 0.0);
+        std::fill(b, b + 6, 0.0);
+      }
+    }
+  }
+
+  // Every occupied slot advances `frames` frames; finite[s] is 1 for a slot whose state is
+  // still finite (and for free slots), else 0. A slot that fails does not stop the others.
+  void step(int frames, int substeps, double dt, std::uint8_t* finite) {
+    const int n = capacity();
+    std::vector<int> live;
+    live.reserve(size_t(n));
+    for (int s = 0; s < n; ++s)
+      if (slots_[size_t(s)]) live.push_back(s);
+    const int m = int(live.size());
+    if (parallel_) {
+#pragma omp parallel for schedule(dynamic, 1)
+      for (int k = 0; k < m; ++k) slots_[size_t(live[size_t(k)])]->step(frames, substeps, dt);
+    } else {
+      for (int k = 0; k < m; ++k) slots_[size_t(live[size_t(k)])]->step(frames, substeps, dt);
+    }
+    for (int s = 0; s < n; ++s) finite[s] = slot_finite(s) ? 1 : 0;
+  }
+
+ private:
+  // As Cloth checks it: every node and the ball finite.
+  bool slot_finite(int s) {
+    Backend* b = slots_[size_t(s)].get();
+    if (!b) return true;
+    if (!b->state_finite()) return false;
+    double pv[6];
+    b->get_ball(pv);
+    for (double v : pv)
+      if (!std::isfinite(v)) return false;
+    return true;
+  }
+
+  Factory make_;
+  Config cfg_;
+  std::vector<std::unique_ptr<Backend>> slots_;
+  bool parallel_;
+};
+
+}  // namespace cb
