@@ -3,21 +3,25 @@
 # CLOTHBALL_REQUIRE_GPU=1 (a GPU skip is a failure), then the benchmarks.
 # Usage (on a machine with an NVIDIA GPU and no network):
 #   OUT=results bash tools/gpu_suite.sh [bench args...]
+# LAB=1 adds the launch-overlap A/B, the lab programs and the CPU effects bench.
 # Pure-Python wheels the machine lacks (tqdm) may be put in .whl/ beforehand.
 OUT=${OUT:-gpu-results}
 source "$(dirname "$0")/gpu_build.sh"
 cd /tmp  # import the installed package, not the source tree
-CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -c "$OLDPWD/setup.cfg" \
-  --rootdir "$OLDPWD" "$OLDPWD/tests/test_engine_vs_oracle.py" "$OLDPWD/tests/test_cloth_api.py" \
-  "$OLDPWD/tests/test_scene.py" "$OLDPWD/tests/test_effects.py" "$OLDPWD/tests/test_hard_cases.py" \
-  "$OLDPWD/tests/test_integrators_native.py" \
+# The engine's tests and the study's (both backends), spread over 8 workers.
+CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -p no:cacheprovider -p no:benchmark -n 8 \
+  -c "$OLDPWD/setup.cfg" --rootdir "$OLDPWD" "$OLDPWD/tests/engine" "$OLDPWD/tests/study" \
   2>&1 | tee "$OUT/gpu_tests.txt" | tail -5
 tests_rc=${PIPESTATUS[0]}
 cd "$OLDPWD"
 python3 -m clothball.game.cli bench --backends cuda --json "$OUT/bench_gpu.json" "$@" 2>"$OUT/bench_gpu.err" \
   | tee "$OUT/bench_gpu.txt"
+# Rooms one engine holds at 1 kHz (ClothBatch), CUDA and the 16 CPU cores.
+python3 -m clothball.game.cli bench --rooms --backends cuda,cpu --sizes 16,60 \
+  --json "$OUT/rooms.json" 2>>"$OUT/bench_gpu.err" | tee "$OUT/rooms.txt"
 python3 -m clothball.game.cli bench --effects --backends cuda --json "$OUT/effects_gpu.json" \
   2>>"$OUT/bench_gpu.err" | tee "$OUT/effects_gpu.txt"
+[ "${LAB:-0}" = 1 ] || exit "$tests_rc"  # LAB=1: also the launch A/B and the lab programs
 # What overlapping launches (programmatic dependent launch) save: the small sizes again
 # with them off.
 CLOTHBALL_CUDA_OVERLAP=0 python3 -m clothball.game.cli bench --backends cuda \
