@@ -12,11 +12,13 @@ index row: they are listed and served only to a request that names the room's co
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import sqlite3
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -45,9 +47,46 @@ CREATE TABLE IF NOT EXISTS rounds (
 CREATE INDEX IF NOT EXISTS rounds_ended ON rounds (ended_at);
 """
 
+# Every query the HTTP API makes walks one of these in its ORDER BY order and stops at
+# LIMIT (see ``_QUERIES`` and tests/server/test_index_queries.py): no scan of the rounds.
+# ``round_players`` holds each round's seat names (with the columns the filters need), so
+# ``?player=`` is an index search, not a look into every round's JSON.
+INDEXES = """
+CREATE INDEX IF NOT EXISTS rounds_public ON rounds (access, ended_at DESC, id);
+CREATE INDEX IF NOT EXISTS rounds_room ON rounds (room_id, access, ended_at DESC, id);
+CREATE TABLE IF NOT EXISTS round_players (
+    round_id TEXT NOT NULL,
+    name TEXT NOT NULL,
+    room_id TEXT NOT NULL,
+    access TEXT,
+    ended_at REAL NOT NULL,
+    PRIMARY KEY (round_id, name)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS round_players_name
+    ON round_players (name, access, ended_at DESC, round_id);
+CREATE INDEX IF NOT EXISTS round_players_name_room
+    ON round_players (name, room_id, access, ended_at DESC, round_id);
+CREATE TRIGGER IF NOT EXISTS rounds_delete_players AFTER DELETE ON rounds BEGIN
+    DELETE FROM round_players WHERE round_id = old.id;
+END;
+"""
+INDEX_VERSION = 1  # PRAGMA user_version once ``round_players`` holds every round
+
 COLUMNS = ("id", "room_id", "room_name", "scene", "round", "players", "conceded_edge",
            "conceded_by", "scores", "started_at", "ended_at", "duration_s", "file", "bytes",
            "access")
+_GET = f"SELECT {', '.join(COLUMNS)} FROM rounds WHERE id = ?"
+
+
+def _statements(script: str) -> list[str]:
+    """``script`` split into whole statements (a trigger's body holds ``;`` too)."""
+    out, cur = [], ""
+    for line in script.splitlines(keepends=True):
+        cur += line
+        if sqlite3.complete_statement(cur):
+            out.append(cur.strip())
+            cur = ""
+    return out
 
 
 def access_key(room_id: str, code: str) -> str:
@@ -75,7 +114,36 @@ class ReplayStore:
         have = {r[1] for r in self._db.execute("PRAGMA table_info(rounds)")}
         if "access" not in have:  # an index from before private rounds were locked
             self._db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
+        self._migrate()
         self._recover()
+
+    def _migrate(self) -> None:
+        """Adds the query indexes and fills ``round_players`` from the rounds an older index
+        already holds, in one transaction."""
+        if self._db.execute("PRAGMA user_version").fetchone()[0] >= INDEX_VERSION:
+            return
+        with self._transaction():
+            for stmt in _statements(INDEXES):
+                self._db.execute(stmt)
+            self._db.execute("DELETE FROM round_players")
+            self._db.execute(
+                "INSERT OR IGNORE INTO round_players (round_id, name, room_id, access, ended_at)"
+                " SELECT rounds.id, json_extract(p.value, '$.name'), rounds.room_id,"
+                " rounds.access, rounds.ended_at FROM rounds, json_each(rounds.players) AS p"
+                " WHERE json_extract(p.value, '$.name') IS NOT NULL")
+            self._db.execute(f"PRAGMA user_version = {INDEX_VERSION}")
+
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[None]:
+        """Holds the lock; commits what the block did, or none of it."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
 
     def _recover(self) -> None:
         for tmp in self.replays.glob("*.cbr.tmp"):
@@ -101,12 +169,19 @@ class ReplayStore:
             float(header["ended_at"]), float(header["duration_s"]), path.name,
             path.stat().st_size, header.get("access"),
         )
-        with self._lock:
+        names = {p["name"] for p in header["players"]
+                 if isinstance(p, dict) and isinstance(p.get("name"), str)}
+        with self._transaction():
+            self._db.execute("DELETE FROM round_players WHERE round_id = ?", (row[0],))
             self._db.execute(
                 f"INSERT OR REPLACE INTO rounds ({', '.join(COLUMNS)}) "
                 f"VALUES ({', '.join('?' * len(COLUMNS))})",
                 row,
             )
+            self._db.executemany(
+                "INSERT INTO round_players (round_id, name, room_id, access, ended_at) "
+                "VALUES (?, ?, ?, ?, ?)",
+                [(row[0], n, row[1], row[14], row[10]) for n in sorted(names)])
 
     def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> dict[str, Any]:
         """Write one round's file, then index it. Returns the index row."""
@@ -121,31 +196,40 @@ class ReplayStore:
         return row
 
     @staticmethod
-    def _where(room_id: str | None, player: str | None, code: str | None
-               ) -> tuple[str, list[Any]]:
-        """The rounds a request may see: public ones, plus a private room's when the request
-        names that room and its code."""
-        if room_id is not None and code is not None:
-            q, args = " WHERE room_id = ? AND (access IS NULL OR access = ?)", [
-                room_id, access_key(room_id, code)]
-        elif room_id is not None:
-            q, args = " WHERE room_id = ? AND access IS NULL", [room_id]
-        else:
-            q, args = " WHERE access IS NULL", []
+    def _queries(room_id: str | None, player: str | None, code: str | None, limit: int = 100,
+                 offset: int = 0) -> dict[str, tuple[str, list[Any]]]:
+        """The SQL (and its arguments) of ``list`` and ``count`` for these filters. The
+        rounds a request may see: public ones, plus a private room's when the request names
+        that room and its code. With ``player`` the filter reads ``round_players``."""
+        table, rid = ("rounds", "id") if player is None else ("round_players", "round_id")
+        base, args = "", []
         if player is not None:
-            q += (" AND EXISTS (SELECT 1 FROM json_each(rounds.players)"
-                  " WHERE json_extract(value, '$.name') = ?)")
-            args.append(player)
-        return q, args
+            base, args = "name = ? AND ", [player]
+        if room_id is not None:
+            base, args = base + "room_id = ? AND ", [*args, room_id]
+        # One arm per access value, each an index range already in page order: SQLite merges
+        # them and stops at LIMIT (an OR would sort every row of the room first).
+        arms = [(base + "access IS NULL", args)]
+        if room_id is not None and code is not None:
+            arms.append((base + "access = ?", [*args, access_key(room_id, code)]))
+        # The page's ids from the index alone (a deep OFFSET steps over index entries, not
+        # rows), then those rows by primary key.
+        page = " UNION ALL ".join(f"SELECT {rid} AS id, ended_at FROM {table} WHERE {w}"
+                                  for w, _ in arms)
+        count = " + ".join(f"(SELECT COUNT(*) FROM {table} WHERE {w})" for w, _ in arms)
+        every = [a for _, arm_args in arms for a in arm_args]
+        return {
+            "list": (f"SELECT {', '.join(COLUMNS)} FROM rounds WHERE id IN (SELECT id FROM "
+                     f"({page} ORDER BY ended_at DESC, id LIMIT ? OFFSET ?)) "
+                     "ORDER BY ended_at DESC, id", [*every, limit, offset]),
+            "count": (f"SELECT {count}", every),
+        }
 
     def list(self, limit: int = 100, offset: int = 0, room_id: str | None = None, *,
              player: str | None = None, code: str | None = None) -> list[dict[str, Any]]:
         """Newest first. ``player``: only rounds where a seat had that name; ``code``: a
         private room's code (with ``room_id``) to see its rounds too."""
-        where, args = self._where(room_id, player, code)
-        q = f"SELECT {', '.join(COLUMNS)} FROM rounds{where}"
-        q += " ORDER BY ended_at DESC, id LIMIT ? OFFSET ?"
-        args += [limit, offset]
+        q, args = self._queries(room_id, player, code, limit, offset)["list"]
         with self._lock:
             rows = self._db.execute(q, args).fetchall()
         return [self._row(r) for r in rows]
@@ -153,18 +237,30 @@ class ReplayStore:
     def count(self, room_id: str | None = None, *, player: str | None = None,
               code: str | None = None) -> int:
         """How many rounds ``list`` with the same filters would page through."""
-        where, args = self._where(room_id, player, code)
+        q, args = self._queries(room_id, player, code)["count"]
         with self._lock:
-            return int(self._db.execute(f"SELECT COUNT(*) FROM rounds{where}", args)
-                       .fetchone()[0])
+            return int(self._db.execute(q, args).fetchone()[0])
+
+    def query_plans(self) -> dict[str, list[str]]:
+        """SQLite's plan (``EXPLAIN QUERY PLAN``) of every query the HTTP API can make, by a
+        name for it, as "PARENT:STEP" lines (parent 0: the outermost query): what tests
+        check for scans and sorts of the rounds."""
+        queries = {"get": (_GET, ["x"])}
+        for room in (None, "r"):
+            for player in (None, "p"):
+                for code in (None, "c") if room else (None,):
+                    for what, q in self._queries(room, player, code).items():
+                        queries[f"{what} room={room} player={player} code={code}"] = q
+        with self._lock:
+            return {name: [f"{r[1]}:{r[3]}" for r in
+                           self._db.execute("EXPLAIN QUERY PLAN " + q, args)]
+                    for name, (q, args) in queries.items()}
 
     def _get(self, rid: str) -> dict[str, Any] | None:
         if not ID_RE.match(rid):
             return None
         with self._lock:
-            r = self._db.execute(
-                f"SELECT {', '.join(COLUMNS)} FROM rounds WHERE id = ?", (rid,)
-            ).fetchone()
+            r = self._db.execute(_GET, (rid,)).fetchone()
         return None if r is None else dict(zip(COLUMNS, r, strict=True))
 
     def get(self, rid: str) -> dict[str, Any] | None:

@@ -260,9 +260,10 @@ class WsEndpoint:
             raise ProtocolError("not_allowed", f"already in room {conn.room.id}: leave first")
         token = P.field_str(msg, "token", None, max_len=64)
         role = P.field_str(msg, "role", "player" if token else "spectator", max_len=16)
+        room_id = P.field_str(msg, "room", None, max_len=64)
         self._room_options(conn, msg)
         if token is not None:
-            room = self.srv.lobby.get(msg.get("room")) if msg.get("room") is not None else None
+            room = self.srv.lobby.get(room_id) if room_id is not None else None
             rooms = [room] if room is not None else list(self.srv.lobby.rooms.values())
             for r in rooms:
                 try:
@@ -270,7 +271,7 @@ class WsEndpoint:
                 except ProtocolError:
                     continue
             raise ProtocolError("bad_token", "reconnect token unknown or expired")
-        room = self.srv.lobby.get(msg.get("room"))
+        room = self.srv.lobby.get(room_id)
         code = P.field_str(msg, "code", None, max_len=64)
         if role == "player":
             seat = P.field_int(msg, "seat", None, -(2**31), 2**31)  # the room names bad seats

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+import unicodedata
 import zlib
 from dataclasses import dataclass
 from typing import Any
@@ -125,12 +126,43 @@ def decode_json(text: str | bytes, limit: int = MAX_JSON_BYTES) -> dict[str, Any
     t = msg.get("type")
     if not isinstance(t, str) or not t:
         raise ProtocolError("bad_message", "missing field 'type' (a string)")
+    check_text("type", t, 32)  # named back in errors: no surrogates or control characters
     return msg
+
+
+# Bidi embeddings, overrides and isolates: unlike the marks (U+200E/F, U+061C) they change
+# the direction of whatever follows them, so a name could reorder a listing around it.
+_BIDI_CONTROLS = frozenset("\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
+
+
+def check_text(key: str, v: str, max_len: int = 64) -> str:
+    """A client's string made safe to store, log, index and send anywhere: Unicode scalar
+    values only (no lone surrogate, which UTF-8 cannot encode), NFC-normalised, at most
+    ``max_len`` code points, no control characters (C0, DEL, C1) and no bidi embedding,
+    override or isolate. The normalised text, or ``ProtocolError("bad_message")`` naming
+    ``key`` and what is wrong."""
+    if len(v) > 4 * max_len:  # NFC never shrinks text by more than this: no need to look
+        raise ProtocolError("bad_message", f"'{key}': at most {max_len} characters, got {len(v)}")
+    try:
+        v.encode("utf-8")
+    except UnicodeEncodeError as e:
+        raise ProtocolError(
+            "bad_message", f"'{key}': not valid Unicode text (lone surrogate "
+            f"U+{ord(v[e.start]):04X} at {e.start}); send UTF-8 text") from None
+    v = unicodedata.normalize("NFC", v)
+    if len(v) > max_len:
+        raise ProtocolError("bad_message", f"'{key}': at most {max_len} characters, got {len(v)}")
+    for i, ch in enumerate(v):
+        if ch in _BIDI_CONTROLS or unicodedata.category(ch) == "Cc":
+            raise ProtocolError("bad_message", f"'{key}': control character U+{ord(ch):04X} at "
+                                f"{i} is not allowed")
+    return v
 
 
 def field_str(msg: dict[str, Any], key: str, default: str | None = None, *, max_len: int = 64,
               required: bool = False) -> str | None:
-    """A string field (stripped of control characters), or ``default`` when absent."""
+    """A string field checked and normalised by ``check_text`` (every client string goes
+    through here), or ``default`` when absent."""
     if key not in msg or msg[key] is None:
         if required:
             raise ProtocolError("bad_message", f"missing field '{key}' (a string)")
@@ -138,11 +170,7 @@ def field_str(msg: dict[str, Any], key: str, default: str | None = None, *, max_
     v = msg[key]
     if not isinstance(v, str):
         raise ProtocolError("bad_message", f"'{key}': expected a string, got {type(v).__name__}")
-    if len(v) > max_len:
-        raise ProtocolError("bad_message", f"'{key}': at most {max_len} characters, got {len(v)}")
-    if any(ord(ch) < 32 or ord(ch) == 127 for ch in v):
-        raise ProtocolError("bad_message", f"'{key}': control characters are not allowed")
-    return v
+    return check_text(key, v, max_len)
 
 
 def field_int(msg: dict[str, Any], key: str, default: int | None, lo: int, hi: int, *,
@@ -194,8 +222,11 @@ def request_id(msg: dict[str, Any]) -> str | int | None:
         return None
     if isinstance(v, bool) or not isinstance(v, int | str):
         return None
-    if isinstance(v, str) and len(v) > 64:
-        return None
+    if isinstance(v, str):
+        try:  # echoed back as given, so it must be text any client can decode
+            check_text("id", v, 64)
+        except ProtocolError:
+            return None
     if isinstance(v, int) and not -(2**53) <= v <= 2**53:
         return None
     return v
