@@ -129,6 +129,7 @@ class GameServer:
         await self.lobby.close()
         if self._saves:
             await asyncio.gather(*self._saves, return_exceptions=True)
+        self.http.close()
         if self.store is not None:
             self.store.close()
 
@@ -219,6 +220,8 @@ class GameServer:
     def stats_snapshot(self) -> dict[str, Any]:
         rooms = {}
         for rid, room in self.lobby.rooms.items():
+            if not room.public:  # public endpoint: private rooms are nobody else's business
+                continue
             lat = np.array(room.sim.stats.lateness[-100_000:]) * 1e3
             st = room.sim.stats
             rooms[rid] = {

@@ -8,18 +8,27 @@
 * ``/api/replays/<id>`` one replay file (``game.wire.replay``; a private room's: ``?code=``)
 * ``/api/stats`` the server's own counters (frame lateness, messages, CPU time)
 
-and the admission of websocket upgrades on ``/ws`` (origin allow-list, connection limit).
+and the admission of websocket upgrades on ``/ws`` (origin policy, connection limit).
+
+A malformed request (a header that must come once given twice, or one that is not ASCII)
+gets a 400 and one log line per address and minute
+(``BadRequestLog``). Replay index queries run on their own few threads, a bounded number
+waiting, rate-limited per address (``docs/security.md``); ``/healthz`` is answered on the
+event loop and never waits behind them.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import email.utils
 import http
 import json
 import logging
 import mimetypes
+import time
 import urllib.parse
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -27,7 +36,8 @@ from websockets.asyncio.server import ServerConnection
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
-from .conn import Conn
+from ..game.wire.protocol import ProtocolError, check_text
+from .conn import Conn, TokenBucket
 from .limits import Limits
 from .lobby import Lobby
 from .replays import ReplayStore
@@ -40,6 +50,48 @@ PLACEHOLDER_PAGE = """<!doctype html>
 <p>The spectator page is not installed yet. Live rooms: <a href="/api/rooms">/api/rooms</a>,
 recorded rounds: <a href="/api/replays">/api/replays</a>.</p></body></html>
 """
+
+
+INDEX_THREADS = 2  # the replay index's own threads: SQLite reads, file reads
+MAX_BUCKETS = 4096  # addresses whose index rate is remembered (the oldest forgotten first)
+# Headers a request may carry once: two that disagree leave no right answer.
+SINGLE_HEADERS = ("Host", "Origin", "Sec-WebSocket-Key", "Sec-WebSocket-Version", "Range",
+                  "Content-Length")
+
+
+class BadRequestLog:
+    """Logs bad requests at a bounded rate: the first from an address in each ``window``
+    seconds, at most ``max_lines`` lines a window in all; the rest are counted and logged
+    as one line per address (and one for the others) when the next window starts."""
+
+    def __init__(self, window: float = 60.0, max_lines: int = 20) -> None:
+        self.window, self.max_lines = window, max_lines
+        self.t0 = time.monotonic()
+        self.logged: set[str] = set()
+        self.more: collections.Counter[str] = collections.Counter()
+
+    def note(self, address: str, level: int, msg: str, *args: object,
+             exc_info: bool = False) -> None:
+        now = time.monotonic()
+        if now - self.t0 >= self.window:
+            self.flush()
+            self.t0 = now
+        if address in self.logged or len(self.logged) >= self.max_lines:
+            key = address if address in self.more or len(self.more) < self.max_lines \
+                else "other addresses"
+            self.more[key] += 1
+            return
+        self.logged.add(address)
+        log.log(level, "%s: " + msg + " (more from there are counted)", address, *args,
+                exc_info=exc_info)
+
+    def flush(self) -> None:
+        """Logs the counts of the window so far, and starts a new one."""
+        for key, n in self.more.items():
+            log.warning("%s: %d more bad requests in the last %.0f s", key, n,
+                        time.monotonic() - self.t0)
+        self.logged.clear()
+        self.more.clear()
 
 
 class HttpHost(Protocol):
@@ -62,6 +114,16 @@ class HttpSurface:
 
     def __init__(self, srv: HttpHost) -> None:
         self.srv = srv
+        self.bad = BadRequestLog()
+        # Index queries get their own threads, so a flood of them cannot hold up files,
+        # saves or anything else asyncio's default pool runs.
+        self._pool = ThreadPoolExecutor(INDEX_THREADS, thread_name_prefix="replay-index")
+        self._waiting = 0
+        self._buckets: collections.OrderedDict[str, TokenBucket] = collections.OrderedDict()
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self.bad.flush()
 
     def _response(self, status: int, body: bytes, content_type: str,
                   extra: dict[str, str] | None = None) -> Response:
@@ -87,44 +149,98 @@ class HttpSurface:
 
     async def process_request(self, connection: ServerConnection, request: Request
                                ) -> Response | None:
+        addr = connection.remote_address
+        address = str(addr[0]) if addr else "?"
+        try:
+            return await self._process(address, request)
+        except Exception:  # pragma: no cover - never take the server down on a request
+            self.bad.note(address, logging.ERROR, "HTTP %s failed", request.path[:200],
+                          exc_info=True)
+            return self._error(500, "internal error")
+
+    def _malformed(self, request: Request) -> str | None:
+        """What makes ``request`` unanswerable, if anything."""
+        for name in SINGLE_HEADERS:
+            values = request.headers.get_all(name)
+            if len(values) > 1:
+                return f"the {name} header was sent more than once"
+            # websockets reads header bytes as Latin-1: refuse what the server would read
+            # wrongly (the target itself must be ASCII to be parsed at all).
+            if values and not values[0].isascii():
+                return f"the {name} header must be ASCII"
+        return None
+
+    def _origin_allowed(self, origin: str, host: str | None) -> bool:
+        """The server's own pages (an Origin naming the host the request was sent to), and
+        the ``--origin`` list (``*``: any)."""
+        extra = self.srv.origins or ()
+        if "*" in extra or origin in extra:
+            return True
+        scheme, _, netloc = origin.partition("://")
+        return host is not None and scheme in ("http", "https") and \
+            netloc.lower() == host.strip().lower()
+
+    async def _process(self, address: str, request: Request) -> Response | None:
+        problem = self._malformed(request)
+        if problem is not None:
+            self.bad.note(address, logging.WARNING, "bad request refused (%s)", problem)
+            return self._error(400, problem)
         # Split by hand: urlsplit reads "//host" as an authority and raises on "//[".
         path, _, query = request.path.partition("#")[0].partition("?")
         if path == "/ws":
             origin = request.headers.get("Origin")
-            # Browsers always send Origin; other clients need not. The allow-list stops a
-            # page on another site from using a visitor's browser to play or watch here.
-            allowed = self.srv.origins
-            if allowed is not None and origin is not None and origin not in allowed:
+            # Browsers always send Origin; other clients need not. The policy stops a page
+            # on another site from using a visitor's browser to play or watch here.
+            if origin is not None and not self._origin_allowed(origin,
+                                                               request.headers.get("Host")):
                 self.srv.stats["refused_connections"] += 1
-                return self._error(403, f"origin {origin[:100]!r} is not allowed here")
+                return self._error(403, f"origin {origin[:100]!r} is not allowed here (the "
+                                        "host can allow it with --origin)")
             if len(self.srv.clients) >= self.srv.limits.max_clients:
                 self.srv.stats["refused_connections"] += 1
                 return self._error(503, f"server full ({self.srv.limits.max_clients} connections)")
             return None
-        try:
-            if path == "/api/rooms":  # live state: read on the loop that changes it
-                return self._json({"rooms": self.srv.lobby.listing()})
-            if path == "/api/stats":
-                if urllib.parse.parse_qs(query).get("reset") == ["1"]:
-                    for room in self.srv.lobby.rooms.values():
-                        room.sim.stats.lateness.clear()
-                return self._json(self.srv.stats_snapshot())
-            # Files and the index are read on a worker thread: the room loops go on.
-            return await asyncio.to_thread(self._route, path, urllib.parse.parse_qs(query))
-        except Exception:  # pragma: no cover - never take the server down on a request
-            log.exception("HTTP %s failed", path)
-            return self._error(500, "internal error")
+        if path == "/healthz":  # on the loop: never behind files or index queries
+            return self._response(200, b"ok\n", "text/plain; charset=utf-8")
+        if path == "/api/rooms":  # live state: read on the loop that changes it
+            return self._json({"rooms": self.srv.lobby.listing()})
+        if path == "/api/stats":
+            if urllib.parse.parse_qs(query).get("reset") == ["1"]:
+                for room in self.srv.lobby.rooms.values():
+                    room.sim.stats.lateness.clear()
+            return self._json(self.srv.stats_snapshot())
+        if path == "/api/replays" or path.startswith("/api/replays/"):
+            return await self._index_query(address, path, urllib.parse.parse_qs(query))
+        # Files are read on a worker thread: the room loops go on.
+        return await asyncio.to_thread(self._route, path)
 
-    def _route(self, path: str, query: dict[str, list[str]]) -> Response:
+    async def _index_query(self, address: str, path: str, query: dict[str, list[str]]
+                           ) -> Response:
+        """``_replays`` on the index's threads, if ``address`` is within its rate and the
+        queue is not full."""
+        lim = self.srv.limits
+        bucket = self._buckets.pop(address, None) or TokenBucket(lim.index_rate, lim.index_burst)
+        self._buckets[address] = bucket  # most recently used last
+        if len(self._buckets) > MAX_BUCKETS:
+            self._buckets.popitem(last=False)
+        if not bucket.take():
+            return self._error(429, f"at most {lim.index_rate:g} replay queries a second "
+                                    "from one address; try again shortly")
+        if self._waiting >= lim.index_queue:
+            return self._error(503, "the replay index is busy; try again shortly")
+        self._waiting += 1
+        try:
+            return await asyncio.get_running_loop().run_in_executor(
+                self._pool, self._replays, path, query)
+        finally:
+            self._waiting -= 1
+
+    def _route(self, path: str) -> Response:
         if path in ("/", "/index.html"):
             index = self.srv.web_dir / "index.html"
             if index.is_file():
                 return self._response(200, index.read_bytes(), "text/html; charset=utf-8")
             return self._response(200, PLACEHOLDER_PAGE.encode(), "text/html; charset=utf-8")
-        if path == "/healthz":
-            return self._response(200, b"ok\n", "text/plain; charset=utf-8")
-        if path == "/api/replays" or path.startswith("/api/replays/"):
-            return self._replays(path, query)
         if path.startswith("/static/"):
             return self._static(path[len("/static/"):])
         return self._error(404, f"no such path {path[:200]!r}")
@@ -135,17 +251,16 @@ class HttpSurface:
 
         def one(key: str, max_len: int = 64) -> str | None:
             v = query.get(key, [None])[0]
-            if v is not None and (len(v) > max_len or not v.isprintable()):
-                raise ValueError(f"{key}: at most {max_len} printable characters")
-            return v
+            return None if v is None else check_text(key, v, max_len)
 
-        try:
+        try:  # the same checks as the websocket's fields: a player's name matches its own
             room, player, code = one("room"), one("player", 32), one("code")
             limit = min(1000, max(1, int(query.get("limit", ["100"])[0])))
             offset = min(2**62, max(0, int(query.get("offset", ["0"])[0])))
-        except ValueError as e:
-            msg = str(e) if ":" in str(e) else "limit and offset must be whole numbers"
-            return self._error(400, msg)
+        except ProtocolError as e:
+            return self._error(400, e.message)
+        except ValueError:
+            return self._error(400, "limit and offset must be whole numbers")
         if path == "/api/replays":
             return self._json({
                 "replays": self.srv.store.list(limit, offset, room, player=player, code=code),

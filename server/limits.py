@@ -32,6 +32,10 @@ class Limits:
     max_rooms: int = 32  # rooms in all (more: server_busy)
     rooms_per_address: int = 4  # rooms created from one IP address and still open
     spectators_per_room: int = 64  # (more: room_full)
+    # --- the replay index over HTTP (/api/replays...), per IP address -----------------------
+    index_rate: float = 10.0  # queries a second (token bucket; more: HTTP 429)
+    index_burst: float = 30.0
+    index_queue: int = 64  # queries waiting for the index's threads in all (more: HTTP 503)
     # --- time and slow clients -----------------------------------------------------------------
     hello_timeout: float = 10.0  # s to send the hello (else closed 1008)
     slow_drop_s: float = 5.0  # s a client may leave its socket backed up (else closed 1008)
@@ -67,14 +71,19 @@ class Limits:
 
 
 def parse_origins(origins: list[str] | None) -> tuple[str, ...] | None:
-    """The websocket origin allow-list from ``--origin`` values (None: any origin)."""
+    """The websocket origins allowed besides the server's own, from ``--origin`` values
+    (None: only its own; ``*``: any)."""
     if not origins:
         return None
     out = []
     for o in origins:
         o = o.strip().rstrip("/")
+        if o == "*":
+            out.append(o)
+            continue
         if not o.startswith(("http://", "https://")) or any(c in o for c in " \t\r\n"):
-            raise ValueError(f"--origin {o!r}: expected an origin such as https://example.org")
+            raise ValueError(f"--origin {o!r}: expected an origin such as https://example.org "
+                             "(or * for any)")
         out.append(o)
     return tuple(out)
 

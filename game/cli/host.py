@@ -35,8 +35,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="change a limit on clients, e.g. conns_per_address=8; repeatable "
                              "(the limits and defaults: docs/security.md)")
     parser.add_argument("--origin", action="append", default=None, metavar="URL",
-                        help="allow browser pages from this origin only (e.g. "
-                             "https://example.org); repeatable; default: any origin")
+                        help="also let browser pages from this origin connect (e.g. "
+                             "https://example.org; * for any); repeatable; default: only "
+                             "the server's own pages and non-browser clients")
 
 
 async def serve(args: argparse.Namespace) -> int:

@@ -296,10 +296,15 @@ def test_the_websocket_origin_allow_list(tmp_path) -> None:
                 async with connect(srv.ws_url, origin=origin) as ws:
                     await ws.send(json.dumps(HELLO))
                     assert json.loads(await ws.recv())["type"] == "welcome"
-        async with server(tmp_path) as srv:  # the default: any origin
-            async with connect(srv.ws_url, origin="https://elsewhere.example") as ws:
+            own = f"http://127.0.0.1:{srv.port}"  # the server's own pages stay allowed
+            async with connect(srv.ws_url, origin=own) as ws:
                 await ws.send(json.dumps(HELLO))
                 assert json.loads(await ws.recv())["type"] == "welcome"
+        async with server(tmp_path) as srv:  # the default: only its own pages (issue 22)
+            with pytest.raises(InvalidStatus) as e:
+                async with connect(srv.ws_url, origin="https://elsewhere.example"):
+                    pass
+            assert e.value.response.status_code == 403
 
     run(main())
 
