@@ -260,7 +260,8 @@ class WsEndpoint:
             raise ProtocolError("not_allowed", f"already in room {conn.room.id}: leave first")
         token = P.field_str(msg, "token", None, max_len=64)
         role = P.field_str(msg, "role", "player" if token else "spectator", max_len=16)
-        room_id = P.field_str(msg, "room", None, max_len=64)
+        # A room id is only looked up, never stored: lobby.get names a bad one (as repr).
+        room_id = msg.get("room")
         self._room_options(conn, msg)
         if token is not None:
             room = self.srv.lobby.get(room_id) if room_id is not None else None
