@@ -33,8 +33,8 @@ class Limits:
     rooms_per_address: int = 4  # rooms created from one IP address and still open
     spectators_per_room: int = 64  # (more: room_full)
     # --- the replay index over HTTP (/api/replays...), per IP address -----------------------
-    index_rate: float = 10.0  # queries a second (token bucket; more: HTTP 429)
-    index_burst: float = 30.0
+    index_rate: float = 50.0  # queries a second (token bucket; more: HTTP 429)
+    index_burst: float = 100.0
     index_queue: int = 64  # queries waiting for the index's threads in all (more: HTTP 503)
     # --- time and slow clients -----------------------------------------------------------------
     hello_timeout: float = 10.0  # s to send the hello (else closed 1008)

@@ -110,19 +110,21 @@ class ReplayStore:
                                    isolation_level=None)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.executescript(SCHEMA)
-        have = {r[1] for r in self._db.execute("PRAGMA table_info(rounds)")}
-        if "access" not in have:  # an index from before private rounds were locked
-            self._db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
         self._migrate()
         self._recover()
 
     def _migrate(self) -> None:
-        """Adds the query indexes and fills ``round_players`` from the rounds an older index
-        already holds, in one transaction."""
+        """Creates the index, or brings an older one up to date: the query indexes, and
+        ``round_players`` filled from the rounds it already holds; in one transaction (a new
+        index's first write is then a few pages: it fits a nearly full disk)."""
         if self._db.execute("PRAGMA user_version").fetchone()[0] >= INDEX_VERSION:
             return
         with self._transaction():
+            for stmt in _statements(SCHEMA):
+                self._db.execute(stmt)
+            have = {r[1] for r in self._db.execute("PRAGMA table_info(rounds)")}
+            if "access" not in have:  # an index from before private rounds were locked
+                self._db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
             for stmt in _statements(INDEXES):
                 self._db.execute(stmt)
             self._db.execute("DELETE FROM round_players")
@@ -162,26 +164,35 @@ class ReplayStore:
                 log.warning("ignoring damaged replay %s: %s", path.name, e)
 
     def _index(self, header: dict[str, Any], path: Path) -> None:
-        row = (
-            header["id"], header["room_id"], header["room_name"], header["scene"],
-            int(header["round"]), json.dumps(header["players"]), header.get("conceded_edge"),
-            header.get("conceded_by"), json.dumps(header["scores"]), float(header["started_at"]),
-            float(header["ended_at"]), float(header["duration_s"]), path.name,
-            path.stat().st_size, header.get("access"),
-        )
-        names = {p["name"] for p in header["players"]
-                 if isinstance(p, dict) and isinstance(p.get("name"), str)}
+        self.index_many([(header, path.name, path.stat().st_size)])
+
+    def index_many(self, rounds: list[tuple[dict[str, Any], str, int]]) -> None:
+        """Index rounds (header, file name under ``replays/``, its size) in one transaction."""
+        rows, players = [], []
+        for header, name, size in rounds:
+            row = (
+                header["id"], header["room_id"], header["room_name"], header["scene"],
+                int(header["round"]), json.dumps(header["players"]),
+                header.get("conceded_edge"), header.get("conceded_by"),
+                json.dumps(header["scores"]), float(header["started_at"]),
+                float(header["ended_at"]), float(header["duration_s"]), name, size,
+                header.get("access"),
+            )
+            rows.append(row)
+            names = {p["name"] for p in header["players"]
+                     if isinstance(p, dict) and isinstance(p.get("name"), str)}
+            players += [(row[0], n, row[1], row[14], row[10]) for n in sorted(names)]
         with self._transaction():
-            self._db.execute("DELETE FROM round_players WHERE round_id = ?", (row[0],))
-            self._db.execute(
+            self._db.executemany("DELETE FROM round_players WHERE round_id = ?",
+                                 [(r[0],) for r in rows])
+            self._db.executemany(
                 f"INSERT OR REPLACE INTO rounds ({', '.join(COLUMNS)}) "
                 f"VALUES ({', '.join('?' * len(COLUMNS))})",
-                row,
+                rows,
             )
             self._db.executemany(
                 "INSERT INTO round_players (round_id, name, room_id, access, ended_at) "
-                "VALUES (?, ?, ?, ?, ?)",
-                [(row[0], n, row[1], row[14], row[10]) for n in sorted(names)])
+                "VALUES (?, ?, ?, ?, ?)", players)
 
     def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> dict[str, Any]:
         """Write one round's file, then index it. Returns the index row."""

@@ -1,5 +1,6 @@
 """``clothball bench``: time per substep (the paper's Table 1 re-measured, ``--effects``),
-or the game server under load (``--server``, ``--load``)."""
+the game server under load (``--server``, ``--load``), or its replay index's HTTP queries
+at scale (``--index``)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ... import _native  # type: ignore[attr-defined]
-from ...server import loadbench
+from ...server import indexbench, loadbench
 from ..sim.scene import Scene, SceneError
 from ..study import rooms
 from ..study.bench import (
@@ -53,10 +54,17 @@ def configure(p: argparse.ArgumentParser) -> None:
         "--load", action="store_true",
         help="how many rooms (4 players at 1 kHz + spectators) the server holds within target",
     )
+    p.add_argument(
+        "--index", action="store_true",
+        help="the replay index's HTTP queries with 100 000 rounds, and /healthz meanwhile",
+    )
     loadbench.configure_server_flags(p)
+    indexbench.configure_index_flags(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.index:
+        return indexbench.run(args)
     if args.server or args.load:
         return loadbench.run_load(args) if args.load else loadbench.run(args)
     if args.rooms:
