@@ -6,7 +6,9 @@ names) is served by a game server in a process of its own. Measured from this pr
 
 1. every kind of query ``/api/replays`` answers (first page, a deep page, a room, a
    private room with its code, a common and a rare player, player and room, a download),
-   one at a time: answer time p50 / p99 / max;
+   one at a time: answer time p50 / p99 / max, "warm" (asked again: the count of rows is
+   remembered) and "cold" (another connection indexes a round before each, as the rooms
+   do every few seconds: nothing remembered);
 2. ``/healthz`` answer time while ``--index-clients`` clients (a process of their own) send
    player queries as fast as they are answered, once with the per-address rate limit lifted
    (the index's threads saturated) and once with the default limits.
@@ -30,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from .replays import ReplayStore, access_key
+
 TARGET_QUERY_MS = 20.0
 TARGET_HEALTHZ_MS = 50.0
 PRIVATE_CODE = "bench-code"
@@ -48,13 +52,11 @@ def configure_index_flags(parser: argparse.ArgumentParser) -> None:
 def fill(data: Path, n: int, seed: int = 1) -> dict[str, str]:
     """An index of ``n`` rounds under ``data``; the ids and names the queries use."""
     from ..game.wire.replay import write_replay
-    from .replays import ReplayStore, access_key
 
     rng = random.Random(seed)
     store = ReplayStore(data)
     names = [f"player{i}" for i in range(5000)]
     batch: list[tuple[dict[str, Any], str, int]] = []
-    t0 = 1.7e9
     for i in range(n):
         kind = rng.random()
         if kind < 0.6:
@@ -63,27 +65,30 @@ def fill(data: Path, n: int, seed: int = 1) -> dict[str, str]:
             private = kind > 0.98
             room = f"{'p' if private else 'r'}{rng.randrange(20 if private else 200)}"
             seats = rng.sample(names, rng.randint(1, 4))
-        header = {
-            "id": f"20260101-000000-{i:08d}", "room_id": room, "room_name": room,
-            "scene": "classic", "round": i,
-            "players": [{"seat": s, "kind": "human", "name": nm} for s, nm in enumerate(seats)],
-            "scores": [0, 0, 0, 0], "started_at": t0 + i * 30.0,
-            "ended_at": t0 + i * 30.0 + 25.0, "duration_s": 25.0,
-        }
-        if room.startswith("p"):
-            header["access"] = access_key(room, PRIVATE_CODE)
+        header = _header(i, room, seats)
         batch.append((header, f"{header['id']}.cbr", 1000))
         if len(batch) == 5000:
             store.index_many(batch)
             batch = []
     store.index_many(batch)
-    last = f"20260101-000000-{n - 1:08d}"
-    header = {"id": last, "room_id": "main", "room_name": "main", "scene": "classic",
-              "round": n - 1, "players": [], "scores": [0, 0, 0, 0], "started_at": 0.0,
-              "ended_at": t0 + n * 30.0, "duration_s": 25.0}
-    write_replay(store.replays / f"{last}.cbr", header, [])
+    last = _header(n - 1, "main", [f"bot-{s}" for s in range(4)])
+    write_replay(store.replays / f"{last['id']}.cbr", last, [])
     store.close()
-    return {"download": last, "rare": names[17]}
+    return {"download": last["id"], "rare": names[17]}
+
+
+def _header(i: int, room: str, seats: list[str]) -> dict[str, Any]:
+    """Round ``i``'s header (ended 30 s after round ``i - 1``)."""
+    t = 1.7e9 + i * 30.0
+    header = {
+        "id": f"20260101-000000-{i:08d}", "room_id": room, "room_name": room,
+        "scene": "classic", "round": i,
+        "players": [{"seat": s, "kind": "human", "name": nm} for s, nm in enumerate(seats)],
+        "scores": [0, 0, 0, 0], "started_at": t, "ended_at": t + 25.0, "duration_s": 25.0,
+    }
+    if room.startswith("p"):
+        header["access"] = access_key(room, PRIVATE_CODE)
+    return header
 
 
 def serve(data: Path, limits: list[str]) -> None:
@@ -187,17 +192,24 @@ def run(args: argparse.Namespace) -> int:
         }
         results: dict[str, Any] = {"rounds": n, "queries": {}}
         proc, port = _start_server(data, ["index_rate=1000000", "index_burst=1000000"])
+        writer = ReplayStore(data)  # another connection, as a second server process would be
+        extra = n
         try:
             for name, target in queries.items():
-                times = []
-                for _ in range(40):
-                    status, dt = asyncio.run(_get(port, target))
-                    assert status == 200, (name, status)
-                    times.append(dt)
-                results["queries"][name] = _ms(times)
+                for cold in (False, True):
+                    times = []
+                    for _ in range(30):
+                        if cold:  # a round indexed first: nothing remembered helps
+                            writer.index_many([(_header(extra, "r0", ["extra"]), "x.cbr", 1)])
+                            extra += 1
+                        status, dt = asyncio.run(_get(port, target))
+                        assert status == 200, (name, status)
+                        times.append(dt)
+                    results["queries"][f"{name} ({'cold' if cold else 'warm'})"] = _ms(times)
             results["load_unlimited"] = _healthz_under_load(port, args.index_clients,
                                                             args.index_seconds)
         finally:
+            writer.close()
             proc.kill()
             proc.wait()
         proc, port = _start_server(data, [])
@@ -207,9 +219,9 @@ def run(args: argparse.Namespace) -> int:
         finally:
             proc.kill()
             proc.wait()
-    print(f"\n{'query':<22} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
+    print(f"\n{'query':<29} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
     for name, r in results["queries"].items():
-        print(f"{name:<22} {r['p50']:8.2f} {r['p99']:8.2f} {r['max']:8.2f}")
+        print(f"{name:<29} {r['p50']:8.2f} {r['p99']:8.2f} {r['max']:8.2f}")
     for key in ("load_unlimited", "load_default_limits"):
         h = results[key]["healthz_ms"]
         print(f"/healthz, {args.index_clients} query clients ({key[5:]}): p50 {h['p50']:.2f} "

@@ -327,6 +327,20 @@ def test_every_index_query_is_an_index_search_with_the_right_answer(tmp_path) ->
     store.close()
 
 
+def test_a_remembered_count_follows_every_write(tmp_path) -> None:
+    store, other = ReplayStore(tmp_path), ReplayStore(tmp_path)  # two connections
+    headers = fill(store, 30, seed=5)
+    n, bob = store.count(), store.count(player="bob")
+    for writer in (store, other):  # its own write, and another connection's
+        h = {**headers[0], "id": f"new-{id(writer)}", "room_id": "main", "ended_at": 1e9}
+        h.pop("access", None)
+        writer.save(h, [])
+        n, bob = n + 1, bob + ("bob" in [p["name"] for p in h["players"]])
+        assert store.count() == n and store.count(player="bob") == bob
+    other.close()
+    store.close()
+
+
 def test_an_older_index_gets_the_player_table_on_open(tmp_path) -> None:
     store = ReplayStore(tmp_path)
     headers = fill(store, 60, seed=3)
