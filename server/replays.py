@@ -112,6 +112,9 @@ class ReplayStore:
                                    isolation_level=None)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
+        # 32 MiB of pages (default 2): a count over 100 000 rounds' index entries then reads
+        # memory, not the OS's file cache (~6 ms instead of ~9).
+        self._db.execute("PRAGMA cache_size=-32768")
         self._migrate()
         self._recover()
 

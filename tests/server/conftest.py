@@ -91,10 +91,11 @@ def local_server(data: Path, *, bots: int = 0, **settings: Any) -> ServerThread:
 
 
 class ErrorLog(logging.Handler):
-    """Keeps every ERROR (or worse) record: handler crashes, failed saves, stopped rooms."""
+    """Keeps every ERROR (or worse) record: handler crashes, failed saves, stopped rooms
+    (or every record from ``level`` up)."""
 
-    def __init__(self) -> None:
-        super().__init__(logging.ERROR)
+    def __init__(self, level: int = logging.ERROR) -> None:
+        super().__init__(level)
         self.records: list[logging.LogRecord] = []
 
     def emit(self, record: logging.LogRecord) -> None:

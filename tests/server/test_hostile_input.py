@@ -28,7 +28,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
 from tests.conftest import FAST, http_get, http_json, run, server, until
-from tests.server.conftest import LiveServer, live_server
+from tests.server.conftest import ErrorLog, LiveServer, live_server
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
 
@@ -197,22 +197,13 @@ def live_get(live: LiveServer, target: str) -> str:
 # --- 2. malformed HTTP requests -------------------------------------------------------------
 
 
-class Records(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
-
-
 UPGRADE = ("GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
            "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
            "Sec-WebSocket-Version: 13\r\n")
 
 
 def test_malformed_requests_get_a_4xx_and_a_bounded_log(tmp_path) -> None:
-    seen = Records()
+    seen = ErrorLog(logging.DEBUG)
     for name in ("clothball", "websockets"):
         logging.getLogger(name).addHandler(seen)
     level = logging.getLogger("websockets").level
@@ -257,7 +248,7 @@ def test_malformed_requests_get_a_4xx_and_a_bounded_log(tmp_path) -> None:
 def test_the_bad_request_log_is_bounded_across_addresses() -> None:
     from clothball.server.http import BadRequestLog
 
-    seen = Records()
+    seen = ErrorLog(logging.DEBUG)
     logging.getLogger("clothball").addHandler(seen)
     try:
         bad = BadRequestLog(window=3600, max_lines=5)
