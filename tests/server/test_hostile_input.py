@@ -27,8 +27,17 @@ from hypothesis import strategies as st
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from tests.conftest import FAST, http_get, http_json, run, server, until
-from tests.server.conftest import ErrorLog, LiveServer, live_server
+from tests.server.conftest import (
+    FAST,
+    ErrorLog,
+    LiveServer,
+    http_get,
+    http_json,
+    live_server,
+    run,
+    server,
+    until,
+)
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
 
