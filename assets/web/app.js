@@ -117,23 +117,35 @@ function onJson(msg) {
   }
 }
 
+// MESH frames are inflated asynchronously (the browser's DecompressionStream): each starts
+// as it arrives, and one chain applies them in the order they came.
+let meshChain = Promise.resolve();
+
 function onBinary(buf) {
   if (app.route?.view !== "room" || !app.renderer || app.frozen) return;
-  let t0 = performance.now();
+  const t0 = performance.now();
+  let decoded;
   try {
     if (decodeHeader(buf).type !== MESH) return;
-    const mesh = decodeMesh(buf);
+    decoded = decodeMesh(buf);
+  } catch (e) {
+    stats.badFrames += 1;
+    console.warn("bad binary frame", e.message);
+    return;
+  }
+  decoded.catch(() => {});  // handled below, in order; not an unhandled rejection meanwhile
+  meshChain = meshChain.then(() => decoded).then((mesh) => {
+    if (app.route?.view !== "room" || !app.renderer || app.frozen) return;
     app.renderer.uploadMesh(mesh);
     const dt = performance.now() - t0;
     stats.meshFrames += 1;
     stats.decodeUploadMs.push(dt);
     if (stats.decodeUploadMs.length > 600) stats.decodeUploadMs.shift();
     app.lastMesh = mesh;
-    t0 = 0;
-  } catch (e) {
+  }, (e) => {
     stats.badFrames += 1;
     console.warn("bad binary frame", e.message);
-  }
+  });
 }
 
 async function joinRoom(id) {
@@ -429,6 +441,7 @@ async function startReplay(id, t0) {
   }
   if (app.route?.view !== "replay" || app.route.id !== id) return;
   app.replay = replay;
+  replay.onMesh = () => app.playback?.seek(app.playback.time);  // show it once inflated
   const hd = replay.header;
   $("view-title").textContent = `replay: ${hd.room_name} round ${hd.round}`;
   startRenderer(hd.geometry);

@@ -1,5 +1,5 @@
 // In-page measurement of the live path's per-frame cost: decode one MESH frame
-// (protocol.decodeMesh: header, zlib inflate, row-delta sum) and upload it to the GPU
+// (protocol.decodeMesh: header, zlib inflate by DecompressionStream, row-delta sum) and upload it to the GPU
 // (Renderer.uploadMesh: one texSubImage2D of the uint16 grid). tools/web_bench.py feeds
 // it MESH frames made by the Python encoder and writes docs/benchmarks/browser.md.
 //
@@ -27,38 +27,41 @@ function quantiles(xs) {
  * frames of the ms per frame: decode, upload, decode+upload, and decode+upload followed by
  * gl.finish() (the upload completed in the GPU process, an upper bound).
  */
-export function benchDecodeUpload(frames, { batch = 10, repeats = 5 } = {}) {
+export async function benchDecodeUpload(frames, { batch = 10, repeats = 5 } = {}) {
   const canvas = document.createElement("canvas");
   canvas.width = 64; canvas.height = 64;
   const r = new Renderer(canvas);
   const gl = r.gl;
   const bytes = frames.map(fromBase64);
   // warm up: compile paths, allocate the texture
-  for (const b of bytes) r.uploadMesh(decodeMesh(b));
+  for (const b of bytes) r.uploadMesh(await decodeMesh(b));
   gl.finish();
   const decode = [], upload = [], both = [], finished = [];
   // Each stage of each frame: the mean over `batch` runs, best of `repeats` such means
   // (a time slice lost to another process only ever adds time).
-  const best = (fn) => {
+  // Decoding is asynchronous (DecompressionStream): a run is awaited whole.
+  const best = async (fn) => {
     let m = Infinity;
     for (let r = 0; r < repeats; r++) {
       gl.finish();
       const t = performance.now();
-      fn();
+      await fn();
       m = Math.min(m, (performance.now() - t) / batch);
     }
     return m;
   };
   for (const b of bytes) {
-    const m = decodeMesh(b);
-    decode.push(best(() => { for (let k = 0; k < batch; k++) decodeMesh(b); }));
-    upload.push(best(() => { for (let k = 0; k < batch; k++) r.uploadMesh(m); }));
-    both.push(best(() => { for (let k = 0; k < batch; k++) r.uploadMesh(decodeMesh(b)); }));
-    finished.push(best(() => {
-      for (let k = 0; k < batch; k++) { r.uploadMesh(decodeMesh(b)); gl.finish(); }
+    const m = await decodeMesh(b);
+    decode.push(await best(async () => { for (let k = 0; k < batch; k++) await decodeMesh(b); }));
+    upload.push(await best(() => { for (let k = 0; k < batch; k++) r.uploadMesh(m); }));
+    both.push(await best(async () => {
+      for (let k = 0; k < batch; k++) r.uploadMesh(await decodeMesh(b));
+    }));
+    finished.push(await best(async () => {
+      for (let k = 0; k < batch; k++) { r.uploadMesh(await decodeMesh(b)); gl.finish(); }
     }));
   }
-  const n = decodeMesh(bytes[0]).n;
+  const n = (await decodeMesh(bytes[0])).n;
   const ext = gl.getExtension("WEBGL_debug_renderer_info");
   const renderer = ext ? gl.getParameter(ext.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
   const sizes = bytes.map((b) => b.length);

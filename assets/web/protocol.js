@@ -12,7 +12,6 @@
 // the Python decoder raises. tests/data/protocol_vectors.json (made by the Python encoder)
 // proves the two agree.
 
-import { InflateError, inflateZlib } from "./inflate.js";
 
 export const PROTOCOL_VERSION = 1;
 export const HIP = 1, CORNER = 2, MESH = 3, TRACK = 4;
@@ -124,12 +123,47 @@ export function decodeCorner(data) {
   };
 }
 
+/** A compressed payload that cannot be inflated, or inflates past its limit. */
+export class InflateError extends Error {}
+
 /**
- * A MESH frame. The positions stay quantised (`q`: Uint16Array of n*n*3, row-major
+ * Inflate a zlib (`format` "deflate") or gzip ("gzip") stream with the browser's own
+ * DecompressionStream. At most `limit` bytes come out: a larger output is refused (a MESH
+ * frame knows its exact size, a replay file its cap), as is a damaged or truncated stream.
+ */
+export async function inflate(bytes, format, limit) {
+  const reader = new Blob([bytes]).stream().pipeThrough(new DecompressionStream(format)).getReader();
+  const chunks = [];
+  let size = 0;
+  try {
+    for (;;) {
+      const { done, value } = await reader.read();
+      if (done) break;
+      size += value.length;
+      if (size > limit) {
+        reader.cancel().catch(() => {});
+        throw new InflateError(`inflated data larger than ${limit} bytes`);
+      }
+      chunks.push(value);
+    }
+  } catch (e) {
+    if (e instanceof InflateError) throw e;
+    throw new InflateError(`invalid ${format} stream: ${e.message || e}`);
+  }
+  if (chunks.length === 1) return chunks[0];
+  const out = new Uint8Array(size);
+  let o = 0;
+  for (const c of chunks) { out.set(c, o); o += c.length; }
+  return out;
+}
+
+/**
+ * A MESH frame (asynchronous: the payload is inflated by the browser's DecompressionStream;
+ * a caller that applies frames must keep them in order, see app.js). The positions stay quantised (`q`: Uint16Array of n*n*3, row-major
  * [i][j][xyz]) so the renderer can upload them as they are and dequantise on the GPU;
  * `meshPositions(mesh)` gives the float64 positions exactly as the Python decoder does.
  */
-export function decodeMesh(data) {
+export async function decodeMesh(data) {
   const b = asBytes(data);
   const h = decodeHeader(b, MESH);
   if (b.length < HEADER_SIZE + MESH_BODY_SIZE) throw new ProtocolError("bad_binary", "MESH message too short");
@@ -149,7 +183,7 @@ export function decodeMesh(data) {
   let payload = b.subarray(HEADER_SIZE + MESH_BODY_SIZE);
   if (h.flags & FLAG_ZLIB) {
     try {
-      payload = inflateZlib(payload, expected);
+      payload = await inflate(payload, "deflate", expected);
     } catch (e) {
       if (!(e instanceof InflateError)) throw e;
       throw new ProtocolError("bad_binary", `MESH payload not valid zlib: ${e.message}`);
@@ -230,7 +264,8 @@ export function decodeTrack(data) {
   };
 }
 
-export function decodeBinary(data) {
+/** Any binary message; a promise, since a MESH is inflated asynchronously. */
+export async function decodeBinary(data) {
   const h = decodeHeader(data);
   return { 1: decodeHip, 2: decodeCorner, 3: decodeMesh, 4: decodeTrack }[h.type](data);
 }

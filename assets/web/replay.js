@@ -1,4 +1,4 @@
-// Replay files (server/store.py) and their playback clock.
+// Replay files (game/wire/replay.py) and their playback clock.
 //
 // A replay file is a gzip stream of:
 //   16 bytes "CLOTHBALL-REPLAY", u32 format version, u32 header length H, H bytes of JSON
@@ -7,19 +7,23 @@
 // Meshes are kept encoded and decoded when shown; tracks (ball and hands at ~100 Hz) are
 // decoded once and interpolated so the ball moves smoothly between 30 Hz cloth frames.
 
-import { gunzip } from "./inflate.js";
-import { MESH, TRACK, asBytes, decodeHeader, decodeMesh, decodeTrack } from "./protocol.js";
+import {
+  MESH, TRACK, asBytes, decodeHeader, decodeMesh, decodeTrack, inflate,
+} from "./protocol.js";
 
 export const REPLAY_MAGIC = "CLOTHBALL-REPLAY";
 export const REPLAY_VERSION = 1;
 
 export class ReplayError extends Error {}
 
-/** Parse a whole replay file (the bytes as downloaded): { header, records }. */
-export function parseReplay(data) {
+// The largest replay this page inflates: a longer recording is refused, not read whole.
+export const MAX_REPLAY_BYTES = 1 << 30;
+
+/** Parse a whole replay file (the bytes as downloaded): a promise of { header, records }. */
+export async function parseReplay(data) {
   let body;
   try {
-    body = gunzip(asBytes(data));
+    body = await inflate(asBytes(data), "gzip", MAX_REPLAY_BYTES);
   } catch (e) {
     throw new ReplayError(`not a gzip stream: ${e.message}`);
   }
@@ -95,6 +99,14 @@ export class Replay {
     this.frame1 = Math.max(...frames);
     this.duration = (this.frame1 - this.frame0) * this.frameDt;
     this._cache = new Map();
+    this._pending = new Set();
+    this._newest = null;  // the last mesh decoded, shown while a wanted one is inflated
+    this.onMesh = null;   // called when a mesh that was asked for is ready
+  }
+
+  /** Decode the first meshes, so the first picture has a cloth. */
+  async ready() {
+    if (this.meshes.length) await this._decode(0);
   }
 
   timeOf(frame) { return (frame - this.frame0) * this.frameDt; }
@@ -106,14 +118,27 @@ export class Replay {
     return Math.max(0, lastAtOrBefore(this.meshes, this.frameAt(t) + 1e-6, (m) => m.frame));
   }
 
-  /** The decoded mesh at an index (the last few decoded are kept). */
+  /** The decoded mesh at an index (the last few decoded are kept). Inflating is
+   * asynchronous: until that mesh is ready this is the newest mesh decoded so far, and
+   * `onMesh` is called once it is. */
   mesh(index) {
     const hit = this._cache.get(index);
     if (hit) return hit;
-    const m = decodeMesh(this.meshes[index].data);
-    this._cache.set(index, m);
-    if (this._cache.size > 4) this._cache.delete(this._cache.keys().next().value);
-    return m;
+    this._decode(index).then(() => this.onMesh?.(), () => {});
+    return this._newest;
+  }
+
+  async _decode(index) {
+    if (this._cache.has(index) || this._pending.has(index)) return;
+    this._pending.add(index);
+    try {
+      const m = await decodeMesh(this.meshes[index].data);
+      this._cache.set(index, m);
+      this._newest = m;
+      if (this._cache.size > 8) this._cache.delete(this._cache.keys().next().value);
+    } finally {
+      this._pending.delete(index);
+    }
   }
 
   /** The meshes around time t and how far t is from the first towards the second. */
@@ -170,7 +195,9 @@ export async function fetchReplay(id) {
     e.status = r.status;
     throw e;
   }
-  return new Replay(parseReplay(await r.arrayBuffer()));
+  const replay = new Replay(await parseReplay(await r.arrayBuffer()));
+  await replay.ready();
+  return replay;
 }
 
 /** The playback clock: play, pause, seek, speed. `onTime(t)` is called on every change. */

@@ -116,15 +116,20 @@ def test_js_decoder_agrees_with_python_vectors(live: ServerThread, driver) -> No
             }
             return { unknown: m.kind };
           };
-          const decode = (b) => {
-            try { return norm(P.decodeBinary(b)); }
+          // MESH payloads are inflated by DecompressionStream: decoding is awaited.
+          const decode = async (b) => {
+            try { return norm(await P.decodeBinary(b)); }
             catch (e) { return { error: e.code || ('uncaught ' + e) }; }
           };
-          const binary = vectors.binary.map((v) => decode(bytes(v.b64)));
-          const rep = R.parseReplay(bytes(vectors.replay.b64));
-          const records = rep.records.map((r) => r.kind === 0
-            ? { record: 0, json: JSON.parse(new TextDecoder().decode(r.data)) }
-            : { record: 1, ...decode(r.data) });
+          const binary = [];
+          for (const v of vectors.binary) binary.push(await decode(bytes(v.b64)));
+          const rep = await R.parseReplay(bytes(vectors.replay.b64));
+          const records = [];
+          for (const r of rep.records) {
+            records.push(r.kind === 0
+              ? { record: 0, json: JSON.parse(new TextDecoder().decode(r.data)) }
+              : { record: 1, ...(await decode(r.data)) });
+          }
           done({ binary, replay: { header: rep.header, records } });
         })().catch((e) => done({ fatal: String(e && e.stack || e) }));
     """, vectors)
@@ -378,8 +383,8 @@ def test_bench_module_measures_decode_and_upload(live: ServerThread, driver) -> 
     open_page(driver, live.url)
     r = driver.execute_async_script("""
         const [frames, done] = arguments;
-        import('/static/bench.js').then((m) => done(m.benchDecodeUpload(frames,
-          {batch: 2, repeats: 1}))).catch((e) => done({error: String(e.stack || e)}));
+        import('/static/bench.js').then((m) => m.benchDecodeUpload(frames,
+          {batch: 2, repeats: 1})).then(done).catch((e) => done({error: String(e.stack || e)}));
     """, frames)
     assert "error" not in r, r.get("error")
     assert r["n"] == 16 and r["frames"] == 2

@@ -71,7 +71,8 @@ def run_in_page(driver: Any, frames: list[bytes], batch: int, repeats: int) -> d
     return driver.execute_async_script(
         """const [frames, batch, repeats, done] = arguments;
         import('/static/bench.js')
-          .then((m) => done(m.benchDecodeUpload(frames, {batch, repeats})))
+          .then((m) => m.benchDecodeUpload(frames, {batch, repeats}))
+          .then(done)
           .catch((e) => done({error: String(e && e.stack || e)}));""",
         [base64.b64encode(f).decode() for f in frames], batch, repeats,
     )
@@ -138,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
             "# Browser: decode + upload time per MESH frame",
             "",
             "What the spectator page spends on each MESH frame it receives: "
-            "`protocol.decodeMesh` (header, zlib inflate in JS, row-delta sum) and "
+            "`protocol.decodeMesh` (header, zlib inflate by the browser's DecompressionStream, "
+            "row-delta sum) and "
             "`Renderer.uploadMesh` (one `texSubImage2D` of the uint16 grid into an RGB16UI "
             "texture; dequantising and normals happen in the vertex shader). Measured in the "
             "page with `performance.now()`: each frame's time is the mean over a batch of "
@@ -176,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
             "is an upper bound. *upload* alone is one `texSubImage2D` call, which queues the "
             "copy: it is at or below the resolution of a batch (0.1 ms / batch size).",
             "",
-            "Decoding is the whole cost, and it is the zlib inflate (`inflate.js`, synchronous; "
+            "Decoding is the whole cost, and it is the zlib inflate (DecompressionStream, asynchronous; "
             "the row-delta sum and the header are a small part). The page keeps the positions "
             "quantised: no float conversion and no normals on the CPU.",
             "",
