@@ -178,8 +178,8 @@ def main(argv: list[str] | None = None) -> int:
             "is an upper bound. *upload* alone is one `texSubImage2D` call, which queues the "
             "copy: it is at or below the resolution of a batch (0.1 ms / batch size).",
             "",
-            "Decoding is the whole cost, and it is the zlib inflate (DecompressionStream, asynchronous; "
-            "the row-delta sum and the header are a small part). The page keeps the positions "
+            "Decoding is the whole cost, and it is the zlib inflate (DecompressionStream, "
+            "asynchronous; the row-delta sum and the header are a small part). The page keeps the positions "
             "quantised: no float conversion and no normals on the CPU.",
             "",
         ]
