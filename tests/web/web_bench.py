@@ -179,8 +179,8 @@ def main(argv: list[str] | None = None) -> int:
             "copy: it is at or below the resolution of a batch (0.1 ms / batch size).",
             "",
             "Decoding is the whole cost, and it is the zlib inflate (DecompressionStream, "
-            "asynchronous; the row-delta sum and the header are a small part). The page keeps the positions "
-            "quantised: no float conversion and no normals on the CPU.",
+            "asynchronous; the row-delta sum and the header are a small part). The page keeps "
+            "the positions quantised: no float conversion and no normals on the CPU.",
             "",
         ]
         args.out.parent.mkdir(parents=True, exist_ok=True)
