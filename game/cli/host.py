@@ -12,6 +12,7 @@ from pathlib import Path
 from ...server.app import GameServer, default_data_dir
 from ...server.limits import Limits, parse_origins
 from ..sim.scene import Scene, SceneError, available
+from .args import FIRST_TO, PORT
 
 log = logging.getLogger("clothball.server")
 
@@ -19,7 +20,7 @@ log = logging.getLogger("clothball.server")
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to listen on (0.0.0.0: every interface; default %(default)s)")
-    parser.add_argument("--port", type=int, default=8765,
+    parser.add_argument("--port", type=PORT, default=8765,
                         help="port (0: any free; default %(default)s)")
     parser.add_argument("--bots", type=int, default=0, choices=range(5), metavar="N",
                         help="fill N seats of the main room with bots (4: a self-playing demo)")
@@ -29,7 +30,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="cloth backend (default: CUDA when a GPU is present, else CPU)")
     parser.add_argument("--data", type=Path, default=None,
                         help=f"data directory for recorded rounds (default: {default_data_dir()})")
-    parser.add_argument("--first-to", type=int, default=5, metavar="N",
+    parser.add_argument("--first-to", type=FIRST_TO, default=5, metavar="N",
                         help="points to win a match in the main room (default %(default)s)")
     parser.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
                         help="change a limit on clients, e.g. conns_per_address=8; repeatable "
@@ -58,7 +59,7 @@ async def serve(args: argparse.Namespace) -> int:
             return 2
         scenes[scene.name] = scene
     data = args.data or default_data_dir()
-    settings = RoomSettings(first_to=max(1, min(99, args.first_to)), autoplay=True)
+    settings = RoomSettings(first_to=args.first_to, autoplay=True)
     try:
         limits = Limits()
         for text in args.limit:

@@ -17,6 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from .args import FIRST_TO, ws_url
+from .display import window_error
+
 log = logging.getLogger("clothball.client")
 
 DEVICES = ("mouse", "falcon", "falcon-emulator", "bot")
@@ -24,7 +27,7 @@ DEFAULT_SERVER = "ws://127.0.0.1:8765/ws"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--server", default=DEFAULT_SERVER, metavar="URL",
+    parser.add_argument("--server", type=ws_url, default=DEFAULT_SERVER, metavar="URL",
                         help="server websocket URL (default %(default)s)")
     parser.add_argument("--room", default=None, metavar="R",
                         help="join this room at once (default: choose in the lobby)")
@@ -48,7 +51,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default="classic", help="--local: scene (default classic)")
     parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda"),
                         help="--local: cloth backend")
-    parser.add_argument("--first-to", type=int, default=5, metavar="N",
+    parser.add_argument("--first-to", type=FIRST_TO, default=5, metavar="N",
                         help="--local: points to win (default %(default)s)")
     parser.add_argument("--data", type=Path, default=None,
                         help="--local: data directory for the recorded rounds")
@@ -156,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
         from ..client.app import ClientWindow, fps_summary, run_window
         from ..client.model import ClientModel
     except Exception as e:  # noqa: BLE001 - NoSuchDisplayException and friends
-        print(f"clothball play: cannot open a window: {e}", file=sys.stderr)
+        print(f"clothball play: {window_error(e)}", file=sys.stderr)
         if local is not None:
             local.stop()
         device.stop()

@@ -14,6 +14,8 @@ import time
 import urllib.error
 from pathlib import Path
 
+from .display import window_error
+
 DEFAULT_SERVER = "ws://127.0.0.1:8765/ws"
 
 
@@ -56,6 +58,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     try:
         data = ReplayData.parse(fetch(args.source, args.server))
+    except urllib.error.HTTPError as e:
+        if e.code != 404:
+            print(f"clothball replay: cannot load {args.source}: {e}", file=sys.stderr)
+            return 1
+        print(f"clothball replay: no replay {args.source!r} on {args.server}; list the "
+              f"recorded rounds with `clothball replay --server {args.server}` (no id)",
+              file=sys.stderr)
+        return 1
     except (OSError, urllib.error.URLError, ReplayError) as e:
         print(f"clothball replay: cannot load {args.source}: {e}", file=sys.stderr)
         return 1
@@ -75,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
         from ..client.app import ClientWindow, run_window
     except Exception as e:  # noqa: BLE001 - no display
-        print(f"clothball replay: cannot open a window: {e}", file=sys.stderr)
+        print(f"clothball replay: {window_error(e)}", file=sys.stderr)
         return 1
     window = ClientWindow(replay=player, width=w, height=h,
                           title=f"clothball replay {data.header.get('id')}")
