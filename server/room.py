@@ -97,6 +97,7 @@ class Seat:
             "name": self.name,
             "ready": self.ready or self.kind == "bot",
             "connected": self.connected,
+            "open": self.kind != "human",  # a human who joins may take it (bots are backfill)
         }
 
 
@@ -229,22 +230,36 @@ class Room:
 
     def join_player(self, conn: Peer, seat: int | None, name: str, code: str | None
                     ) -> dict[str, Any]:
+        """Seat a human: an empty seat, or else one a bot holds (bots are backfill: the bot
+        leaves at once and the event says so). ``seat`` asks for one seat in particular."""
         self.check_code(code)
         if seat is None:
-            free = [s for s in self.seats if s.kind == "empty"]
-            if not free:
-                raise ProtocolError("room_full", f"room {self.id} has no free seat")
-            target = free[0]
+            open_seats = ([s for s in self.seats if s.kind == "empty"]
+                          or [s for s in self.seats if s.kind == "bot"])
+            if not open_seats:
+                raise ProtocolError("room_full", f"room {self.id} has no free seat (every "
+                                    "corner is held by a player)")
+            target = open_seats[0]
         else:
             if not 0 <= seat < SEATS:
                 raise ProtocolError("bad_seat", f"seat must be 0..{SEATS - 1}, got {seat}")
             target = self.seats[seat]
-            if target.kind != "empty":
-                raise ProtocolError("bad_seat", f"seat {seat} is taken ({target.kind})")
+            if target.kind == "human":
+                raise ProtocolError("bad_seat", f"seat {seat} is taken by a player")
+        replaced = target.kind == "bot"
+        if replaced:
+            bot = target.conn
+            self._detach(target)
+            if bot is not None:
+                bot.kicked("a player took this seat")
         target.kind, target.name, target.ready = "human", name, False
         target.token = secrets.token_urlsafe(24)
         self._attach(target, conn)
-        self.event("seat", seat=target.index, kind="human", name=name)
+        if replaced:
+            self.event("seat", seat=target.index, kind="human", name=name,
+                       reason="replaced_bot")
+        else:
+            self.event("seat", seat=target.index, kind="human", name=name)
         self.broadcast_state()
         return self._joined(target)
 

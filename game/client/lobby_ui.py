@@ -36,6 +36,11 @@ class Button:
 
 
 @dataclass
+def seat_open(seat: dict[str, Any]) -> bool:
+    """Whether a human may take this seat: empty, or held by a bot (bots are backfill)."""
+    return bool(seat.get("open", seat.get("kind") == "empty"))
+
+
 class LobbyUI:
     screen: str = "rooms"  # rooms, create, seats
     selected: str | None = None  # room id on the seats screen
@@ -70,10 +75,10 @@ class LobbyUI:
         out = []
         for i, r in enumerate(model.rooms[: self.max_rooms_shown]):
             seats = r.get("seats", [])
-            free = sum(1 for s in seats if s.get("kind") == "empty")
+            free = sum(1 for s in seats if seat_open(s))
             scores = "-".join(str(s) for s in r.get("scores", []))
             label = (f"{r.get('name')}   [{r.get('scene')}, {r.get('state')}]   "
-                     f"{free} free corner{'s' if free != 1 else ''}   {scores}")
+                     f"{free} corner{'s' if free != 1 else ''} to take   {scores}")
             out.append(Button(("select_room", r.get("id")), label, x, top - i * (bh + 8), bw, bh))
         y = 40.0
         out.append(Button(("refresh",), "Refresh (F5)", x, y, 180, bh))
@@ -96,8 +101,10 @@ class LobbyUI:
         spots = [(-1, 1), (1, 1), (1, -1), (-1, -1)]
         for s in room.get("seats", []):
             i = int(s.get("seat", 0))
-            free = s.get("kind") == "empty"
-            who = "free" if free else f"{s.get('name')} ({s.get('kind')})"
+            free = seat_open(s)
+            kind = s.get("kind")
+            who = ("free" if kind == "empty" else f"{s.get('name')} (bot): take it" if free
+                   else f"{s.get('name')} ({kind})")
             label = f"corner {i}: guards {EDGE_NAMES[i]} - {who}"
             dx, dy = spots[i]
             out.append(Button(("take_seat", i), label, cx + dx * (bw / 2 + 20) - bw / 2,

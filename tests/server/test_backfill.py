@@ -1,0 +1,50 @@
+"""Bots are backfill: in a room full of bots a human who joins takes a bot's seat (the bot
+leaves at once, and the seat event says so); the room's listing says which corners a human
+may take; a seat held by a human is never taken."""
+
+from __future__ import annotations
+
+from clothball.game.net.client import NetClient, ServerError
+from clothball.server.room import RoomSettings
+
+from tests.server.conftest import run, server, until
+
+
+def test_a_human_takes_a_bots_seat_in_the_demo_room(tmp_path) -> None:
+    async def main() -> None:
+        async with server(tmp_path, bots=4, settings=RoomSettings(autoplay=True)) as srv:
+            room = srv.main_room
+            assert room is not None
+            await until(lambda: all(s.kind == "bot" and s.connected for s in room.seats), 20,
+                        "four bots seated")
+            lobby = await NetClient.connect(srv.ws_url)
+            listed = (await lobby.request("list_rooms"))["rooms"][0]["seats"]
+            assert [s["open"] for s in listed] == [True] * 4  # every bot's corner can be taken
+            spectator = await NetClient.connect(srv.ws_url, role="spectator", room="main")
+            ann = await NetClient.connect(srv.ws_url, name="ann", role="player", room="main")
+            assert ann.seat == 0 and room.seats[0].kind == "human"
+            ev = await spectator.wait_event("seat", timeout=10, since=0,
+                                            reason="replaced_bot")
+            assert ev["seat"] == 0 and ev["name"] == "ann" and ev["kind"] == "human"
+            bob = await NetClient.connect(srv.ws_url, name="bob", role="player", room="main",
+                                          seat=2)
+            assert bob.seat == 2 and room.seats[2].name == "bob"
+            assert [s.kind for s in room.seats] == ["human", "bot", "human", "bot"]
+            await until(lambda: len(srv.clients) == 6, 10, "two bots gone: 4 clients, 2 bots")
+            state = (await lobby.request("list_rooms"))["rooms"][0]["seats"]
+            assert [s["open"] for s in state] == [False, True, False, True]
+            # a human's seat is not for the taking
+            try:
+                await NetClient.connect(srv.ws_url, name="cy", role="player", room="main",
+                                        seat=0)
+            except ServerError as e:
+                assert e.code == "bad_seat" and "player" in str(e)
+            else:
+                raise AssertionError("took a human's seat")
+            # the room plays on with its humans and bots
+            f0 = room.sim.stats.frames
+            await until(lambda: room.sim.stats.frames > f0 + 100, 10, "frames go on")
+            for c in (lobby, spectator, ann, bob):
+                await c.close()
+
+    run(main())
