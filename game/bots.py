@@ -8,7 +8,7 @@ towards the far corner, where other players guard. ``difficulty`` (0..1) sets ho
 reacts (reaction delay 250 -> 50 ms), how strongly it answers, and how much its hand
 wanders.
 
-``BotPlayer`` connects to a server like any human client (``game.net_client``), takes a
+``BotPlayer`` connects to a server like any human client (``game.net.client``), takes a
 seat (by reconnect token when the server assigned it) and sends its hand position at
 ``rate_hz``.
 """

@@ -3,7 +3,7 @@
 Seats and edges
 ---------------
 Seat ``s`` (0..3) holds corner ``s`` of the cloth, in the corner order of
-``game.cloth.corners_of``: (0,0), (0,n-1), (n-1,n-1), (n-1,0), which rest at
+``game.sim.cloth.corners_of``: (0,0), (0,n-1), (n-1,n-1), (n-1,0), which rest at
 (-x,-z), (+x,-z), (+x,+z), (-x,+z) (y is up). Seen from above (looking down -y, +x to the
 right, so +z points down the screen) that order runs **clockwise**, and seat ``s`` guards
 the edge from its own corner to the next one clockwise, corner ``(s+1) % 4``:

@@ -1,7 +1,7 @@
 """The websocket client on its own thread, handing frames to the render thread.
 
 pyglet runs its own loop on the main thread; the network runs an asyncio loop on a
-daemon thread (``NetThread``) with ``game.net_client.NetClient``. Neither waits for the
+daemon thread (``NetThread``) with ``game.net.client.NetClient``. Neither waits for the
 other:
 
 * JSON messages go through a ``queue.SimpleQueue`` (never blocks); the window drains it

@@ -1,7 +1,7 @@
 """Recorded rounds for the desktop client: load one (file, id or URL) and play it back with
 pause, seek and speed. Pure logic: the window draws ``ReplayPlayer.sample()``.
 
-A replay (``server.store``) holds the MESH stream (~30 Hz), a TRACK stream (~100 Hz:
+A replay (``game.wire.replay``) holds the MESH stream (~30 Hz), a TRACK stream (~100 Hz:
 ball, hands and corners) and the round's events, all stamped with the server's clock.
 Playback time ``t`` runs from the first to the last recorded frame; the cloth is
 interpolated between MESH frames, the ball and hands between TRACK samples (fresher), and

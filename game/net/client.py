@@ -39,7 +39,7 @@ HISTORY = 2000
 
 class _Connection(BinaryHook, ClientConnection):
     """The client's connection: CORNER and MESH messages go straight to ``on_binary``
-    (see ``server.binary_hook``)."""
+    (see ``game.net.fastpath``)."""
 
 
 class ServerError(RuntimeError):
