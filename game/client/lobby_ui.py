@@ -35,12 +35,12 @@ class Button:
         return self.x <= px <= self.x + self.w and self.y <= py <= self.y + self.h
 
 
-@dataclass
 def seat_open(seat: dict[str, Any]) -> bool:
     """Whether a human may take this seat: empty, or held by a bot (bots are backfill)."""
     return bool(seat.get("open", seat.get("kind") == "empty"))
 
 
+@dataclass
 class LobbyUI:
     screen: str = "rooms"  # rooms, create, seats
     selected: str | None = None  # room id on the seats screen
