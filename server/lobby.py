@@ -62,6 +62,7 @@ class Lobby:
             self.addresses[room_id] = address
         if permanent:
             self.permanent.add(room_id)
+            room.always_on = True  # the host's own room (the --bots demo) runs for show
         room.start()
         log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
                  "public" if public else "private")

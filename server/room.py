@@ -140,6 +140,7 @@ class Room:
         self._reach_hi = [tuple((a + self.half_extent + 1e-6).tolist()) for a in self.anchors]
         self.created = time.time()
         self.last_active = self.loop.time()
+        self.always_on = False  # the host's show room steps even with no one in it
         self._task: asyncio.Task[None] | None = None  # the countdown / restart in progress
         self._recording: RoundRecord | None = None
         self._closed = False
@@ -149,7 +150,13 @@ class Room:
 
     # --- life -----------------------------------------------------------------------------
     def start(self) -> None:
+        self._update_awake()
         self.sim.start()
+
+    def _update_awake(self) -> None:
+        """A room steps while a human holds a seat or someone watches it; else it sleeps
+        (no CPU), except the host's own show room (``always_on``: the --bots demo)."""
+        self.sim.set_awake(self.always_on or not self.is_empty())
 
     async def close(self) -> None:
         self._closed = True
@@ -215,6 +222,8 @@ class Room:
             c.send_json(msg)
 
     def broadcast_state(self) -> None:
+        # Every change of who is in the room comes through here.
+        self._update_awake()
         self.broadcast({"type": "room", **self.info()})
 
     def event(self, kind: str, /, **fields: Any) -> None:

@@ -97,6 +97,10 @@ class RoomSim:
         self._hip_slots: list[tuple[Any, int, float] | None] = [None] * 4
         self._commands: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._stop = threading.Event()
+        # Cleared while nobody is there to see the room: the thread does not step (a room
+        # with no one in it costs no CPU), and on waking the slept time is not caught up.
+        self._awake = threading.Event()
+        self._awake.set()
         self._thread: threading.Thread | None = None
         self._encoder: threading.Thread | None = None
         self._mesh_box: tuple[int, float, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -122,6 +126,18 @@ class RoomSim:
         for t in (self._thread, self._encoder):
             if t is not None and t is not threading.current_thread():
                 t.join(timeout=5.0)
+
+    def set_awake(self, awake: bool) -> None:
+        """Step the room (True) or let it sleep (False): no stepping, no CPU, until woken;
+        it then starts afresh from the state it slept in, at once."""
+        if awake:
+            self._awake.set()
+        else:
+            self._awake.clear()
+
+    @property
+    def asleep(self) -> bool:
+        return not self._awake.is_set()
 
     def now(self) -> float:
         """Server time: seconds since the server started."""
@@ -156,6 +172,12 @@ class RoomSim:
         next_track = 0
         stats = self.stats
         while not self._stop.is_set():
+            if not self._awake.is_set():
+                self._drain_commands()  # a recording's end still answers while asleep
+                if self._awake.wait(0.05):
+                    # Woken: pace from now, a mesh at once; the slept time is not replayed.
+                    t0, done, next_mesh, next_track = self.clock(), 0, 0, 0
+                continue
             now = self.clock()
             behind = int((now - t0 + TIMER_SLACK) / dt) - done
             if behind <= 0:

@@ -1,0 +1,43 @@
+"""A room with no human player and no spectator sleeps (no stepping) and wakes at once for
+the next one who comes in; the host's own show room runs for show whoever is there."""
+
+from __future__ import annotations
+
+import asyncio
+
+from clothball.game.net.client import NetClient
+from clothball.server.room import RoomSettings
+
+from tests.server.conftest import run, server, until
+
+
+def test_an_empty_room_sleeps_and_wakes_for_a_spectator(tmp_path) -> None:
+    async def main() -> None:
+        async with server(tmp_path, settings=RoomSettings(autoplay=True)) as srv:
+            main_room = srv.main_room
+            assert main_room is not None and not main_room.sim.asleep  # the show room runs
+            owner = await NetClient.connect(srv.ws_url)
+            rid = (await owner.request("create_room", name="quiet"))["room"]
+            room = srv.lobby.rooms[rid]
+            assert room.sim.asleep  # nobody in it: it does not step
+            f0 = room.sim.stats.frames
+            await asyncio.sleep(0.3)
+            assert room.sim.stats.frames == f0
+            spec = await NetClient.connect(srv.ws_url, role="spectator", room=rid)
+            assert not room.sim.asleep
+            await until(lambda: room.sim.stats.frames > f0 + 100, 10, "the room steps again")
+            # the slept time is not replayed: nothing skipped, no burst of catch-up frames
+            assert room.sim.stats.skipped_frames == 0
+            await until(lambda: spec.mesh is not None, 10, "a mesh for the spectator")
+            await spec.request("leave")
+            await until(lambda: room.sim.asleep, 5, "asleep again")
+            f1 = room.sim.stats.frames
+            await asyncio.sleep(0.3)
+            assert room.sim.stats.frames == f1
+            player = await NetClient.connect(srv.ws_url, name="ann", role="player", room=rid)
+            assert not room.sim.asleep and player.seat is not None
+            assert not main_room.sim.asleep
+            for c in (owner, spec, player):
+                await c.close()
+
+    run(main())
