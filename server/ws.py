@@ -131,7 +131,9 @@ class WsEndpoint:
                 raise ProtocolError("bad_message",
                                     f"the first message must be a hello, got {msg['type']!r}")
             version = msg.get("version")
-            if version != P.PROTOCOL_VERSION:
+            # The integer itself: 1.0 and true compare equal to 1 in Python, JSON tells them
+            # apart, and a client that sends them speaks some other dialect.
+            if type(version) is not int or version != P.PROTOCOL_VERSION:
                 raise ProtocolError(
                     "bad_version",
                     f"protocol version {version!r} not supported; this server speaks "

@@ -57,6 +57,10 @@ async def closed_with(ws: ClientConnection) -> int | None:
         ("not json", "bad_json"),
         ('{"type": "hello", "version": 99}', "bad_version"),
         ('{"type": "hello"}', "bad_version"),
+        # the integer 1 only: JSON tells 1.0 and true from 1 (Python's == does not)
+        ('{"type": "hello", "version": 1.0}', "bad_version"),
+        ('{"type": "hello", "version": true}', "bad_version"),
+        ('{"type": "hello", "version": "1"}', "bad_version"),
         ('{"type": "hello", "version": 1, "name": 5}', "bad_message"),
     ],
 )
