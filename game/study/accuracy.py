@@ -314,8 +314,12 @@ class Study:
             return v
 
         rows = [{k: clean(v) for k, v in asdict(r).items()} for r in self.rows]
-        return {"rows": rows, "sag_convergence": self.sag_convergence, "fig4": self.fig4,
-                "meta": self.meta}
+        fits = [{"integrator": i, "precision": p, "n": n,
+                 "order": o if isinstance(o, float) else None,
+                 "note": "" if isinstance(o, float) else o}
+                for (i, p, n), o in orders(self.rows).items()]
+        return {"rows": rows, "summary": {"fitted_order": fits},
+                "sag_convergence": self.sag_convergence, "fig4": self.fig4, "meta": self.meta}
 
 
 @dataclass
@@ -455,16 +459,26 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return front
 
 
-def orders(rows: Sequence[Row]) -> dict[tuple[str, str, int], float]:
-    """Fitted error order of each (integrator, precision, n) curve."""
-    out = {}
+# Below this an error is round-off, not truncation: a slope through it means nothing.
+ROUNDOFF_M = 1e-9
+# A slope needs at least this many points above round-off to show an asymptotic range.
+MIN_FIT_POINTS = 3
+
+
+def orders(rows: Sequence[Row]) -> dict[tuple[str, str, int], float | str]:
+    """Fitted error order of each (integrator, precision, n) curve, or, where no order
+    can honestly be fitted, a short reason saying why (printed instead of a number)."""
+    out: dict[tuple[str, str, int], float | str] = {}
     keys = sorted({(r.integrator, r.precision, r.n) for r in rows})
     for key in keys:
         pts = [(r.dt_us, r.error_rms_m) for r in rows
                if (r.integrator, r.precision, r.n) == key
-               and math.isfinite(r.error_rms_m) and r.error_rms_m > 0]
-        if len(pts) >= 2:
+               and math.isfinite(r.error_rms_m) and r.error_rms_m >= ROUNDOFF_M]
+        if len(pts) >= MIN_FIT_POINTS:
             out[key] = fitted_order([p[0] for p in pts], [p[1] for p in pts])
+        else:
+            out[key] = (f"no order: {len(pts)} point(s) above round-off ({ROUNDOFF_M:g} m), "
+                        f"{MIN_FIT_POINTS} needed")
     return out
 
 
@@ -485,7 +499,8 @@ def table(study: Study) -> str:
     lines.append("")
     lines.append("fitted order (slope of log error vs log dt):")
     for (integ, prec, n), p in orders(study.rows).items():
-        lines.append(f"  {integ:<20} {prec:<7} n={n:<4} {p:5.2f}")
+        shown = f"{p:5.2f}" if isinstance(p, float) else p
+        lines.append(f"  {integ:<20} {prec:<7} n={n:<4} {shown}")
     if study.sag_convergence:
         lines.append("")
         lines.append("static sag (Newton) against grid size:")

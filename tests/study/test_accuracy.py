@@ -15,10 +15,14 @@ from clothball.game.cli import main
 from clothball.game.sim.cloth import UnstableSceneWarning
 from clothball.game.sim.stability import stable_dt
 from clothball.game.study.accuracy import (
+    ROUNDOFF_M,
     Plan,
+    Row,
+    Study,
     fig4_start,
     fitted_order,
     make_sim,
+    orders,
     pareto_front,
     plot_error_vs_cost,
     plot_fig4,
@@ -141,6 +145,27 @@ def test_fitted_order_and_pareto() -> None:
     assert fitted_order(dts, [3 * d**2 for d in dts]) == pytest.approx(2.0)
     pts = [(1.0, 1.0), (2.0, 0.5), (3.0, 0.7), (4.0, 0.1), (0.5, 5.0), (5.0, math.inf)]
     assert pareto_front(pts) == [4, 0, 1, 3]
+
+
+def test_no_order_fitted_from_round_off_or_too_few_points() -> None:
+    def row(integ: str, dt: float, err: float) -> Row:
+        return Row(integ, "float64", 6, 1, dt, 0, err, 0.0, 0.0, 0.0, 1.0, "cpu", 16)
+
+    dts = [8.0, 4.0, 2.0, 1.0]
+    rows = ([row("a", d, 1e-3 * d**2) for d in dts]               # clean order 2
+            + [row("b", d, 4e-15 * (1 + d)) for d in dts]         # round-off, like --quick's
+            + [row("c", d, e) for d, e in zip(dts, [1e-6, 2.5e-7, 5e-10, 1e-12], strict=True)])
+    fits = orders(rows)
+    assert fits[("a", "float64", 6)] == pytest.approx(2.0)
+    for key in (("b", "float64", 6), ("c", "float64", 6)):  # c: only 2 points above 1e-9
+        assert isinstance(fits[key], str) and "no order" in fits[key]
+    text = table(Study(rows, [], {}, {}))
+    assert "no order" in text and "inf" not in text
+    summary = Study(rows, [], {}, {}).to_json()["summary"]["fitted_order"]
+    by = {f["integrator"]: f for f in summary}
+    assert by["a"]["order"] == pytest.approx(2.0)
+    assert by["b"]["order"] is None and by["b"]["note"]
+    assert ROUNDOFF_M == 1e-9
 
 
 def test_tiny_study_end_to_end(tmp_path) -> None:
