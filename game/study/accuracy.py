@@ -281,6 +281,51 @@ def steady_sag(sim: Any, scene: Scene, start: np.ndarray, hold_s: float) -> floa
     return centre_sag(scene, sim.positions())
 
 
+@dataclass
+class Decorrelation:
+    """Two runs from starts ``perturb_m`` apart: when their separation reaches
+    ``threshold_m`` (inf: not within the horizon) and the exponential growth rate fitted
+    to the separation (1/s) between the perturbation's size and the threshold."""
+
+    time_s: float
+    rate_per_s: float
+    perturb_m: float
+    threshold_m: float
+    horizon_s: float
+
+
+def decorrelation_time(
+    scene: Scene, integrator: str, precision: str, substeps: int, backend: str = "cpu",
+    perturb_m: float = 1e-10, threshold_m: float = 1e-4, horizon_s: float = 1.0,
+) -> Decorrelation:
+    """The Lyapunov-style horizon past which trajectories of this scene cannot be compared:
+    every node of one run is moved ``perturb_m`` along x and both are stepped together."""
+    start = fig4_start(scene)
+    sims = [make_sim(scene, integrator, precision, substeps, backend)[0] for _ in range(2)]
+    shifted = start.pos.copy()
+    shifted[..., 0] += perturb_m
+    for sim, pos in zip(sims, (start.pos, shifted), strict=True):
+        sim.set_state(pos, np.zeros_like(pos))
+        if "ball" in scene.effects:
+            sim.set_ball(start.ball_pos, start.ball_vel)
+    frame_dt = float(scene["sim"]["frame_dt"])
+    ts, seps, hit = [], [], math.inf
+    for frame in range(1, max(1, round(horizon_s / frame_dt)) + 1):
+        for sim in sims:
+            sim.step(1)
+        sep = float(np.max(np.abs(sims[0].positions() - sims[1].positions())))
+        ts.append(frame * frame_dt)
+        seps.append(sep)
+        if sep >= threshold_m:
+            hit = frame * frame_dt
+            break
+    # Growth fitted where the separation is well above the seed and below saturation.
+    pts = [(t, e) for t, e in zip(ts, seps, strict=True) if 10 * perturb_m < e < threshold_m]
+    rate = (float(np.polyfit([p[0] for p in pts], np.log([p[1] for p in pts]), 1)[0])
+            if len(pts) >= MIN_FIT_POINTS else math.nan)
+    return Decorrelation(hit, rate, perturb_m, threshold_m, horizon_s)
+
+
 # --- the sweep ------------------------------------------------------------------------------
 @dataclass
 class Row:

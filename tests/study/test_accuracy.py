@@ -19,8 +19,10 @@ from clothball.game.study.accuracy import (
     Plan,
     Row,
     Study,
+    decorrelation_time,
     fig4_start,
     fitted_order,
+    impact_speed,
     make_sim,
     orders,
     pareto_front,
@@ -28,10 +30,16 @@ from clothball.game.study.accuracy import (
     plot_fig4,
     run_study,
     run_trajectory,
+    start_substeps,
     table,
     trajectory_errors,
 )
-from clothball.game.study.integrators_ref import ORDERS, kinetic_energy, potential_energy
+from clothball.game.study.integrators_ref import (
+    ORDERS,
+    kinetic_energy,
+    potential_energy,
+    with_effects,
+)
 
 
 def small_drop() -> Scene:
@@ -166,6 +174,19 @@ def test_no_order_fitted_from_round_off_or_too_few_points() -> None:
     assert by["a"]["order"] == pytest.approx(2.0)
     assert by["b"]["order"] is None and by["b"]["note"]
     assert ROUNDOFF_M == 1e-9
+
+
+def test_decorrelation_time_ball_drop_vs_no_ball() -> None:
+    """The ball's contact makes the motion chaotic: a 1e-10 m perturbation reaches 1e-4 m
+    within the horizon, growing exponentially; the same cloth without the ball damps it."""
+    scene = Scene.from_dict({"cloth": {"n": 10, "size": 0.5},
+                             "ball": {"position": [0.0, 0.95, 0.0], "radius": 0.1}})
+    sub = start_substeps(scene, "semi_implicit_euler", impact_speed(scene, fig4_start(scene)))
+    ball = decorrelation_time(scene, "semi_implicit_euler", "float64", sub, horizon_s=0.6)
+    assert 0 < ball.time_s < 0.6 and ball.rate_per_s > 0
+    calm = decorrelation_time(with_effects(scene, ["ball"]), "semi_implicit_euler",
+                              "float64", sub, horizon_s=0.6)
+    assert calm.time_s > 0.6 > ball.time_s  # not reached at all within the horizon
 
 
 def test_tiny_study_end_to_end(tmp_path) -> None:
