@@ -351,6 +351,7 @@ class Study:
     sag_convergence: list[dict[str, float]]
     fig4: dict[str, Any]
     meta: dict[str, Any]
+    decorrelation: dict[str, Any] | None = None  # asdict(Decorrelation) and its case
 
     def to_json(self) -> dict[str, Any]:
         def clean(v: Any) -> Any:
@@ -363,7 +364,9 @@ class Study:
                  "order": o if isinstance(o, float) else None,
                  "note": "" if isinstance(o, float) else o}
                 for (i, p, n), o in orders(self.rows).items()]
-        return {"rows": rows, "summary": {"fitted_order": fits},
+        dec = ({k: clean(v) for k, v in self.decorrelation.items()}
+               if self.decorrelation else None)
+        return {"rows": rows, "summary": {"fitted_order": fits, "decorrelation": dec},
                 "sag_convergence": self.sag_convergence, "fig4": self.fig4, "meta": self.meta}
 
 
@@ -381,6 +384,7 @@ class Plan:
     energy: bool = True
     sag: bool = True
     hold_s: float = 1.0
+    decorrelation: bool = False  # also measure the decorrelation time (needs the ball)
 
     def cases(self) -> int:
         per_n = len(self.integrators) * (len(self.precisions) * self.levels + 1)
@@ -481,7 +485,19 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
         "reference_factor": REFERENCE_FACTOR,
         "hold_s": plan.hold_s,
     }
-    return Study(rows, conv, fig4, meta)
+    dec = None
+    if plan.decorrelation and "ball" in plan.scene.effects:
+        # The native engine's own case, at the smallest n and the integrator's largest step.
+        integ = next((i for i in plan.integrators if i in native_integrators()),
+                     plan.integrators[0])
+        prec = "float64" if "float64" in plan.precisions else plan.precisions[0]
+        scene = sized(plan.scene, plan.sizes[0])
+        sub = start_substeps(scene, integ, impact_speed(scene, fig4_start(scene)))
+        d = decorrelation_time(scene, integ, prec, sub, plan.backend,
+                               horizon_s=max(plan.duration_s, 1.0))
+        dec = {**asdict(d), "integrator": integ, "precision": prec, "n": plan.sizes[0],
+               "substeps": sub}
+    return Study(rows, conv, fig4, meta, dec)
 
 
 # --- analysis -------------------------------------------------------------------------------
@@ -546,6 +562,14 @@ def table(study: Study) -> str:
     for (integ, prec, n), p in orders(study.rows).items():
         shown = f"{p:5.2f}" if isinstance(p, float) else p
         lines.append(f"  {integ:<20} {prec:<7} n={n:<4} {shown}")
+    if study.decorrelation:
+        d = study.decorrelation
+        when = (f"{d['time_s'] * 1e3:.0f} ms" if math.isfinite(d["time_s"])
+                else f"not within {d['horizon_s']:g} s")
+        lines.append("")
+        lines.append(f"decorrelation: {d['perturb_m']:g} m grows to {d['threshold_m']:g} m "
+                     f"in {when} (growth {d['rate_per_s']:.3g}/s; {d['integrator']} "
+                     f"{d['precision']} n={d['n']}): trajectories past this cannot be compared")
     if study.sag_convergence:
         lines.append("")
         lines.append("static sag (Newton) against grid size:")

@@ -194,7 +194,7 @@ def test_tiny_study_end_to_end(tmp_path) -> None:
                              "ball": {"position": [0.0, 0.95, 0.0], "radius": 0.1}})
     plan = Plan(scene=scene, sizes=[6], integrators=["semi_implicit_euler"],
                 precisions=["float32", "float64"], levels=2, duration_s=0.02, sample_ms=5,
-                sag_sizes=[5], hold_s=0.02)
+                sag_sizes=[5], hold_s=0.02, decorrelation=True)
     labels: list[str] = []
     study = run_study(plan, labels.append)
     assert len(labels) == plan.cases() + 1
@@ -209,6 +209,10 @@ def test_tiny_study_end_to_end(tmp_path) -> None:
     assert "semi_implicit_euler" in text and "fitted order" in text
     data = study.to_json()
     json.dumps(data)  # serialisable (no NaN objects that break strict readers)
+    dec = data["summary"]["decorrelation"]
+    assert dec["n"] == 6 and dec["perturb_m"] == 1e-10
+    assert dec["time_s"] is None or dec["time_s"] > 0  # None: not within the horizon
+    assert "decorrelation:" in text
     for key in ("integrator", "precision", "n", "substeps", "error_rms_m", "ball_error_m",
                 "us_per_sim_ms"):
         assert key in data["rows"][0]
