@@ -97,7 +97,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
         integrators=_csv(args.integrators, "integrators", INTEGRATORS),
         precisions=_csv(args.precisions, "precisions", PRECISIONS),
         levels=levels, duration_s=duration, backend=backend, sag_sizes=sag_sizes,
-        energy=not args.no_energy, sag=not args.no_sag)
+        energy=not args.no_energy, sag=not args.no_sag, decorrelation=True)
 
 
 def run(args: argparse.Namespace) -> int:

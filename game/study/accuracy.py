@@ -281,6 +281,51 @@ def steady_sag(sim: Any, scene: Scene, start: np.ndarray, hold_s: float) -> floa
     return centre_sag(scene, sim.positions())
 
 
+@dataclass
+class Decorrelation:
+    """Two runs from starts ``perturb_m`` apart: when their separation reaches
+    ``threshold_m`` (inf: not within the horizon) and the exponential growth rate fitted
+    to the separation (1/s) between the perturbation's size and the threshold."""
+
+    time_s: float
+    rate_per_s: float
+    perturb_m: float
+    threshold_m: float
+    horizon_s: float
+
+
+def decorrelation_time(
+    scene: Scene, integrator: str, precision: str, substeps: int, backend: str = "cpu",
+    perturb_m: float = 1e-10, threshold_m: float = 1e-4, horizon_s: float = 1.0,
+) -> Decorrelation:
+    """The Lyapunov-style horizon past which trajectories of this scene cannot be compared:
+    every node of one run is moved ``perturb_m`` along x and both are stepped together."""
+    start = fig4_start(scene)
+    sims = [make_sim(scene, integrator, precision, substeps, backend)[0] for _ in range(2)]
+    shifted = start.pos.copy()
+    shifted[..., 0] += perturb_m
+    for sim, pos in zip(sims, (start.pos, shifted), strict=True):
+        sim.set_state(pos, np.zeros_like(pos))
+        if "ball" in scene.effects:
+            sim.set_ball(start.ball_pos, start.ball_vel)
+    frame_dt = float(scene["sim"]["frame_dt"])
+    ts, seps, hit = [], [], math.inf
+    for frame in range(1, max(1, round(horizon_s / frame_dt)) + 1):
+        for sim in sims:
+            sim.step(1)
+        sep = float(np.max(np.abs(sims[0].positions() - sims[1].positions())))
+        ts.append(frame * frame_dt)
+        seps.append(sep)
+        if sep >= threshold_m:
+            hit = frame * frame_dt
+            break
+    # Growth fitted where the separation is well above the seed and below saturation.
+    pts = [(t, e) for t, e in zip(ts, seps, strict=True) if 10 * perturb_m < e < threshold_m]
+    rate = (float(np.polyfit([p[0] for p in pts], np.log([p[1] for p in pts]), 1)[0])
+            if len(pts) >= MIN_FIT_POINTS else math.nan)
+    return Decorrelation(hit, rate, perturb_m, threshold_m, horizon_s)
+
+
 # --- the sweep ------------------------------------------------------------------------------
 @dataclass
 class Row:
@@ -306,6 +351,7 @@ class Study:
     sag_convergence: list[dict[str, float]]
     fig4: dict[str, Any]
     meta: dict[str, Any]
+    decorrelation: dict[str, Any] | None = None  # asdict(Decorrelation) and its case
 
     def to_json(self) -> dict[str, Any]:
         def clean(v: Any) -> Any:
@@ -314,8 +360,14 @@ class Study:
             return v
 
         rows = [{k: clean(v) for k, v in asdict(r).items()} for r in self.rows]
-        return {"rows": rows, "sag_convergence": self.sag_convergence, "fig4": self.fig4,
-                "meta": self.meta}
+        fits = [{"integrator": i, "precision": p, "n": n,
+                 "order": o if isinstance(o, float) else None,
+                 "note": "" if isinstance(o, float) else o}
+                for (i, p, n), o in orders(self.rows).items()]
+        dec = ({k: clean(v) for k, v in self.decorrelation.items()}
+               if self.decorrelation else None)
+        return {"rows": rows, "summary": {"fitted_order": fits, "decorrelation": dec},
+                "sag_convergence": self.sag_convergence, "fig4": self.fig4, "meta": self.meta}
 
 
 @dataclass
@@ -332,6 +384,7 @@ class Plan:
     energy: bool = True
     sag: bool = True
     hold_s: float = 1.0
+    decorrelation: bool = False  # also measure the decorrelation time (needs the ball)
 
     def cases(self) -> int:
         per_n = len(self.integrators) * (len(self.precisions) * self.levels + 1)
@@ -432,7 +485,19 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
         "reference_factor": REFERENCE_FACTOR,
         "hold_s": plan.hold_s,
     }
-    return Study(rows, conv, fig4, meta)
+    dec = None
+    if plan.decorrelation and "ball" in plan.scene.effects:
+        # The native engine's own case, at the smallest n and the integrator's largest step.
+        integ = next((i for i in plan.integrators if i in native_integrators()),
+                     plan.integrators[0])
+        prec = "float64" if "float64" in plan.precisions else plan.precisions[0]
+        scene = sized(plan.scene, plan.sizes[0])
+        sub = start_substeps(scene, integ, impact_speed(scene, fig4_start(scene)))
+        d = decorrelation_time(scene, integ, prec, sub, plan.backend,
+                               horizon_s=max(plan.duration_s, 1.0))
+        dec = {**asdict(d), "integrator": integ, "precision": prec, "n": plan.sizes[0],
+               "substeps": sub}
+    return Study(rows, conv, fig4, meta, dec)
 
 
 # --- analysis -------------------------------------------------------------------------------
@@ -455,16 +520,26 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return front
 
 
-def orders(rows: Sequence[Row]) -> dict[tuple[str, str, int], float]:
-    """Fitted error order of each (integrator, precision, n) curve."""
-    out = {}
+# Below this an error is round-off, not truncation: a slope through it means nothing.
+ROUNDOFF_M = 1e-9
+# A slope needs at least this many points above round-off to show an asymptotic range.
+MIN_FIT_POINTS = 3
+
+
+def orders(rows: Sequence[Row]) -> dict[tuple[str, str, int], float | str]:
+    """Fitted error order of each (integrator, precision, n) curve, or, where no order
+    can honestly be fitted, a short reason saying why (printed instead of a number)."""
+    out: dict[tuple[str, str, int], float | str] = {}
     keys = sorted({(r.integrator, r.precision, r.n) for r in rows})
     for key in keys:
         pts = [(r.dt_us, r.error_rms_m) for r in rows
                if (r.integrator, r.precision, r.n) == key
-               and math.isfinite(r.error_rms_m) and r.error_rms_m > 0]
-        if len(pts) >= 2:
+               and math.isfinite(r.error_rms_m) and r.error_rms_m >= ROUNDOFF_M]
+        if len(pts) >= MIN_FIT_POINTS:
             out[key] = fitted_order([p[0] for p in pts], [p[1] for p in pts])
+        else:
+            out[key] = (f"no order: {len(pts)} point(s) above round-off ({ROUNDOFF_M:g} m), "
+                        f"{MIN_FIT_POINTS} needed")
     return out
 
 
@@ -485,7 +560,16 @@ def table(study: Study) -> str:
     lines.append("")
     lines.append("fitted order (slope of log error vs log dt):")
     for (integ, prec, n), p in orders(study.rows).items():
-        lines.append(f"  {integ:<20} {prec:<7} n={n:<4} {p:5.2f}")
+        shown = f"{p:5.2f}" if isinstance(p, float) else p
+        lines.append(f"  {integ:<20} {prec:<7} n={n:<4} {shown}")
+    if study.decorrelation:
+        d = study.decorrelation
+        when = (f"{d['time_s'] * 1e3:.0f} ms" if math.isfinite(d["time_s"])
+                else f"not within {d['horizon_s']:g} s")
+        lines.append("")
+        lines.append(f"decorrelation: {d['perturb_m']:g} m grows to {d['threshold_m']:g} m "
+                     f"in {when} (growth {d['rate_per_s']:.3g}/s; {d['integrator']} "
+                     f"{d['precision']} n={d['n']}): trajectories past this cannot be compared")
     if study.sag_convergence:
         lines.append("")
         lines.append("static sag (Newton) against grid size:")

@@ -15,19 +15,31 @@ from clothball.game.cli import main
 from clothball.game.sim.cloth import UnstableSceneWarning
 from clothball.game.sim.stability import stable_dt
 from clothball.game.study.accuracy import (
+    ROUNDOFF_M,
     Plan,
+    Row,
+    Study,
+    decorrelation_time,
     fig4_start,
     fitted_order,
+    impact_speed,
     make_sim,
+    orders,
     pareto_front,
     plot_error_vs_cost,
     plot_fig4,
     run_study,
     run_trajectory,
+    start_substeps,
     table,
     trajectory_errors,
 )
-from clothball.game.study.integrators_ref import ORDERS, kinetic_energy, potential_energy
+from clothball.game.study.integrators_ref import (
+    ORDERS,
+    kinetic_energy,
+    potential_energy,
+    with_effects,
+)
 
 
 def small_drop() -> Scene:
@@ -143,12 +155,46 @@ def test_fitted_order_and_pareto() -> None:
     assert pareto_front(pts) == [4, 0, 1, 3]
 
 
+def test_no_order_fitted_from_round_off_or_too_few_points() -> None:
+    def row(integ: str, dt: float, err: float) -> Row:
+        return Row(integ, "float64", 6, 1, dt, 0, err, 0.0, 0.0, 0.0, 1.0, "cpu", 16)
+
+    dts = [8.0, 4.0, 2.0, 1.0]
+    rows = ([row("a", d, 1e-3 * d**2) for d in dts]               # clean order 2
+            + [row("b", d, 4e-15 * (1 + d)) for d in dts]         # round-off, like --quick's
+            + [row("c", d, e) for d, e in zip(dts, [1e-6, 2.5e-7, 5e-10, 1e-12], strict=True)])
+    fits = orders(rows)
+    assert fits[("a", "float64", 6)] == pytest.approx(2.0)
+    for key in (("b", "float64", 6), ("c", "float64", 6)):  # c: only 2 points above 1e-9
+        assert isinstance(fits[key], str) and "no order" in fits[key]
+    text = table(Study(rows, [], {}, {}))
+    assert "no order" in text and "inf" not in text
+    summary = Study(rows, [], {}, {}).to_json()["summary"]["fitted_order"]
+    by = {f["integrator"]: f for f in summary}
+    assert by["a"]["order"] == pytest.approx(2.0)
+    assert by["b"]["order"] is None and by["b"]["note"]
+    assert ROUNDOFF_M == 1e-9
+
+
+def test_decorrelation_time_ball_drop_vs_no_ball() -> None:
+    """The ball's contact makes the motion chaotic: a 1e-10 m perturbation reaches 1e-4 m
+    within the horizon, growing exponentially; the same cloth without the ball damps it."""
+    scene = Scene.from_dict({"cloth": {"n": 10, "size": 0.5},
+                             "ball": {"position": [0.0, 0.95, 0.0], "radius": 0.1}})
+    sub = start_substeps(scene, "semi_implicit_euler", impact_speed(scene, fig4_start(scene)))
+    ball = decorrelation_time(scene, "semi_implicit_euler", "float64", sub, horizon_s=0.6)
+    assert 0 < ball.time_s < 0.6 and ball.rate_per_s > 0
+    calm = decorrelation_time(with_effects(scene, ["ball"]), "semi_implicit_euler",
+                              "float64", sub, horizon_s=0.6)
+    assert calm.time_s > 0.6 > ball.time_s  # not reached at all within the horizon
+
+
 def test_tiny_study_end_to_end(tmp_path) -> None:
     scene = Scene.from_dict({"cloth": {"n": 6, "size": 0.5},
                              "ball": {"position": [0.0, 0.95, 0.0], "radius": 0.1}})
     plan = Plan(scene=scene, sizes=[6], integrators=["semi_implicit_euler"],
                 precisions=["float32", "float64"], levels=2, duration_s=0.02, sample_ms=5,
-                sag_sizes=[5], hold_s=0.02)
+                sag_sizes=[5], hold_s=0.02, decorrelation=True)
     labels: list[str] = []
     study = run_study(plan, labels.append)
     assert len(labels) == plan.cases() + 1
@@ -163,6 +209,10 @@ def test_tiny_study_end_to_end(tmp_path) -> None:
     assert "semi_implicit_euler" in text and "fitted order" in text
     data = study.to_json()
     json.dumps(data)  # serialisable (no NaN objects that break strict readers)
+    dec = data["summary"]["decorrelation"]
+    assert dec["n"] == 6 and dec["perturb_m"] == 1e-10
+    assert dec["time_s"] is None or dec["time_s"] > 0  # None: not within the horizon
+    assert "decorrelation:" in text
     for key in ("integrator", "precision", "n", "substeps", "error_rms_m", "ball_error_m",
                 "us_per_sim_ms"):
         assert key in data["rows"][0]
