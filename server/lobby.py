@@ -114,6 +114,7 @@ def parse_settings(msg: dict[str, Any]) -> RoomSettings:
         reset_offset=P.field_float(msg, "reset_offset", d.reset_offset, 0.0, 0.2),  # type: ignore[arg-type]
         reset_speed=P.field_float(msg, "reset_speed", d.reset_speed, 0.0, 5.0),  # type: ignore[arg-type]
         bots_allowed=P.field_bool(msg, "bots_allowed", d.bots_allowed),
+        unguarded=P.field_bool(msg, "unguarded", d.unguarded),
         bot_difficulty=P.field_float(msg, "bot_difficulty", d.bot_difficulty, 0.0, 1.0),  # type: ignore[arg-type]
         grace=P.field_float(msg, "grace", d.grace, 0.5, 60.0),  # type: ignore[arg-type]
         autoplay=P.field_bool(msg, "autoplay", d.autoplay),

@@ -67,6 +67,7 @@ class RoomSettings:
     reset_offset: float = 0.05  # m: the ball restarts this far (at most) from the centre
     reset_speed: float = 0.0  # m/s: horizontal speed the ball restarts with (a harder game)
     bots_allowed: bool = True
+    unguarded: bool = False  # a match may start with empty seats (their edges unguarded)
     bot_difficulty: float = 0.6
     grace: float = 15.0  # s a disconnected player's seat is held
     autoplay: bool = False  # start (and restart) matches when only bots are seated
@@ -183,6 +184,7 @@ class Room:
             "seats": [s.info() for s in self.seats],
             "spectators": len(self.spectators),
             "bots_allowed": self.settings.bots_allowed,
+            "unguarded": self.settings.unguarded,
             "frame": self.frame,
         }
 
@@ -383,6 +385,11 @@ class Room:
         return [s for s in self.seats if s.kind == "bot"]
 
     def add_bot(self, index: int | None, difficulty: float, reason: str = "added") -> int:
+        index = self._place_bot(index, difficulty, reason)
+        self._maybe_start()
+        return index
+
+    def _place_bot(self, index: int | None, difficulty: float, reason: str) -> int:
         if not self.settings.bots_allowed:
             raise ProtocolError("not_allowed", f"room {self.id} does not allow bots")
         if index is None:
@@ -399,7 +406,6 @@ class Room:
         self.event("seat", seat=index, kind="bot", name=seat.name, reason=reason)
         self.broadcast_state()
         self.host.spawn_bot(self, index, seat.token, difficulty)
-        self._maybe_start()
         return index
 
     def remove_bot(self, index: int) -> None:
@@ -428,7 +434,24 @@ class Room:
     def request_start(self, conn: Peer) -> None:
         if not self.may_control(conn):
             raise ProtocolError("not_allowed", "only the room's host can start the match")
+        why = self._guard_edges()
+        if why:
+            raise ProtocolError("cannot_start", why)
         self._start_match()
+
+    def _guard_edges(self) -> str:
+        """Before a match: bots take the empty seats (a match of unguarded edges is rounds
+        void), unless the room asks for empty seats. Returns why it cannot start, or ""."""
+        empty = [s.index for s in self.seats if s.kind == "empty"]
+        if not empty or self.settings.unguarded:
+            return ""
+        if not self.settings.bots_allowed:
+            corners = ", ".join(str(i) for i in empty)
+            return (f"corner(s) {corners} empty and this room allows no bots: "
+                    "wait for players to take them")
+        for i in empty:
+            self._place_bot(i, self.settings.bot_difficulty, "backfill")
+        return ""
 
     def _maybe_start(self) -> None:
         if self._closed or self.match.state not in ("waiting", "over"):
@@ -438,6 +461,10 @@ class Room:
         humans = self.humans()
         if humans:
             if all(s.ready for s in humans) and all(s.conn is not None for s in humans):
+                why = self._guard_edges()
+                if why:
+                    self.event("cannot_start", reason=why)
+                    return
                 self._start_match()
         elif self._bot_seats() and self.settings.autoplay:
             delay = self.settings.restart_delay if self.match.state == "over" else 0.0

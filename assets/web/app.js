@@ -297,6 +297,7 @@ function eventText(ev, seats) {
     case "replay_saved": return `round ${ev.round} saved as a replay`;
     case "replay_failed": return `round ${ev.round} not recorded: ${ev.reason}`;
     case "room_stopped": return `room stopped: ${ev.reason}`;
+    case "cannot_start": return `cannot start: ${ev.reason}`;
     default: return ev.event;
   }
 }

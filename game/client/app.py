@@ -72,6 +72,8 @@ class ClientWindow(pyglet.window.Window):
         self.lobby = LobbyUI()
         self.auto_join = auto_join
         self._auto_join_sent = False
+        # The key that opened the name field: pyglet sends its on_text after on_key_press.
+        self._swallow_text = ""
         self._pending: list[tuple[str, concurrent.futures.Future[Any]]] = []
         self._camera_set_for: tuple[Any, ...] | None = None
         self.frame: RenderFrame | None = None
@@ -456,12 +458,16 @@ class ClientWindow(pyglet.window.Window):
             self._track("leave", net.leave())
 
     def on_text(self, text: str) -> None:
+        swallow, self._swallow_text = self._swallow_text, ""
+        if swallow and text.lower() == swallow:
+            return  # the N that opened the name field is not part of the name
         if self.model.room is None and self.lobby.screen == "create":
             self.lobby.type_text(text)
 
     def on_key_press(self, symbol: int, modifiers: int) -> None:
         key = pyglet.window.key
         self._modifiers = modifiers
+        self._swallow_text = ""  # a keystroke's on_text comes before the next key's press
         typing = self.model.room is None and self.lobby.screen == "create"
         if symbol == key.ESCAPE:
             if self.replay is not None:
@@ -507,6 +513,7 @@ class ClientWindow(pyglet.window.Window):
                 self.perform(("refresh",))
             elif symbol == key.N:
                 self.lobby.act(("create",))
+                self._swallow_text = "n"
             elif symbol == key.W and self.lobby.screen == "seats":
                 action = self.lobby.act(("spectate",))
                 if action is not None:

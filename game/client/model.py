@@ -220,6 +220,8 @@ class ClientModel:
             text = f"round {msg.get('round')} saved: clothball replay {rid}"
         elif ev == "room_stopped":
             text = f"room stopped: {msg.get('reason')}"
+        elif ev == "cannot_start":
+            text = f"cannot start: {msg.get('reason')}"
         elif ev == "replay_failed":
             text = f"round {msg.get('round')} not recorded: {msg.get('reason')}"
         else:
