@@ -22,7 +22,7 @@ from ..game.rules import EDGE_NAMES, SEATS, IllegalMove, Match, edge_of_seat
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
-from ..game.wire.replay import REPLAY_VERSION, new_round_id
+from ..game.wire.replay import REPLAY_VERSION, new_round_id, recorded_length
 from .sim import FrameResult, RoomSim
 
 log = logging.getLogger("clothball.server")
@@ -673,4 +673,6 @@ class Room:
         except TimeoutError:
             log.warning("room %s: round %s not saved (simulation stopped)", self.id, header["id"])
             return
+        # The round's length as a player shows it: its recorded frames, the tail included.
+        header["duration_s"] = recorded_length(header["geometry"]["frame_dt"], records)
         self.host.save_round(header, records)

@@ -11,7 +11,7 @@ import { Playback, fetchReplay } from "./replay.js";
 const $ = (id) => document.getElementById(id);
 const EDGES = ["north", "east", "south", "west"];
 const STATE_TEXT = {
-  waiting: "waiting for players", countdown: "countdown", playing: "playing", over: "match over",
+  waiting: "waiting for players", countdown: "countdown", playing: "playing", round_over: "round over", over: "match over",
 };
 
 const stats = { meshFrames: 0, decodeUploadMs: [], badFrames: 0 };
@@ -473,7 +473,9 @@ async function startReplay(id, t0) {
       else $("banner").hidden = true;
       renderScoreboard(replay.scoresAt(t), {
         name: hd.room_name, round: hd.round, first_to: hd.first_to, seats: hd.players,
-        state: evs.some((e) => e.msg.event === "score") ? "over" : "playing",
+        // a replay is one round: "match over" only where the match did end in it
+        state: evs.some((e) => e.msg.event === "match_end") ? "over"
+          : evs.some((e) => e.msg.event === "score") ? "round_over" : "playing",
       });
     }
     seek.value = String(t);

@@ -30,6 +30,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from . import protocol as P
+
 MAGIC = b"CLOTHBALL-REPLAY"
 REPLAY_VERSION = 1
 RECORD = struct.Struct("<BI")
@@ -114,6 +116,14 @@ def _parse(body: bytes) -> tuple[dict[str, Any], list[tuple[int, bytes]]]:
         records.append((kind, body[off:off + length]))
         off += length
     return header, records
+
+
+def recorded_length(frame_dt: float, records: Iterable[tuple[int, bytes]]) -> float:
+    """Seconds from the first to the last recorded MESH or TRACK frame: the length a
+    replay player shows (assets/web/replay.js), so the index lists the same figure."""
+    frames = [struct.unpack_from("<q", data, P.HEADER.size)[0] for kind, data in records
+              if kind == 1 and len(data) >= P.HEADER.size + 8 and data[0] in (P.MESH, P.TRACK)]
+    return (max(frames) - min(frames)) * frame_dt if frames else 0.0
 
 
 def new_round_id() -> str:

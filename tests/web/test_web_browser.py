@@ -277,6 +277,13 @@ def test_replay_plays_pauses_and_seeks(live: ServerThread, driver) -> None:
     assert js(driver, "return document.getElementById('scoreboard').dataset.scores") == \
         ",".join(str(s) for s in row["scores"])
     assert "conceded" in driver.find_element("id", "events").text
+    # a replay is one round: its header says "round over", "match over" only if it ended one
+    header = driver.find_element("css selector", "#scoreboard .match").text
+    ended = js(driver, "return window.clothball.replay.events"
+                       ".some((e) => e.msg.event === 'match_end')")
+    assert ("match over" in header) == ended and (ended or "round over" in header), header
+    # the list's duration is the player's length
+    assert row["duration_s"] == pytest.approx(duration, abs=1e-9)
     # speed: 4x plays four times as fast as 1x (loosely: rAF timing is coarse)
     js(driver, """const s = document.getElementById('seek'); s.value = 0;
                   s.dispatchEvent(new Event('input', {bubbles: true}));
