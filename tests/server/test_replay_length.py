@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay
 from clothball.server.room import RoomSettings
