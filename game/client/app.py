@@ -42,6 +42,16 @@ def _rgb255(c: tuple[float, float, float], a: int = 255) -> tuple[int, int, int,
     return (int(c[0] * 255), int(c[1] * 255), int(c[2] * 255), a)
 
 
+def fit_label(label: pyglet.text.Label, width: float, smallest: int = 8) -> None:
+    """Keep a button's text inside its button: a smaller font, then cut with an ellipsis."""
+    while label.content_width > width and label.font_size > smallest:
+        label.font_size -= 1
+    text = label.text
+    while label.content_width > width and len(text) > 1:
+        text = text[:-1]
+        label.text = text.rstrip() + "…"
+
+
 class ClientWindow(pyglet.window.Window):
     """The clothball window. Give it a ``NetThread`` (live) or a ``ReplayPlayer``."""
 
@@ -371,9 +381,11 @@ class ClientWindow(pyglet.window.Window):
             alpha = 230 if b.enabled else 120
             self._ui_shapes.append(pyglet.shapes.Rectangle(
                 b.x, b.y, b.w, b.h, color=_rgb255(b.colour, alpha), batch=self.ui_batch))
-            self._ui_labels.append(pyglet.text.Label(
+            label = pyglet.text.Label(
                 b.label, x=int(b.x + 10), y=int(b.y + b.h / 2), anchor_y="center",
-                font_size=FONT_SIZE, batch=self.ui_batch, color=(255, 255, 255, 255)))
+                font_size=FONT_SIZE, batch=self.ui_batch, color=(255, 255, 255, 255))
+            fit_label(label, b.w - 20)
+            self._ui_labels.append(label)
 
     def _clear_ui(self) -> None:
         for s in self._ui_shapes + self._ui_labels:
