@@ -21,6 +21,7 @@ const app = {
   liveRooms: [], replays: [], error: null,
 };
 window.clothball = app;
+app.banner = (text, cls, ms) => banner(text, cls, ms); // for tests
 
 // --- small DOM helpers ------------------------------------------------------------------
 
@@ -313,7 +314,8 @@ function addEventLine(text, link = null, cls = "") {
 let bannerTimer = 0;
 function banner(text, cls = "", ms = 2500) {
   const b = $("banner");
-  b.textContent = text;
+  // a name such as "bot-2" must not wrap at its hyphen: U+2011 is a non-breaking hyphen
+  b.textContent = text.replace(/-/g, "\u2011");
   b.className = cls;
   b.hidden = false;
   clearTimeout(bannerTimer);

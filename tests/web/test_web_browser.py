@@ -398,3 +398,33 @@ def test_bench_module_measures_decode_and_upload(live: ServerThread, driver) -> 
     for stage in ("decode", "upload", "decodeUpload", "decodeUploadFinish"):
         assert r[stage]["count"] == 2 and 0 <= r[stage]["median"] < 1000
     assert console_errors(driver) == []
+
+
+def test_phone_banner_keeps_names_whole_under_the_corner_labels(live: ServerThread,
+                                                                driver) -> None:
+    """On a phone-sized page the match-over banner wraps between words, never inside a
+    name such as "bot-2", and the corner labels stay above it (drawn over, not hidden)."""
+    size = driver.get_window_size()
+    driver.set_window_size(390, 844)
+    try:
+        rid = main_room(live)
+        open_page(driver, f"{live.url}#/room/{rid}")
+        wait_for(lambda: len(driver.find_elements("css selector", "#labels .label")) == 4, 20,
+                 "corner labels")
+        names = ["bot-0-with-a-long-name", "bot-2-with-a-long-name"]
+        js(driver, "window.clothball.banner(arguments[0], 'end', 0)",
+           f"match over: {names[0]} & {names[1]} won (5–3–1–0)")
+        lines = js(driver, """
+            const b = document.getElementById('banner'), t = b.firstChild, s = t.data;
+            return arguments[0].map((n) => {
+              const k = Math.max(s.indexOf(n), s.indexOf(n.replace(/-/g, '\\u2011')));
+              if (k < 0) return -1;
+              const r = document.createRange(); r.setStart(t, k); r.setEnd(t, k + n.length);
+              return new Set([...r.getClientRects()].map((q) => Math.round(q.top))).size;
+            });""", names)
+        assert lines == [1, 1], f"a name split over lines: {lines}"
+        z = js(driver, """const z = (id) => Number(getComputedStyle(document.getElementById(id)).zIndex);
+                          return [z('labels'), z('banner')]""")
+        assert z[0] > z[1]
+    finally:
+        driver.set_window_size(size["width"], size["height"])
