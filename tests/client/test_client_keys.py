@@ -19,6 +19,7 @@ from tests.client.test_client_window import display  # noqa: E402,F401  (fixture
 def driver() -> None:
     import pyglet
     from clothball.game.client.app import ClientWindow
+
     from tests.client.test_client_model import room, seats
 
     key = pyglet.window.key
@@ -41,7 +42,7 @@ def driver() -> None:
         w._ui_key = None
         w._update_ui()
         boxes = [(s.x, s.width) for s in w._ui_shapes]
-        return [lb.text for lb, (x, bw) in zip(w._ui_labels, boxes)
+        return [lb.text for lb, (x, bw) in zip(w._ui_labels, boxes, strict=True)
                 if lb.x + lb.content_width > x + bw]
 
     # the corner choices of a room full of long-named bots

@@ -137,7 +137,7 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
     loggers = [logging.getLogger("clothball"), logging.getLogger("websockets.server")]
     for lg in loggers:
         lg.addHandler(errors)
-    kw.setdefault("room_settings", RoomSettings(bots_allowed=False))
+    kw.setdefault("room_settings", RoomSettings(bots_allowed=False, unguarded=True))
     st = ServerThread(data, scenes={"tiny": TINY}, backend="cpu", **kw)
     try:
         st.start(30)

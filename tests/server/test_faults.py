@@ -337,7 +337,7 @@ def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_pa
 
     async def main() -> None:
         srv = GameServer(tmp_path, scenes={"tiny": TINY, "unstable": unstable}, backend="cpu",
-                         port=0, room_settings=RoomSettings(bots_allowed=False))
+                         port=0, room_settings=RoomSettings(bots_allowed=False, unguarded=True))
         await srv.start()
         try:
             main_room = srv.main_room

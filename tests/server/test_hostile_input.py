@@ -104,7 +104,7 @@ def test_a_bad_name_is_refused_at_hello_and_a_good_one_normalised(tmp_path) -> N
 def rounds_server(tmp_path_factory: pytest.TempPathFactory):
     lim = Limits(max_rooms=200, rooms_per_address=200, index_rate=1000, index_burst=1000)
     with live_server(tmp_path_factory.mktemp("names"), limits=lim,
-                     room_settings=RoomSettings(bots_allowed=False)) as live:
+                     room_settings=RoomSettings(bots_allowed=False, unguarded=True)) as live:
         yield live
 
 
@@ -129,7 +129,7 @@ def test_any_string_through_a_recorded_round(rounds_server: LiveServer, room_nam
     async def main() -> None:
         owner = await NetClient.connect(url, name="owner")
         opts = dict(first_to=1, countdown=0.2, reset_speed=3.0, restart_delay=30,
-                    bots_allowed=False)
+                    bots_allowed=False, unguarded=True)
         want_room = as_given(room_name, 48, "room")
         made = None
         if len(P.encode_json({"type": "create_room", "name": room_name, **opts})) > 4096:

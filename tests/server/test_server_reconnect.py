@@ -63,7 +63,7 @@ def test_after_the_grace_period_a_bot_takes_the_seat(tmp_path) -> None:
 
 def test_after_the_grace_period_without_bots_the_corner_rests(tmp_path) -> None:
     async def main() -> None:
-        settings = RoomSettings(grace=0.5, bots_allowed=False)
+        settings = RoomSettings(grace=0.5, bots_allowed=False, unguarded=True)
         async with server(tmp_path, settings=settings) as srv:
             room = srv.main_room
             assert room is not None
