@@ -94,7 +94,8 @@ async def _serve(args: argparse.Namespace) -> None:
                         max_clients=100_000, spectators_per_room=100_000)
         srv = GameServer(data, scenes={"bench": scene}, backend=args.server_backend,
                          host="127.0.0.1", port=0, default_room=not args.no_room,
-                         room_settings=RoomSettings(first_to=99, bots_allowed=False, unguarded=True),
+                         room_settings=RoomSettings(first_to=99, bots_allowed=False,
+                                                    unguarded=True),
                          limits=limits)
         await srv.start()
         room = srv.main_room

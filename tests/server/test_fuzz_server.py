@@ -56,7 +56,8 @@ def _tracemalloc_stopped_last() -> Iterator[None]:
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     with live_server(tmp_path_factory.mktemp("fuzz"), limits=FUZZ_LIMITS,
-                     room_settings=RoomSettings(bots_allowed=False, unguarded=True, grace=0.5)) as ls:
+                     room_settings=RoomSettings(bots_allowed=False, unguarded=True,
+                                                grace=0.5)) as ls:
         room = ls.srv.main_room
         assert room is not None
         f0 = room.sim.stats.frames

@@ -175,7 +175,8 @@ def test_a_spectator_cannot_act_as_a_player(tmp_path) -> None:
 
 def test_a_player_moves_only_its_own_corner(tmp_path) -> None:
     async def main() -> None:
-        async with server(tmp_path, settings=RoomSettings(bots_allowed=False, unguarded=True)) as srv:
+        async with server(tmp_path,
+                          settings=RoomSettings(bots_allowed=False, unguarded=True)) as srv:
             room = srv.main_room
             assert room is not None
             a = await NetClient.connect(srv.ws_url, role="player", room=room.id, seat=0)

@@ -82,7 +82,8 @@ def test_binary_messages_keep_their_order_with_text_ones(tmp_path) -> None:
     the hello; an erroneous HIP written right behind a ping is answered after the pong."""
 
     async def main() -> None:
-        async with server(tmp_path, settings=RoomSettings(bots_allowed=False, unguarded=True)) as srv:
+        async with server(tmp_path,
+                          settings=RoomSettings(bots_allowed=False, unguarded=True)) as srv:
             room = srv.main_room
             assert room is not None
             ws = await connect(srv.ws_url, compression=None)
@@ -134,7 +135,8 @@ def test_corners_reach_the_player_in_frame_order(tmp_path) -> None:
     async def main() -> None:
         from clothball.game.net.client import NetClient
 
-        async with server(tmp_path, settings=RoomSettings(bots_allowed=False, unguarded=True)) as srv:
+        async with server(tmp_path,
+                          settings=RoomSettings(bots_allowed=False, unguarded=True)) as srv:
             room = srv.main_room
             assert room is not None
             p = await NetClient.connect(srv.ws_url, role="player", room=room.id, seat=1)

@@ -423,7 +423,8 @@ def test_phone_banner_keeps_names_whole_under_the_corner_labels(live: ServerThre
               return new Set([...r.getClientRects()].map((q) => Math.round(q.top))).size;
             });""", names)
         assert lines == [1, 1], f"a name split over lines: {lines}"
-        z = js(driver, """const z = (id) => Number(getComputedStyle(document.getElementById(id)).zIndex);
+        z = js(driver, """const z = (id) =>
+                            Number(getComputedStyle(document.getElementById(id)).zIndex);
                           return [z('labels'), z('banner')]""")
         assert z[0] > z[1]
     finally:
