@@ -4,20 +4,29 @@ no bots does not start and says why; a room that asks for empty seats starts as 
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 from clothball.game.client.model import ClientModel
 from clothball.game.net.client import NetClient, ServerError
+from clothball.server.app import GameServer
+from clothball.server.room import Room
 
 from tests.server.conftest import run, server, until
+
+
+async def alone_in_own_room(srv: GameServer, **opts: Any) -> tuple[NetClient, Room]:
+    """ann creates a room with these settings and sits on corner 0, alone."""
+    ann = await NetClient.connect(srv.ws_url, name="ann")
+    rid = (await ann.request("create_room", name="mine", **opts))["room"]
+    await ann.join(rid, seat=0)
+    return ann, srv.lobby.rooms[rid]
 
 
 def test_ready_alone_fills_empty_seats_with_bots(tmp_path) -> None:
     async def main() -> None:
         async with server(tmp_path, default_room=False) as srv:
-            ann = await NetClient.connect(srv.ws_url, name="ann")
-            rid = (await ann.request("create_room", name="mine", countdown=0.2))["room"]
-            await ann.join(rid, seat=0)
-            room = srv.lobby.rooms[rid]
+            ann, room = await alone_in_own_room(srv, countdown=0.2)
             await ann.request("ready", ready=True)
             await until(lambda: room.match.state != "waiting", 10, "match started")
             assert [s.kind for s in room.seats] == ["human", "bot", "bot", "bot"]
@@ -33,10 +42,7 @@ def test_ready_alone_fills_empty_seats_with_bots(tmp_path) -> None:
 def test_no_bots_room_does_not_start_and_says_why(tmp_path) -> None:
     async def main() -> None:
         async with server(tmp_path, default_room=False) as srv:
-            ann = await NetClient.connect(srv.ws_url, name="ann")
-            rid = (await ann.request("create_room", name="nobots", bots_allowed=False))["room"]
-            await ann.join(rid, seat=0)
-            room = srv.lobby.rooms[rid]
+            ann, room = await alone_in_own_room(srv, bots_allowed=False)
             await ann.request("ready", ready=True)
             ev = await ann.wait_event("cannot_start", timeout=10, since=0)
             assert "1, 2, 3" in ev["reason"] and "no bots" in ev["reason"]
@@ -56,11 +62,7 @@ def test_no_bots_room_does_not_start_and_says_why(tmp_path) -> None:
 def test_a_room_that_asks_for_empty_seats_starts_as_it_is(tmp_path) -> None:
     async def main() -> None:
         async with server(tmp_path, default_room=False) as srv:
-            ann = await NetClient.connect(srv.ws_url, name="ann")
-            rid = (await ann.request("create_room", name="open", unguarded=True,
-                                     countdown=0.2))["room"]
-            await ann.join(rid, seat=0)
-            room = srv.lobby.rooms[rid]
+            ann, room = await alone_in_own_room(srv, unguarded=True, countdown=0.2)
             await ann.request("ready", ready=True)
             await until(lambda: room.match.state != "waiting", 10, "match started")
             assert [s.kind for s in room.seats] == ["human", "empty", "empty", "empty"]
