@@ -64,7 +64,13 @@ def _reach() -> F.Reach:
 def check(args: argparse.Namespace) -> int:
     if not args.emulator:
         print(f"Falcons on the USB bus: {F._f.count_usb_devices()}")
-    dev = _open(args, args.emulator)
+    try:
+        dev = _open(args, args.emulator)
+    except F.NoDeviceError as e:
+        print(f"clothball falcon check: {e}\n"
+              "No Falcon at hand? Try the emulated one: clothball falcon check --emulator",
+              file=sys.stderr)
+        return 1
     try:
         dev.start(_reach())
         seconds = args.seconds if args.seconds is not None else (3.0 if args.emulator else None)

@@ -57,3 +57,10 @@ def test_an_unknown_replay_id_says_how_to_list_them(tmp_path) -> None:
     with local_server(tmp_path) as st:
         r = clothball("replay", "nosuchround", "--server", st.ws_url)
     assert_short_error(r, "no replay 'nosuchround'", "clothball replay --server")
+
+
+def test_falcon_check_without_a_device_points_to_the_emulator() -> None:
+    r = clothball("falcon", "check")
+    if "Falcon check: OK" in r.stdout:
+        pytest.skip("a Falcon is plugged in here")
+    assert_short_error(r, "no Novint Falcon found", "clothball falcon check --emulator")
