@@ -31,7 +31,6 @@ class Lobby:
         self.backend = backend
         self.max_rooms = max_rooms
         self.rooms: dict[str, Room] = {}
-        self.permanent: set[str] = set()
         self.addresses: dict[str, str] = {}  # room id -> the address that created it
         self._room_factory = room_factory
         self.epoch = epoch
@@ -60,9 +59,7 @@ class Lobby:
         self.rooms[room_id] = room
         if address is not None:
             self.addresses[room_id] = address
-        if permanent:
-            self.permanent.add(room_id)
-            room.always_on = True  # the host's own room (the --bots demo) runs for show
+        room.permanent = permanent
         room.start()
         log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
                  "public" if public else "private")
@@ -81,7 +78,6 @@ class Lobby:
         """Take a room out of the lobby and close it."""
         room = self.rooms.pop(room_id, None)
         self.addresses.pop(room_id, None)
-        self.permanent.discard(room_id)
         if room is not None:
             await room.close()
 
@@ -91,7 +87,7 @@ class Lobby:
 
     async def close_idle(self, now: float) -> None:
         for rid, room in list(self.rooms.items()):
-            if rid in self.permanent:
+            if room.permanent:
                 continue
             if room.is_empty() and now - room.last_active > IDLE_CLOSE_S:
                 if any(s.kind == "bot" for s in room.seats) and room.spectators:

@@ -141,7 +141,9 @@ class Room:
         self._reach_hi = [tuple((a + self.half_extent + 1e-6).tolist()) for a in self.anchors]
         self.created = time.time()
         self.last_active = self.loop.time()
-        self.always_on = False  # the host's show room steps even with no one in it
+        # The host's own room (the --bots demo): never closed for idleness, and it steps
+        # even with no one in it, for show.
+        self.permanent = False
         self._task: asyncio.Task[None] | None = None  # the countdown / restart in progress
         self._recording: RoundRecord | None = None
         self._closed = False
@@ -156,8 +158,8 @@ class Room:
 
     def _update_awake(self) -> None:
         """A room steps while a human holds a seat or someone watches it; else it sleeps
-        (no CPU), except the host's own show room (``always_on``: the --bots demo)."""
-        self.sim.set_awake(self.always_on or not self.is_empty())
+        (no CPU), except the host's own room (``permanent``: the --bots demo)."""
+        self.sim.set_awake(self.permanent or not self.is_empty())
 
     async def close(self) -> None:
         self._closed = True
