@@ -87,13 +87,20 @@ class GameServer:
 
     # --- life -----------------------------------------------------------------------------
     async def start(self) -> tuple[str, int]:
-        self._server = await serve(
-            self.ws.handler, self.host, self.port, process_request=self.http.process_request,
-            max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
-            create_connection=Connection,
-            ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
-            close_timeout=2,
-        )
+        """Listen and open the main room. A failure to listen (``OSError``: port taken,
+        address not here) closes the replay index it opened, so nothing is left open."""
+        try:
+            self._server = await serve(
+                self.ws.handler, self.host, self.port, process_request=self.http.process_request,
+                max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
+                create_connection=Connection,
+                ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
+                close_timeout=2,
+            )
+        except BaseException:
+            if self.store is not None:
+                self.store.close()
+            raise
         sock = next(iter(self._server.sockets))
         self.port = sock.getsockname()[1]
         if self.default_room:

@@ -48,8 +48,6 @@ class ServerThread:
         try:
             loop.run_until_complete(srv.start())
         except BaseException as e:  # noqa: BLE001 - reported by start()
-            if srv.store is not None:
-                srv.store.close()
             self._error = e
             self._started.set()
             loop.close()

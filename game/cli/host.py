@@ -75,8 +75,6 @@ async def serve(args: argparse.Namespace) -> int:
         await server.start()
     except OSError as e:
         print(f"clothball host: cannot listen on {args.host}:{args.port}: {e.strerror}")
-        if server.store is not None:
-            server.store.close()
         return 1
     room = server.main_room
     backend = room.sim.cloth.backend if room is not None else args.backend
