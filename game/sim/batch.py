@@ -18,11 +18,11 @@ import numpy as np
 
 from ... import _native  # type: ignore[attr-defined]
 from .cloth import (
-    MAX_FRAMES_PER_CALL,
-    MAX_SUBSTEPS_PER_CALL,
     _as_finite,
     check_fixed_dt,
+    check_frames,
     corners_of,
+    frame_chunk,
     native_config,
     resolve_backend,
     rest_positions,
@@ -151,20 +151,14 @@ class ClothBatch:
     def step(self, frames: int = 1) -> list[int]:
         """Advance every occupied slot ``frames`` frames. Returns the slots whose state
         turned non-finite (reset or removed, as ``on_failure`` says); the others step on."""
-        if isinstance(frames, bool) or not isinstance(frames, int | np.integer):
-            raise ValueError(f"frames: expected a whole number, got {frames!r}")
-        if not 1 <= frames <= MAX_FRAMES_PER_CALL:
-            raise ValueError(f"frames: must be in 1..{MAX_FRAMES_PER_CALL}, got {frames}")
+        remaining = check_frames(frames)
         failed: list[int] = []
-        remaining = int(frames)
         while remaining and self._used.any():
             substeps = self.substeps
-            # As Cloth: auto substeps follow the balls, so re-check every 10 frames at most;
-            # gusts change the wind every frame.
-            chunk = remaining if self._fixed_substeps is not None else min(remaining, 10)
-            chunk = min(chunk, max(1, MAX_SUBSTEPS_PER_CALL // substeps))
+            # As Cloth (the same chunks, so a slot is bit for bit a lone cloth).
+            chunk = frame_chunk(remaining, substeps, self._fixed_substeps is not None,
+                                self._gusts)
             if self._gusts:
-                chunk = 1
                 t = self._frames * self._frame_dt
                 self._engine.set_wind_all(np.stack([wind_at(self.scene, x) for x in t]))
             finite = self._engine.step(chunk, substeps, self._frame_dt / substeps)

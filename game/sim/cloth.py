@@ -118,6 +118,26 @@ def _as_finite(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
+def check_frames(frames: object) -> int:
+    """The ``frames`` of a step call: a whole number in 1..MAX_FRAMES_PER_CALL, else a
+    ``ValueError`` naming it."""
+    if isinstance(frames, bool) or not isinstance(frames, int | np.integer):
+        raise ValueError(f"frames: expected a whole number, got {frames!r}")
+    if not 1 <= frames <= MAX_FRAMES_PER_CALL:
+        raise ValueError(f"frames: must be in 1..{MAX_FRAMES_PER_CALL}, got {frames}")
+    return int(frames)
+
+
+def frame_chunk(remaining: int, substeps: int, fixed: bool, gusts: bool) -> int:
+    """Frames for one engine call, of ``remaining``: one with gusts (the wind changes every
+    frame); at most 10 with automatic substeps (they follow the ball's speed and are
+    re-checked between calls); never more substeps than the engines' 32-bit counter."""
+    if gusts:
+        return 1
+    chunk = remaining if fixed else min(remaining, 10)
+    return min(chunk, max(1, MAX_SUBSTEPS_PER_CALL // substeps))
+
+
 def resolve_backend(scene: Scene, backend: str, precision: str | None
                     ) -> tuple[str, str, str]:
     """(backend, precision, note) for a cloth of ``scene``: ``"auto"`` is CUDA when a GPU is
@@ -270,18 +290,11 @@ class Cloth:
 
     def step(self, frames: int = 1) -> None:
         """Advance ``frames`` frames of ``frame_dt`` each, ``substeps`` substeps a frame."""
-        if isinstance(frames, bool) or not isinstance(frames, int | np.integer):
-            raise ValueError(f"frames: expected a whole number, got {frames!r}")
-        if not 1 <= frames <= MAX_FRAMES_PER_CALL:
-            raise ValueError(f"frames: must be in 1..{MAX_FRAMES_PER_CALL}, got {frames}")
-        remaining = int(frames)
+        remaining = check_frames(frames)
         while remaining:
-            # Auto substeps follow the ball's speed, so re-check at least every 10 frames;
-            # gusts change the wind every frame.
-            chunk = remaining if self._fixed_substeps is not None else min(remaining, 10)
-            chunk = min(chunk, max(1, MAX_SUBSTEPS_PER_CALL // self._substeps))
+            chunk = frame_chunk(remaining, self._substeps, self._fixed_substeps is not None,
+                                self._gusts)
             if self._gusts:
-                chunk = 1
                 self._apply_wind()
             self._engine.step(chunk, self._substeps, self.dt)
             self.frame += chunk
