@@ -26,6 +26,7 @@ from ..study.accuracy import (
     run_study,
     table,
 )
+from ..study.bench import csv_list
 from ..study.integrators_ref import INTEGRATORS
 
 DEFAULT_SIZES = (20, 40)
@@ -52,21 +53,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fig4", metavar="FILE.png", help="the paper's Fig. 4")
 
 
-def _csv(text: str, what: str, allowed: tuple[str, ...] | None = None) -> list[str]:
-    items = [t.strip() for t in text.split(",") if t.strip()]
-    if not items:
-        raise ValueError(f"--{what}: empty list")
-    if allowed:
-        bad = [t for t in items if t not in allowed]
-        if bad:
-            raise ValueError(
-                f"--{what}: unknown {', '.join(bad)}; choose from {', '.join(allowed)}")
-    return items
-
-
 def _ints(text: str, what: str) -> list[int]:
     try:
-        vals = [int(t) for t in _csv(text, what)]
+        vals = [int(t) for t in csv_list(text, what)]
     except ValueError as e:
         raise ValueError(f"--{what}: expected whole numbers: {e}") from None
     if any(not 3 <= v <= 4096 for v in vals):
@@ -94,8 +83,8 @@ def make_plan(args: argparse.Namespace) -> Plan:
         [] if args.quick else [9, 17, 33])
     return Plan(
         scene=scene, sizes=sizes,
-        integrators=_csv(args.integrators, "integrators", INTEGRATORS),
-        precisions=_csv(args.precisions, "precisions", PRECISIONS),
+        integrators=csv_list(args.integrators, "integrators", INTEGRATORS),
+        precisions=csv_list(args.precisions, "precisions", PRECISIONS),
         levels=levels, duration_s=duration, backend=backend, sag_sizes=sag_sizes,
         energy=not args.no_energy, sag=not args.no_sag, decorrelation=True)
 
