@@ -6,34 +6,28 @@
 
 #include <string>
 
+#include "binding/arrays.hpp"
 #include "core/batch.hpp"
 
 namespace py = pybind11;
-using Array = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using cbind::Array;
 
 namespace {
 
 class BatchEngine {
  public:
   BatchEngine(const std::string& backend, bool dbl, cb::Config c, int capacity) : n_(c.n) {
-    if (backend == "cpu") {
-      c.threads = 1;  // a slot is one thread's work; the slots share the cores
-      batch_ = std::make_unique<cb::Batch>(
-          [dbl](const cb::Config& k) { return cb::make_cpu_backend(k, dbl); }, c, capacity,
-          true);
-    } else if (backend == "cuda") {
-      batch_ = std::make_unique<cb::Batch>(
-          [dbl](const cb::Config& k) { return cb::make_cuda_backend(k, dbl); }, c, capacity,
-          false);
-    } else {
-      throw py::value_error("backend must be 'cpu' or 'cuda', got '" + backend + "'");
-    }
+    const bool cpu = backend == "cpu";
+    if (cpu) c.threads = 1;  // a slot is one thread's work; the slots share the cores
+    // CPU slots step in one parallel region; CUDA slots queue their own work, in turn.
+    batch_ = std::make_unique<cb::Batch>(cbind::backend_factory(backend, dbl), c, capacity,
+                                         cpu);
   }
   int capacity() const { return batch_->capacity(); }
   void open(int s) { batch_->open(s); }
   void close(int s) { batch_->close(s); }
-  void set_hips_all(Array h) { batch_->set_hips_all(checked(h, 12, "hips").data()); }
-  void set_wind_all(Array w) { batch_->set_wind_all(checked(w, 3, "wind").data()); }
+  void set_hips_all(Array h) { batch_->set_hips_all(per_slot(h, 12, "hips").data()); }
+  void set_wind_all(Array w) { batch_->set_wind_all(per_slot(w, 3, "wind").data()); }
   py::tuple corners_all() {
     Array c({capacity(), 4, 6});
     Array b({capacity(), 6});
@@ -48,46 +42,24 @@ class BatchEngine {
     }
     return finite;
   }
-  // One slot's cloth, as Engine offers it for a lone cloth.
-  void set_hips(int s, Array h) { batch_->at(s).set_hips(exact(h, 12, "hips").data()); }
-  void set_wind(int s, Array w) { batch_->at(s).set_wind(exact(w, 3, "wind").data()); }
-  void set_state(int s, Array p, Array v) {
-    const size_t m = 3 * size_t(n_) * n_;
-    batch_->at(s).set_state(exact(p, m, "positions").data(), exact(v, m, "velocities").data());
-  }
-  void set_ball(int s, Array pv) { batch_->at(s).set_ball(exact(pv, 6, "ball").data()); }
-  Array ball(int s) {
-    Array out(6);
-    batch_->at(s).get_ball(out.mutable_data());
-    return out;
-  }
-  Array corners(int s) {
-    Array out({4, 6});
-    batch_->at(s).get_corners(out.mutable_data());
-    return out;
-  }
-  Array positions(int s) { return mesh([&](double* o) { batch_->at(s).get_positions(o); }); }
-  Array velocities(int s) { return mesh([&](double* o) { batch_->at(s).get_velocities(o); }); }
-  Array normals(int s) { return mesh([&](double* o) { batch_->at(s).get_normals(o); }); }
+  // One slot's cloth, as Engine offers a lone cloth.
+  void set_hips(int s, Array h) { io(s).set_hips(h); }
+  void set_wind(int s, Array w) { io(s).set_wind(w); }
+  void set_state(int s, Array p, Array v) { io(s).set_state(p, v); }
+  void set_ball(int s, Array pv) { io(s).set_ball(pv); }
+  Array ball(int s) { return io(s).ball(); }
+  Array corners(int s) { return io(s).corners(); }
+  Array positions(int s) { return io(s).positions(); }
+  Array velocities(int s) { return io(s).velocities(); }
+  Array normals(int s) { return io(s).normals(); }
   bool ball_contact_on(int s) { return batch_->at(s).ball_contact_on(); }
   unsigned compiled_effects(int s) { return batch_->at(s).compiled_effects(); }
 
  private:
-  template <class F>
-  Array mesh(F&& fill) {
-    Array out({n_, n_, 3});
-    fill(out.mutable_data());
-    return out;
-  }
+  cbind::Arrays io(int s) { return {batch_->at(s), n_}; }
   // Arrays for every slot: `per` values a slot.
-  Array checked(Array a, size_t per, const char* what) const {
-    return exact(a, per * size_t(capacity()), what);
-  }
-  static Array exact(Array a, size_t size, const char* what) {
-    if (size_t(a.size()) != size)
-      throw py::value_error(std::string(what) + ": expected " + std::to_string(size) +
-                            " values, got " + std::to_string(a.size()));
-    return a;
+  Array per_slot(Array a, size_t per, const char* what) const {
+    return cbind::sized(a, per * size_t(capacity()), what);
   }
   int n_;
   std::unique_ptr<cb::Batch> batch_;

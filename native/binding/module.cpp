@@ -1,68 +1,43 @@
 // The pybind11 module clothball._native: declarations only. Validation lives in the Python
-// facade (clothball.game.cloth); stepping releases the GIL.
+// facade (clothball.game.sim.cloth); stepping releases the GIL.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
-#include "core/backend.hpp"
+#include "binding/arrays.hpp"
 #include "binding/falcon.hpp"
+#include "core/backend.hpp"
 
 namespace py = pybind11;
 void bind_batch(py::module_& m);  // binding/batch.cpp
-using Array = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using cbind::Array;
 
 namespace {
 
 class Engine {
  public:
-  Engine(const std::string& backend, bool dbl, const cb::Config& c) : n_(c.n) {
-    if (backend == "cpu") impl_ = cb::make_cpu_backend(c, dbl);
-    else if (backend == "cuda") impl_ = cb::make_cuda_backend(c, dbl);
-    else throw py::value_error("backend must be 'cpu' or 'cuda', got '" + backend + "'");
-  }
+  Engine(const std::string& backend, bool dbl, const cb::Config& c)
+      : n_(c.n), impl_(cbind::backend_factory(backend, dbl)(c)) {}
   void configure(const cb::Config& c) { impl_->configure(c); }
-  void set_hips(Array h) { impl_->set_hips(checked(h, 12, "hips").data()); }
-  void set_wind(Array w) { impl_->set_wind(checked(w, 3, "wind").data()); }
+  void set_hips(Array h) { io().set_hips(h); }
+  void set_wind(Array w) { io().set_wind(w); }
   bool state_finite() { return impl_->state_finite(); }
   bool ball_contact_on() { return impl_->ball_contact_on(); }
   unsigned compiled_effects() const { return impl_->compiled_effects(); }
-  void set_state(Array p, Array v) {
-    impl_->set_state(checked(p, 3 * nodes(), "positions").data(),
-                     checked(v, 3 * nodes(), "velocities").data());
-  }
-  Array positions() { return mesh([&](double* o) { impl_->get_positions(o); }); }
-  Array velocities() { return mesh([&](double* o) { impl_->get_velocities(o); }); }
-  Array normals() { return mesh([&](double* o) { impl_->get_normals(o); }); }
-  void set_ball(Array pv) { impl_->set_ball(checked(pv, 6, "ball").data()); }
-  Array ball() {
-    Array out(6);
-    impl_->get_ball(out.mutable_data());
-    return out;
-  }
-  Array corners() {
-    Array out({4, 6});
-    impl_->get_corners(out.mutable_data());
-    return out;
-  }
+  void set_state(Array p, Array v) { io().set_state(p, v); }
+  Array positions() { return io().positions(); }
+  Array velocities() { return io().velocities(); }
+  Array normals() { return io().normals(); }
+  void set_ball(Array pv) { io().set_ball(pv); }
+  Array ball() { return io().ball(); }
+  Array corners() { return io().corners(); }
   void step(int frames, int substeps, double dt) {
     py::gil_scoped_release release;
     impl_->step(frames, substeps, dt);
   }
 
  private:
-  size_t nodes() const { return size_t(n_) * n_; }
-  template <class F>
-  Array mesh(F&& fill) {
-    Array out({n_, n_, 3});
-    fill(out.mutable_data());
-    return out;
-  }
-  static Array checked(Array a, size_t size, const char* what) {
-    if (size_t(a.size()) != size)
-      throw py::value_error(std::string(what) + ": expected " + std::to_string(size) +
-                            " values, got " + std::to_string(a.size()));
-    return a;
-  }
+  cbind::Arrays io() { return {*impl_, n_}; }
   int n_;
   std::unique_ptr<cb::Backend> impl_;
 };
