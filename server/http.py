@@ -5,7 +5,8 @@
 * ``/healthz`` ``ok``
 * ``/api/rooms`` public rooms as JSON
 * ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=&player=&code=``)
-* ``/api/replays/<id>`` one replay file (``game.wire.replay``; a private room's: ``?code=``)
+* ``/api/replays/<id>`` one replay file (``game.wire.replay``; a private room's: ``?code=``),
+  streamed from disk in chunks, one byte range of it with ``Range: bytes=A-B`` (206)
 * ``/api/stats`` the server's own counters (frame lateness, messages, CPU time)
 
 and the admission of websocket upgrades on ``/ws`` (origin policy, connection limit).
@@ -15,6 +16,11 @@ gets a 400 and one log line per address and minute
 (``BadRequestLog``). Replay index queries run on their own few threads, a bounded number
 waiting, rate-limited per address (``docs/security.md``); ``/healthz`` is answered on the
 event loop and never waits behind them.
+
+A download is written from the file in ``DOWNLOAD_CHUNK`` pieces, the next read only once
+the socket has taken the last (asyncio's flow control): one costs the server at most a
+chunk and the transport's buffer, whatever the file's size; ``Limits.max_downloads`` run
+at once, and one whose client stops reading for ``Limits.download_stall_s`` is cut.
 """
 
 from __future__ import annotations
@@ -26,11 +32,14 @@ import http
 import json
 import logging
 import mimetypes
+import os
+import re
+import socket
 import time
 import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 from websockets.asyncio.server import ServerConnection
 from websockets.datastructures import Headers
@@ -52,7 +61,9 @@ recorded rounds: <a href="/api/replays">/api/replays</a>.</p></body></html>
 """
 
 
-INDEX_THREADS = 2  # the replay index's own threads: SQLite reads, file reads
+INDEX_THREADS = 2  # the replay index's own threads: SQLite reads
+FILE_THREADS = 2  # the downloads' own threads: reads of one chunk each
+DOWNLOAD_CHUNK = 64 * 1024  # bytes read from a replay file at a time
 MAX_BUCKETS = 4096  # addresses whose index rate is remembered (the oldest forgotten first)
 # Headers a request may carry once: two that disagree leave no right answer.
 SINGLE_HEADERS = ("Host", "Origin", "Sec-WebSocket-Key", "Sec-WebSocket-Version", "Range",
@@ -94,6 +105,60 @@ class BadRequestLog:
         self.more.clear()
 
 
+_RANGE_RE = re.compile(r"(\d*)-(\d*)")
+
+
+class RangeError(ValueError):
+    """A ``Range`` header that names no satisfiable part of the file (HTTP 416)."""
+
+
+def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
+    """The first and last byte (inclusive) that ``Range: bytes=...`` asks of a ``size``-byte
+    file: ``A-B``, ``A-`` (to the end) or ``-N`` (the last N). None: the whole file (no
+    header, or a unit other than bytes, which a server ignores). ``RangeError`` naming the
+    problem for a malformed or unsatisfiable range, or for several (one is served)."""
+    if header is None:
+        return None
+    unit, sep, spec = header.strip().partition("=")
+    if not sep or unit.strip().lower() != "bytes":
+        return None
+    parts = [p.strip() for p in spec.split(",")]
+    if len(parts) != 1:
+        raise RangeError("one byte range per request, e.g. Range: bytes=0-65535")
+    m = _RANGE_RE.fullmatch(parts[0])
+    if m is None or not (m[1] or m[2]):
+        raise RangeError(f"Range {header.strip()[:80]!r} is not bytes=FIRST-LAST, "
+                         "bytes=FIRST- or bytes=-LENGTH")
+    if not m[1]:  # the last N bytes
+        n = int(m[2])
+        if n == 0 or size == 0:
+            raise RangeError(f"Range {header.strip()[:80]!r} selects no byte of the "
+                             f"{size}-byte file")
+        return max(0, size - n), size - 1
+    first = int(m[1])
+    last = size - 1 if not m[2] else min(int(m[2]), size - 1)
+    if m[2] and int(m[2]) < first:
+        raise RangeError(f"Range {header.strip()[:80]!r}: the last byte is before the first")
+    if first >= size:
+        raise RangeError(f"Range {header.strip()[:80]!r} starts past the end of the "
+                         f"{size}-byte file")
+    return first, last
+
+
+class _Download:
+    """A replay file the index says the request may have (see ``HttpSurface._stream``)."""
+
+    def __init__(self, path: Path, rid: str) -> None:
+        self.path, self.rid = path, rid
+
+
+@runtime_checkable
+class Streaming(Protocol):
+    """A connection whose handshake deadline a download may lift (``server.ws.Connection``)."""
+
+    def no_handshake_deadline(self) -> None: ...
+
+
 class HttpHost(Protocol):
     """What the HTTP surface reads of its server (``server.app.GameServer``)."""
 
@@ -118,11 +183,16 @@ class HttpSurface:
         # Index queries get their own threads, so a flood of them cannot hold up files,
         # saves or anything else asyncio's default pool runs.
         self._pool = ThreadPoolExecutor(INDEX_THREADS, thread_name_prefix="replay-index")
+        self._files = ThreadPoolExecutor(FILE_THREADS, thread_name_prefix="replay-files")
         self._waiting = 0
+        self.downloads = 0  # under way now
+        self.download_bytes_held = 0  # read from files, not yet taken by a socket
+        self.download_bytes_held_max = 0
         self._buckets: collections.OrderedDict[str, TokenBucket] = collections.OrderedDict()
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+        self._files.shutdown(wait=True, cancel_futures=True)
         self.bad.flush()
 
     def _response(self, status: int, body: bytes, content_type: str,
@@ -140,9 +210,10 @@ class HttpSurface:
         st = http.HTTPStatus(status)
         return Response(st.value, st.phrase, headers, body)
 
-    def _json(self, obj: Any, status: int = 200) -> Response:
+    def _json(self, obj: Any, status: int = 200, extra: dict[str, str] | None = None
+              ) -> Response:
         return self._response(status, json.dumps(obj, allow_nan=False).encode(),
-                              "application/json")
+                              "application/json", extra)
 
     def _error(self, status: int, message: str) -> Response:
         return self._json({"error": message, "status": status}, status)
@@ -152,7 +223,7 @@ class HttpSurface:
         addr = connection.remote_address
         address = str(addr[0]) if addr else "?"
         try:
-            return await self._process(address, request)
+            return await self._process(address, request, connection)
         except Exception:  # pragma: no cover - never take the server down on a request
             self.bad.note(address, logging.ERROR, "HTTP %s failed", request.path[:200],
                           exc_info=True)
@@ -180,7 +251,8 @@ class HttpSurface:
         return host is not None and scheme in ("http", "https") and \
             netloc.lower() == host.strip().lower()
 
-    async def _process(self, address: str, request: Request) -> Response | None:
+    async def _process(self, address: str, request: Request, connection: ServerConnection
+                       ) -> Response | None:
         problem = self._malformed(request)
         if problem is not None:
             self.bad.note(address, logging.WARNING, "bad request refused (%s)", problem)
@@ -210,12 +282,15 @@ class HttpSurface:
                     room.sim.stats.lateness.clear()
             return self._json(self.srv.stats_snapshot())
         if path == "/api/replays" or path.startswith("/api/replays/"):
-            return await self._index_query(address, path, urllib.parse.parse_qs(query))
+            found = await self._index_query(address, path, urllib.parse.parse_qs(query))
+            if isinstance(found, _Download):
+                return await self._stream(connection, request, found)
+            return found
         # Files are read on a worker thread: the room loops go on.
         return await asyncio.to_thread(self._route, path)
 
     async def _index_query(self, address: str, path: str, query: dict[str, list[str]]
-                           ) -> Response:
+                           ) -> Response | _Download:
         """``_replays`` on the index's threads, if ``address`` is within its rate and the
         queue is not full."""
         lim = self.srv.limits
@@ -245,7 +320,7 @@ class HttpSurface:
             return self._static(path[len("/static/"):])
         return self._error(404, f"no such path {path[:200]!r}")
 
-    def _replays(self, path: str, query: dict[str, list[str]]) -> Response:
+    def _replays(self, path: str, query: dict[str, list[str]]) -> Response | _Download:
         if self.srv.store is None:
             return self._error(503, f"recording is off: {self.srv.recording_error}")
 
@@ -272,9 +347,95 @@ class HttpSurface:
         p = self.srv.store.path_of(rid, code=code)
         if p is None:
             return self._error(404, f"no replay {rid[:100]!r}")
-        return self._response(200, p.read_bytes(), "application/octet-stream", {
-            "Content-Disposition": f'attachment; filename="{rid}.cbr"',
-        })
+        return _Download(p, rid)
+
+    async def _stream(self, connection: ServerConnection, request: Request, dl: _Download
+                      ) -> Response:
+        """Writes the file (or the ``Range`` asked for) to the connection in chunks, then
+        closes it; the returned response is then never sent (the connection is closed)."""
+        lim = self.srv.limits
+        if self.downloads >= lim.max_downloads:
+            return self._error(503, f"{lim.max_downloads} downloads are under way (the "
+                                    "limit); try again shortly")
+        loop = asyncio.get_running_loop()
+        try:
+            # Open now: a round pruned while it is being sent stays readable to the end.
+            fd = await loop.run_in_executor(self._files, os.open, dl.path, os.O_RDONLY)
+        except FileNotFoundError:
+            return self._error(404, f"no replay {dl.rid!r}")
+        self.downloads += 1
+        try:
+            size = os.fstat(fd).st_size
+            try:
+                span = parse_range(request.headers.get("Range"), size)
+            except RangeError as e:
+                return self._json({"error": str(e), "status": 416}, 416,
+                                  {"Content-Range": f"bytes */{size}"})
+            first, last = span if span is not None else (0, size - 1)
+            head = [("Content-Length", str(last - first + 1)),
+                    ("Content-Type", "application/octet-stream"),
+                    ("Content-Disposition", f'attachment; filename="{dl.rid}.cbr"'),
+                    ("Accept-Ranges", "bytes")]
+            status = http.HTTPStatus.OK
+            if span is not None:
+                status = http.HTTPStatus.PARTIAL_CONTENT
+                head.append(("Content-Range", f"bytes {first}-{last}/{size}"))
+            await self._send_file(connection, status, head, fd, first, last + 1)
+        finally:
+            self.downloads -= 1
+            os.close(fd)
+        # Never sent: websockets answers only a connection still in its handshake.
+        return self._response(200, b"", "application/octet-stream")
+
+    async def _send_file(self, connection: ServerConnection, status: http.HTTPStatus,
+                         head: list[tuple[str, str]], fd: int, start: int, end: int) -> None:
+        transport = connection.transport
+        stall = self.srv.limits.download_stall_s
+        if isinstance(connection, Streaming):
+            connection.no_handshake_deadline()  # a long file may take longer than a handshake
+        sock = transport.get_extra_info("socket")
+        if sock is not None:  # as for websocket clients: a bounded kernel buffer
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF,
+                                self.srv.limits.socket_send_buffer)
+            except OSError:  # pragma: no cover - not settable on this platform
+                pass
+        headers = Headers([("Date", email.utils.formatdate(usegmt=True)),
+                           ("Connection", "close"), ("Cache-Control", "no-store"),
+                           ("X-Content-Type-Options", "nosniff"), *head])
+        transport.write(f"HTTP/1.1 {status.value} {status.phrase}\r\n".encode()
+                        + headers.serialize())
+        loop = asyncio.get_running_loop()
+        pos = start
+        try:
+            while pos < end and not transport.is_closing():
+                chunk = await loop.run_in_executor(
+                    self._files, os.pread, fd, min(DOWNLOAD_CHUNK, end - pos), pos)
+                if not chunk:  # the file shrank under us: the client sees a short body
+                    break
+                pos += len(chunk)
+                self._held(len(chunk))
+                try:
+                    if transport.is_closing():
+                        break
+                    transport.write(chunk)
+                    # Wait until the socket has taken it before the next read.
+                    await asyncio.wait_for(connection.drain(), stall)
+                finally:
+                    self._held(-len(chunk))
+        except (TimeoutError, ConnectionError):
+            transport.abort()  # a client that stopped reading holds nothing longer
+        transport.close()
+        try:
+            await asyncio.wait_for(asyncio.shield(connection.connection_lost_waiter), stall)
+        except TimeoutError:
+            transport.abort()
+            await asyncio.shield(connection.connection_lost_waiter)
+
+    def _held(self, n: int) -> None:
+        self.download_bytes_held += n
+        self.download_bytes_held_max = max(self.download_bytes_held_max,
+                                           self.download_bytes_held)
 
     def _static(self, rel: str) -> Response:
         rel = urllib.parse.unquote(rel)

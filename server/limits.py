@@ -36,6 +36,9 @@ class Limits:
     index_rate: float = 50.0  # queries a second (token bucket; more: HTTP 429)
     index_burst: float = 100.0
     index_queue: int = 64  # queries waiting for the index's threads in all (more: HTTP 503)
+    # --- replay downloads (/api/replays/ID), streamed in 64 KiB chunks ------------------------
+    max_downloads: int = 64  # under way at once, in all (more: HTTP 503)
+    download_stall_s: float = 30.0  # s a download may wait for its client to read (else cut)
     # --- time and slow clients -----------------------------------------------------------------
     hello_timeout: float = 10.0  # s to send the hello (else closed 1008)
     slow_drop_s: float = 5.0  # s a client may leave its socket backed up (else closed 1008)

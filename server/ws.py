@@ -24,6 +24,7 @@ from ..game.net.fastpath import BinaryHook
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from .conn import Conn
+from .directory import Moved
 from .limits import Limits
 from .lobby import Lobby, parse_settings
 from .room import Room
@@ -31,9 +32,26 @@ from .room import Room
 log = logging.getLogger("clothball.server")
 
 
+OPEN_TIMEOUT_S = 10.0  # for the request and its answer (websockets' open_timeout)
+
+
 class Connection(BinaryHook, ServerConnection):
     """The server's connection: HIPs go straight to ``on_binary`` once the handler has set
-    it, when it starts its read loop (see ``game.net.fastpath``)."""
+    it, when it starts its read loop (see ``game.net.fastpath``).
+
+    Its opening handshake (the HTTP request and its answer) has ``OPEN_TIMEOUT_S``, which
+    a replay download lifts (``no_handshake_deadline``): it is bounded by its own stall
+    timeout instead (``server.http``). The server is started with ``open_timeout=None``."""
+
+    _deadline: asyncio.Timeout | None = None
+
+    async def handshake(self, *args: Any, **kwargs: Any) -> None:
+        async with asyncio.timeout(OPEN_TIMEOUT_S) as self._deadline:
+            await super().handshake(*args, **kwargs)
+
+    def no_handshake_deadline(self) -> None:
+        if self._deadline is not None:
+            self._deadline.reschedule(None)
 
 
 class WsHost(Protocol):
@@ -220,6 +238,8 @@ class WsEndpoint:
             self.srv.stats["bad_messages"] += 1
             conn.error(e, re=re)
             return
+        except Moved as m:  # the room lives elsewhere: the client sends this request there
+            reply = {"type": "redirect", "url": m.url, "reason": m.reason}
         if reply is None and re is not None:
             reply = {"type": "ok"}
         if reply is not None:
@@ -243,6 +263,7 @@ class WsEndpoint:
         scene = P.field_str(msg, "scene", None, max_len=64)
         public = P.field_bool(msg, "public", True)
         settings = parse_settings(msg)
+        self.srv.lobby.place()  # Moved: another process or host takes new rooms now
         mine = self.srv.lobby.rooms_of(conn.address)
         if mine >= self.srv.limits.rooms_per_address:
             raise ProtocolError("too_many_rooms", f"{conn.address} already has {mine} open rooms "
