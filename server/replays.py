@@ -6,6 +6,12 @@ most the round being written: never the index or an earlier round. At start-up, 
 ``.tmp`` files are deleted and any finished file the index lacks is indexed from its own
 header.
 
+The index has two connections: one that reads (listings, lookups) and one that writes, so a
+listing never waits behind a write waiting for a lock. A write that finds the index locked
+by another program (``clothball replays prune``, an ``sqlite3`` shell) waits: SQLite's
+``busy_timeout`` (``BUSY_TIMEOUT_S``), then retries until ``lock_wait_s`` has passed; a
+round whose index row could not be written keeps its file and is indexed at the next start.
+
 A private room's rounds carry ``access`` (``access_key(room, code)``) in their header and
 index row: they are listed and served only to a request that names the room's code.
 """
@@ -18,13 +24,17 @@ import json
 import logging
 import sqlite3
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from ..game.wire.replay import ID_RE, ReplayError, read_replay_header, write_replay
 
 log = logging.getLogger("clothball.server")
+
+BUSY_TIMEOUT_S = 5.0  # SQLite's own wait for a lock (busy_timeout), per attempt
+LOCK_WAIT_S = 60.0  # how long a write keeps retrying a locked index in all
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS rounds (
@@ -101,56 +111,98 @@ class ReplayStore:
     Thread-safe: the server calls it from worker threads (``asyncio.to_thread``).
     """
 
-    def __init__(self, data_dir: Path | str) -> None:
+    def __init__(self, data_dir: Path | str, *, lock_wait_s: float = LOCK_WAIT_S) -> None:
         self.dir = Path(data_dir)
         self.replays = self.dir / "replays"
         self.replays.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.Lock()
+        self.lock_wait_s = lock_wait_s
+        self.lock_waits = 0  # writes that found the index locked and waited
+        self._lock = threading.Lock()  # the reading connection
+        self._wlock = threading.Lock()  # the writing connection
         self._counts: dict[tuple[str, tuple[Any, ...]], int] = {}
         self._counts_stamp: tuple[int, int] = (-1, -1)
-        self._db = sqlite3.connect(self.dir / "index.sqlite", check_same_thread=False,
-                                   isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        # 32 MiB of pages (default 2): a count over 100 000 rounds' index entries then reads
-        # memory, not the OS's file cache (~6 ms instead of ~9).
-        self._db.execute("PRAGMA cache_size=-32768")
-        self._migrate()
+        self._wdb = self._connect()
+        try:
+            if self._wdb.execute("PRAGMA user_version").fetchone()[0] < INDEX_VERSION:
+                self._write(self._migrate)
+            self._db = self._connect()
+            # 32 MiB of pages (default 2): a count over 100 000 rounds' index entries then
+            # reads memory, not the OS's file cache (~6 ms instead of ~9).
+            self._db.execute("PRAGMA cache_size=-32768")
+        except BaseException:
+            self._wdb.close()
+            raise
         self._recover()
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.dir / "index.sqlite", check_same_thread=False,
+                             isolation_level=None, timeout=BUSY_TIMEOUT_S)
+        try:
+            db.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
+            self._retry(lambda: db.execute("PRAGMA journal_mode=WAL"))
+            db.execute("PRAGMA synchronous=NORMAL")
+        except BaseException:
+            db.close()
+            raise
+        return db
+
+    def _retry(self, fn: Callable[[], Any]) -> Any:
+        """``fn()``, again while the index is locked by another connection, for at most
+        ``lock_wait_s`` in all (each attempt already waits ``BUSY_TIMEOUT_S`` itself)."""
+        deadline = time.monotonic() + self.lock_wait_s
+        pause = 0.05
+        while True:
+            try:
+                return fn()
+            except sqlite3.OperationalError as e:
+                if not _locked(e) or time.monotonic() + pause > deadline:
+                    raise
+                self.lock_waits += 1
+                time.sleep(pause)
+                pause = min(1.0, pause * 2)
+
+    def _write(self, fn: Callable[[], Any]) -> Any:
+        """``fn()`` in one write transaction, retried while the index is locked."""
+        def once() -> Any:
+            with self._transaction():
+                return fn()
+
+        return self._retry(once)
 
     def _migrate(self) -> None:
         """Creates the index, or brings an older one up to date: the query indexes, and
         ``round_players`` filled from the rounds it already holds; in one transaction (a new
-        index's first write is then a few pages: it fits a nearly full disk)."""
-        if self._db.execute("PRAGMA user_version").fetchone()[0] >= INDEX_VERSION:
+        index's first write is then a few pages: it fits a nearly full disk). Called in a
+        write transaction."""
+        db = self._wdb
+        if db.execute("PRAGMA user_version").fetchone()[0] >= INDEX_VERSION:
             return
-        with self._transaction():
-            for stmt in _statements(SCHEMA):
-                self._db.execute(stmt)
-            have = {r[1] for r in self._db.execute("PRAGMA table_info(rounds)")}
-            if "access" not in have:  # an index from before private rounds were locked
-                self._db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
-            for stmt in _statements(INDEXES):
-                self._db.execute(stmt)
-            self._db.execute("DELETE FROM round_players")
-            self._db.execute(
-                "INSERT OR IGNORE INTO round_players (round_id, name, room_id, access, ended_at)"
-                " SELECT rounds.id, json_extract(p.value, '$.name'), rounds.room_id,"
-                " rounds.access, rounds.ended_at FROM rounds, json_each(rounds.players) AS p"
-                " WHERE json_extract(p.value, '$.name') IS NOT NULL")
-            self._db.execute(f"PRAGMA user_version = {INDEX_VERSION}")
+        for stmt in _statements(SCHEMA):
+            db.execute(stmt)
+        have = {r[1] for r in db.execute("PRAGMA table_info(rounds)")}
+        if "access" not in have:  # an index from before private rounds were locked
+            db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
+        for stmt in _statements(INDEXES):
+            db.execute(stmt)
+        db.execute("DELETE FROM round_players")
+        db.execute(
+            "INSERT OR IGNORE INTO round_players (round_id, name, room_id, access, ended_at)"
+            " SELECT rounds.id, json_extract(p.value, '$.name'), rounds.room_id,"
+            " rounds.access, rounds.ended_at FROM rounds, json_each(rounds.players) AS p"
+            " WHERE json_extract(p.value, '$.name') IS NOT NULL")
+        db.execute(f"PRAGMA user_version = {INDEX_VERSION}")
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[None]:
-        """Holds the lock; commits what the block did, or none of it."""
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
+        """Holds the writing connection; commits what the block did, or none of it."""
+        with self._wlock:
+            self._wdb.execute("BEGIN IMMEDIATE")
             try:
                 yield
             except BaseException:
-                self._db.execute("ROLLBACK")
+                self._wdb.execute("ROLLBACK")
                 raise
-            self._db.execute("COMMIT")
+            self._wdb.execute("COMMIT")
 
     def _recover(self) -> None:
         for tmp in self.replays.glob("*.cbr.tmp"):
@@ -187,17 +239,20 @@ class ReplayStore:
             names = {p["name"] for p in header["players"]
                      if isinstance(p, dict) and isinstance(p.get("name"), str)}
             players += [(row[0], n, row[1], row[14], row[10]) for n in sorted(names)]
-        with self._transaction():
-            self._db.executemany("DELETE FROM round_players WHERE round_id = ?",
-                                 [(r[0],) for r in rows])
-            self._db.executemany(
+        def write() -> None:
+            db = self._wdb
+            db.executemany("DELETE FROM round_players WHERE round_id = ?",
+                           [(r[0],) for r in rows])
+            db.executemany(
                 f"INSERT OR REPLACE INTO rounds ({', '.join(COLUMNS)}) "
                 f"VALUES ({', '.join('?' * len(COLUMNS))})",
                 rows,
             )
-            self._db.executemany(
+            db.executemany(
                 "INSERT INTO round_players (round_id, name, room_id, access, ended_at) "
                 "VALUES (?, ?, ?, ?, ?)", players)
+
+        self._write(write)
 
     def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> dict[str, Any]:
         """Write one round's file, then index it. Returns the index row."""
@@ -321,5 +376,14 @@ class ReplayStore:
         return d
 
     def close(self) -> None:
-        with self._lock:
+        with self._lock, self._wlock:
             self._db.close()
+            self._wdb.close()
+
+
+def _locked(e: sqlite3.OperationalError) -> bool:
+    """An error that waiting may cure: another connection holds the lock."""
+    code = getattr(e, "sqlite_errorcode", None)
+    if code is not None:
+        return code & 0xFF in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED)
+    return "locked" in str(e) or "busy" in str(e)
