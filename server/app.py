@@ -27,7 +27,6 @@ from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .replays import ReplayStore, access_key
 from .room import Room, RoomSettings
-from .sim import SimPool
 from .ws import Connection, WsEndpoint
 
 log = logging.getLogger("clothball.server")
@@ -70,10 +69,8 @@ class GameServer:
         except (OSError, sqlite3.Error) as e:
             self.recording_error = f"data directory {str(self.data_dir)!r} is unusable: {e}"
             log.error("recording is off: %s", self.recording_error)
-        # Every room of a scene is a slot of that scene's worker: one call steps them all.
-        self.sims = SimPool(epoch=self.epoch)
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
-                           max_rooms=self.limits.max_rooms, sims=self.sims)
+                           max_rooms=self.limits.max_rooms)
         self.clients: set[Conn] = set()
         self.per_address: collections.Counter[str] = collections.Counter()
         self._server: Server | None = None
@@ -138,7 +135,6 @@ class GameServer:
         if self._server is not None:
             await self._server.wait_closed()
         await self.lobby.close()
-        await asyncio.to_thread(self.sims.close)
         if self._saves:
             await asyncio.gather(*self._saves, return_exceptions=True)
         self.http.close()
@@ -238,8 +234,8 @@ class GameServer:
             st = room.sim.stats
             rooms[rid] = {
                 "frames": st.frames, "steps": st.steps, "skipped_frames": st.skipped_frames,
-                "meshes": st.meshes, "substeps": room.sim.substeps,
-                "backend": room.sim.backend, "n": room.scene.n,
+                "meshes": st.meshes, "substeps": room.sim.cloth.substeps,
+                "backend": room.sim.cloth.backend, "n": room.scene.n,
                 "lateness_ms": _percentiles(lat),
             }
         return {

@@ -24,7 +24,6 @@ from ..game.net.fastpath import BinaryHook
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from .conn import Conn
-from .directory import Moved
 from .limits import Limits
 from .lobby import Lobby, parse_settings
 from .room import Room
@@ -238,8 +237,6 @@ class WsEndpoint:
             self.srv.stats["bad_messages"] += 1
             conn.error(e, re=re)
             return
-        except Moved as m:  # the room lives elsewhere: the client sends this request there
-            reply = {"type": "redirect", "url": m.url, "reason": m.reason}
         if reply is None and re is not None:
             reply = {"type": "ok"}
         if reply is not None:
@@ -263,7 +260,6 @@ class WsEndpoint:
         scene = P.field_str(msg, "scene", None, max_len=64)
         public = P.field_bool(msg, "public", True)
         settings = parse_settings(msg)
-        self.srv.lobby.place()  # Moved: another process or host takes new rooms now
         mine = self.srv.lobby.rooms_of(conn.address)
         if mine >= self.srv.limits.rooms_per_address:
             raise ProtocolError("too_many_rooms", f"{conn.address} already has {mine} open rooms "
