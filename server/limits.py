@@ -39,6 +39,9 @@ class Limits:
     # --- replay downloads (/api/replays/ID), streamed in 64 KiB chunks ------------------------
     max_downloads: int = 64  # under way at once, in all (more: HTTP 503)
     download_stall_s: float = 30.0  # s a download may wait for its client to read (else cut)
+    # --- the replay store's retention (oldest rounds pruned first, file and index row) -------
+    replays_max_mib: float = 2048.0  # MiB of recorded rounds kept in all
+    replays_max_days: float = 30.0  # days a recorded round is kept
     # --- time and slow clients -----------------------------------------------------------------
     hello_timeout: float = 10.0  # s to send the hello (else closed 1008)
     slow_drop_s: float = 5.0  # s a client may leave its socket backed up (else closed 1008)

@@ -12,6 +12,13 @@ by another program (``clothball replays prune``, an ``sqlite3`` shell) waits: SQ
 ``busy_timeout`` (``BUSY_TIMEOUT_S``), then retries until ``lock_wait_s`` has passed; a
 round whose index row could not be written keeps its file and is indexed at the next start.
 
+Retention (``Retention``): the store keeps at most ``max_bytes`` of indexed rounds and none
+older than ``max_age_s``; after each save (and when the server starts) the oldest rounds
+go first, each one's index row and file together: the row is deleted and the file removed
+in one transaction, which commits only once the file is gone. A crash between the two
+leaves a row without a file, which the next start removes (``_recover``). The newest round
+is never pruned for size, so the last round played can always be watched.
+
 A private room's rounds carry ``access`` (``access_key(room, code)``) in their header and
 index row: they are listed and served only to a request that names the room's code.
 """
@@ -26,6 +33,7 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -99,6 +107,22 @@ def _statements(script: str) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Retention:
+    """How much the store keeps: indexed rounds' bytes in all, and their age (by end)."""
+
+    max_bytes: int = 2 << 30
+    max_age_s: float = 30 * 86400.0
+
+    @classmethod
+    def from_limits(cls, limits: Any) -> Retention:
+        """From ``server.limits.Limits``' ``replays_max_mib`` and ``replays_max_days``."""
+        return cls(int(limits.replays_max_mib * 2**20), limits.replays_max_days * 86400.0)
+
+    def describe(self) -> str:
+        return f"at most {self.max_bytes / 2**20:g} MiB, {self.max_age_s / 86400:g} days"
+
+
 def access_key(room_id: str, code: str) -> str:
     """What a private room's rounds are locked with: a hash of its id and join code (the
     code itself is never stored)."""
@@ -111,11 +135,19 @@ class ReplayStore:
     Thread-safe: the server calls it from worker threads (``asyncio.to_thread``).
     """
 
-    def __init__(self, data_dir: Path | str, *, lock_wait_s: float = LOCK_WAIT_S) -> None:
+    def __init__(self, data_dir: Path | str, *, lock_wait_s: float = LOCK_WAIT_S,
+                 retention: Retention | None = None, recover: bool = True) -> None:
+        """``recover``: remove leftover ``.tmp`` files and index unindexed rounds (what the
+        server does at start; a command run beside a live server must not: its ``.tmp``
+        files are rounds being written). ``retention``: pruned after each save; None keeps
+        everything."""
         self.dir = Path(data_dir)
         self.replays = self.dir / "replays"
         self.replays.mkdir(parents=True, exist_ok=True)
         self.lock_wait_s = lock_wait_s
+        self.retention = retention
+        self.rounds = 0  # indexed rounds and their bytes, as of the last write or refresh
+        self.bytes = 0
         self.lock_waits = 0  # writes that found the index locked and waited
         self._lock = threading.Lock()  # the reading connection
         self._wlock = threading.Lock()  # the writing connection
@@ -132,7 +164,11 @@ class ReplayStore:
         except BaseException:
             self._wdb.close()
             raise
-        self._recover()
+        if recover:
+            self._recover()
+            if retention is not None:
+                self.prune(retention)
+        self.refresh_usage()
 
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.dir / "index.sqlite", check_same_thread=False,
@@ -208,7 +244,14 @@ class ReplayStore:
         for tmp in self.replays.glob("*.cbr.tmp"):
             log.info("removing unfinished replay %s", tmp.name)
             tmp.unlink(missing_ok=True)
-        known = {r[0] for r in self._db.execute("SELECT id FROM rounds")}
+        with self._lock:
+            known = {r[0] for r in self._db.execute("SELECT id FROM rounds")}
+        on_disk = {p.stem for p in self.replays.glob("*.cbr")}
+        gone = sorted(known - on_disk)
+        if gone:  # a prune cut short after the file went, or files removed by hand
+            log.warning("removing %d index rows whose replay file is gone", len(gone))
+            self._write(lambda: self._wdb.executemany("DELETE FROM rounds WHERE id = ?",
+                                                      [(g,) for g in gone]))
         for path in sorted(self.replays.glob("*.cbr")):
             rid = path.stem
             if rid in known:
@@ -264,7 +307,60 @@ class ReplayStore:
         self._index(header, path)
         row = self.get(rid)
         assert row is not None
+        if self.retention is not None:
+            self.prune(self.retention)
+        else:
+            self.refresh_usage()
         return row
+
+    def refresh_usage(self) -> None:
+        """``rounds`` and ``bytes`` read again from the index (another program may prune)."""
+        with self._lock:
+            n, b = self._db.execute("SELECT COUNT(*), COALESCE(SUM(bytes), 0) FROM rounds"
+                                    ).fetchone()
+        self.rounds, self.bytes = int(n), int(b)
+
+    def prune(self, retention: Retention, *, now: float | None = None,
+              dry_run: bool = False) -> list[dict[str, Any]]:
+        """Removes the rounds ``retention`` does not keep, oldest first: every round that
+        ended more than ``max_age_s`` ago, then the oldest until the rest fit in
+        ``max_bytes`` (never the newest). Each round's row and file go together (see the
+        module's docstring). Returns the rounds removed (or, ``dry_run``, that would be)."""
+        now = time.time() if now is None else now
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT id, ended_at, bytes FROM rounds ORDER BY ended_at DESC, id DESC"
+            ).fetchall()
+        keep, total, doomed = True, 0, []
+        for i, (rid, ended_at, size) in enumerate(rows):
+            too_old = ended_at < now - retention.max_age_s
+            if too_old or (i > 0 and (not keep or total + size > retention.max_bytes)):
+                keep = False  # everything older than a round pruned for size goes too
+                doomed.append(rid)
+            else:
+                total += size
+        out = []
+        for rid in reversed(doomed):  # the oldest first: a prune cut short keeps the newest
+            row = self.get(rid)
+            if row is None:
+                continue
+            if not dry_run:
+                self._remove(rid)
+            out.append(row)
+        if out and not dry_run:
+            log.info("pruned %d replays (%.1f MiB) to keep %s", len(out),
+                     sum(r["bytes"] for r in out) / 2**20, retention.describe())
+        self.refresh_usage()
+        return out
+
+    def _remove(self, rid: str) -> None:
+        """Deletes the round's row and its file, both or neither: the row's deletion
+        commits only once the file is gone (or was already)."""
+        def remove() -> None:
+            self._wdb.execute("DELETE FROM rounds WHERE id = ?", (rid,))
+            (self.replays / f"{rid}.cbr").unlink(missing_ok=True)
+
+        self._write(remove)
 
     @staticmethod
     def _queries(room_id: str | None, player: str | None, code: str | None, limit: int = 100,
@@ -326,6 +422,39 @@ class ReplayStore:
                     self._counts.clear()
                 self._counts[key] = n
             return n
+
+    def _all(self, what: str, room_id: str | None, player: str | None
+             ) -> tuple[str, list[Any]]:
+        where, args = [], []
+        if room_id is not None:
+            where, args = ["room_id = ?"], [room_id]
+        if player is not None:
+            where.append("id IN (SELECT round_id FROM round_players WHERE name = ?)")
+            args.append(player)
+        return (f"SELECT {what} FROM rounds" + (" WHERE " + " AND ".join(where)
+                                                 if where else ""), args)
+
+    def list_all(self, limit: int = 100, room_id: str | None = None,
+                 player: str | None = None) -> list[dict[str, Any]]:
+        """Newest first, private rooms' rounds too: the host's own view
+        (``clothball replays list``), never the HTTP API's."""
+        q, args = self._all(", ".join(COLUMNS), room_id, player)
+        with self._lock:
+            rows = self._db.execute(q + " ORDER BY ended_at DESC, id LIMIT ?",
+                                    [*args, limit]).fetchall()
+        return [self._row(r) for r in rows]
+
+    def count_all(self, room_id: str | None = None, player: str | None = None) -> int:
+        q, args = self._all("COUNT(*)", room_id, player)
+        with self._lock:
+            return int(self._db.execute(q, args).fetchone()[0])
+
+    def file_of(self, rid: str) -> Path | None:
+        """The round's file whoever's it is (the host's view), if indexed and there."""
+        if self._get(rid) is None:
+            return None
+        path = self.replays / f"{rid}.cbr"
+        return path if path.is_file() else None
 
     def query_plans(self) -> dict[str, list[str]]:
         """SQLite's plan (``EXPLAIN QUERY PLAN``) of every query the HTTP API can make, by a
