@@ -25,7 +25,7 @@ from .conn import Conn
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
-from .replays import ReplayStore, access_key
+from .replays import ReplayStore, Retention, access_key
 from .room import Room, RoomSettings
 from .ws import Connection, WsEndpoint
 
@@ -65,7 +65,7 @@ class GameServer:
         self.store: ReplayStore | None = None
         self.recording_error: str | None = None
         try:
-            self.store = ReplayStore(self.data_dir)
+            self.store = ReplayStore(self.data_dir, retention=Retention.from_limits(self.limits))
         except (OSError, sqlite3.Error) as e:
             self.recording_error = f"data directory {str(self.data_dir)!r} is unusable: {e}"
             log.error("recording is off: %s", self.recording_error)
@@ -241,12 +241,23 @@ class GameServer:
         return {
             "uptime_s": time.perf_counter() - self._wall0,
             "recording": "on" if self.store is not None else f"off: {self.recording_error}",
+            "storage": self.storage_snapshot(),
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             "rooms": rooms,
         }
+
+
+    def storage_snapshot(self) -> dict[str, Any]:
+        """The replay store's use of the disk against its retention (no I/O: the counts as
+        of its last write)."""
+        r = Retention.from_limits(self.limits)
+        out: dict[str, Any] = {"max_bytes": r.max_bytes, "max_days": r.max_age_s / 86400}
+        if self.store is not None:
+            out.update(rounds=self.store.rounds, bytes=self.store.bytes)
+        return out
 
 
 def _percentiles(values: np.ndarray) -> dict[str, float]:

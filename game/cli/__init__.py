@@ -18,6 +18,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "host": ("clothball.game.cli.host", "run a game server (rooms, bots, spectators, replays)"),
     "play": ("clothball.game.cli.play", "play in a desktop window (mouse, Falcon or bot)"),
     "replay": ("clothball.game.cli.replay", "play a recorded round back (pause, seek, speed)"),
+    "replays": ("clothball.game.cli.replays", "list, prune and export the host's recorded "
+                "rounds (its data directory)"),
 }
 
 
