@@ -7,7 +7,9 @@
 * ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=&player=&code=``)
 * ``/api/replays/<id>`` one replay file (``game.wire.replay``; a private room's: ``?code=``),
   streamed from disk in chunks, one byte range of it with ``Range: bytes=A-B`` (206)
-* ``/api/stats`` the server's own counters (frame lateness, messages, CPU time)
+* ``/api/stats`` the server's own counters (frame lateness, messages, CPU time, storage);
+  ``?reset=1`` clears the frame lateness, only with the host's token
+  (``Authorization: Bearer TOKEN``, the token in the data directory's ``host-token``)
 
 and the admission of websocket upgrades on ``/ws`` (origin policy, connection limit).
 
@@ -28,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import email.utils
+import hmac
 import http
 import json
 import logging
@@ -168,6 +171,7 @@ class HttpHost(Protocol):
     origins: tuple[str, ...] | None
     store: ReplayStore | None
     recording_error: str | None
+    host_token: str
     web_dir: Path
     stats: dict[str, int]
 
@@ -241,6 +245,12 @@ class HttpSurface:
                 return f"the {name} header must be ASCII"
         return None
 
+    def _is_host(self, request: Request) -> bool:
+        """The request carries the host's token (compared in constant time)."""
+        scheme, _, token = request.headers.get("Authorization", "").partition(" ")
+        return scheme.lower() == "bearer" and hmac.compare_digest(
+            token.strip().encode(), self.srv.host_token.encode())
+
     def _origin_allowed(self, origin: str, host: str | None) -> bool:
         """The server's own pages (an Origin naming the host the request was sent to), and
         the ``--origin`` list (``*``: any)."""
@@ -275,9 +285,15 @@ class HttpSurface:
         if path == "/healthz":  # on the loop: never behind files or index queries
             return self._response(200, b"ok\n", "text/plain; charset=utf-8")
         if path == "/api/rooms":  # live state: read on the loop that changes it
-            return self._json({"rooms": self.srv.lobby.listing()})
+            msg = self.srv.lobby.rooms_message()
+            del msg["type"]
+            return self._json(msg)
         if path == "/api/stats":
-            if urllib.parse.parse_qs(query).get("reset") == ["1"]:
+            if "reset" in urllib.parse.parse_qs(query, keep_blank_values=True):
+                if not self._is_host(request):
+                    return self._error(403, "resetting the statistics needs the host's token: "
+                                            "send Authorization: Bearer TOKEN, TOKEN from the "
+                                            "file host-token in the server's data directory")
                 for room in self.srv.lobby.rooms.values():
                     room.sim.stats.lateness.clear()
             return self._json(self.srv.stats_snapshot())
