@@ -11,6 +11,7 @@ import json
 import logging
 import math
 import os
+import secrets
 import sqlite3
 import time
 from collections.abc import Callable
@@ -43,7 +44,7 @@ class GameServer:
                  default_room: bool = True, web_dir: Path | None = None,
                  bot_factory: Callable[..., Any] | None = None,
                  hello_timeout: float | None = None, limits: Limits | None = None,
-                 origins: tuple[str, ...] | None = None) -> None:
+                 origins: tuple[str, ...] | None = None, host_token: str | None = None) -> None:
         if scenes is None:
             scenes = {"classic": Scene.load("classic")}
         self.scenes = scenes
@@ -60,6 +61,9 @@ class GameServer:
         if hello_timeout is not None:
             self.limits = self.limits.replace(hello_timeout=hello_timeout)
         self.origins = origins  # websocket Origin allow-list (None: any)
+        # The host's own credential (/api/stats?reset=1): written to DATA/host-token, which
+        # only the host's account can read.
+        self.host_token = host_token or secrets.token_urlsafe(24)
         # A data directory that cannot be written does not stop the game: matches go on
         # without recording, and every place that would show replays says why.
         self.store: ReplayStore | None = None
@@ -69,6 +73,7 @@ class GameServer:
         except (OSError, sqlite3.Error) as e:
             self.recording_error = f"data directory {str(self.data_dir)!r} is unusable: {e}"
             log.error("recording is off: %s", self.recording_error)
+        self._write_host_token()
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
                            max_rooms=self.limits.max_rooms)
         self.clients: set[Conn] = set()
@@ -140,6 +145,17 @@ class GameServer:
         self.http.close()
         if self.store is not None:
             self.store.close()
+
+    def _write_host_token(self) -> None:
+        path = self.data_dir / "host-token"
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                os.fchmod(f.fileno(), 0o600)
+                f.write(self.host_token + "\n")
+        except OSError as e:
+            log.warning("the host token could not be written to %s (%s): statistics can be "
+                        "reset only by a GameServer given host_token", path, e.strerror or e)
 
     def _spawn(self, coro: Any) -> asyncio.Task[Any]:
         t = asyncio.create_task(coro)

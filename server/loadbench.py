@@ -105,7 +105,8 @@ async def _serve(args: argparse.Namespace) -> None:
 
             probe = Cloth(scene, backend=args.server_backend, threads=1)
         print(json.dumps({"port": srv.port, "room": room.id if room is not None else None,
-                          "backend": probe.backend, "substeps": probe.substeps}), flush=True)
+                          "backend": probe.backend, "substeps": probe.substeps,
+                          "token": srv.host_token}), flush=True)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, stop.set)
@@ -227,8 +228,11 @@ def _stop_server(server: subprocess.Popen[str]) -> None:
         server.kill()
 
 
-def _get(url: str) -> Any:
-    with urllib.request.urlopen(url, timeout=10) as r:
+def _get(url: str, token: str | None = None) -> Any:
+    """GET ``url`` as JSON; ``token``: the host's (``/api/stats?reset=1`` needs it)."""
+    req = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"} if token
+                                 else {})
+    with urllib.request.urlopen(req, timeout=10) as r:
         return json.loads(r.read())
 
 
@@ -268,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
             assert spect.stdout is not None
             json.loads(spect.stdout.readline())  # connected
         players = asyncio.run(_play(ws, info["room"], args.players, args.hip_rate, seconds,
-                                    lambda: _get(f"{http}/api/stats?reset=1")))
+                                    lambda: _get(f"{http}/api/stats?reset=1", info["token"])))
         stats0, t0 = players.pop("stats0"), players.pop("t0")
         stats1 = _get(f"{http}/api/stats")
         dt = time.perf_counter() - t0
@@ -435,7 +439,7 @@ def run_load(args: argparse.Namespace) -> int:
             if not proc.stdout.readline():
                 raise RuntimeError("a room's clients did not connect")
             time.sleep(1.0)  # settle
-            s0 = _get(f"{http}/api/stats?reset=1")
+            s0 = _get(f"{http}/api/stats?reset=1", info["token"])
             c0, w0 = _cpu_seconds(clients), time.perf_counter()
             time.sleep(seconds)
             s1 = _get(f"{http}/api/stats")

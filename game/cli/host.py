@@ -84,6 +84,7 @@ async def serve(args: argparse.Namespace) -> int:
         print(f"NOT recording rounds: {server.recording_error}")
     else:
         print(f"recorded rounds in {Path(data).resolve()}  ({server.http_url}api/replays)")
+        print(f"host token (resets /api/stats) in {Path(data).resolve() / 'host-token'}")
     if args.host in ("127.0.0.1", "localhost", "::1"):
         print("(only this machine can connect; --host 0.0.0.0 to let others in)")
     stop = asyncio.Event()
