@@ -42,6 +42,9 @@ class Limits:
     # --- the replay store's retention (oldest rounds pruned first, file and index row) -------
     replays_max_mib: float = 2048.0  # MiB of recorded rounds kept in all
     replays_max_days: float = 30.0  # days a recorded round is kept
+    # --- the data directory --------------------------------------------------------------------
+    storage_min_free_mib: float = 64.0  # free MiB below which recording pauses ("full")
+    storage_check_s: float = 5.0  # s between looks at the data directory (problems, recovery)
     # --- time and slow clients -----------------------------------------------------------------
     hello_timeout: float = 10.0  # s to send the hello (else closed 1008)
     slow_drop_s: float = 5.0  # s a client may leave its socket backed up (else closed 1008)

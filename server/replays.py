@@ -14,10 +14,10 @@ round whose index row could not be written keeps its file and is indexed at the 
 
 Retention (``Retention``): the store keeps at most ``max_bytes`` of indexed rounds and none
 older than ``max_age_s``; after each save (and when the server starts) the oldest rounds
-go first, each one's index row and file together: the row is deleted and the file removed
-in one transaction, which commits only once the file is gone. A crash between the two
-leaves a row without a file, which the next start removes (``_recover``). The newest round
-is never pruned for size, so the last round played can always be watched.
+go first, each one's index row and file together (``_remove``: the file renamed aside,
+the row's deletion committed, the file removed; a crash in between is resolved at the next
+start). The newest round is never pruned for size, so the last round played can always be
+watched.
 
 A private room's rounds carry ``access`` (``access_key(room, code)``) in their header and
 index row: they are listed and served only to a request that names the room's code.
@@ -25,14 +25,20 @@ index row: they are listed and served only to a request that names the room's co
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import errno
 import hashlib
 import json
 import logging
+import os
 import sqlite3
 import threading
 import time
+import typing
+import urllib.parse
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -136,14 +142,16 @@ class ReplayStore:
     """
 
     def __init__(self, data_dir: Path | str, *, lock_wait_s: float = LOCK_WAIT_S,
-                 retention: Retention | None = None, recover: bool = True) -> None:
+                 retention: Retention | None = None, recover: bool = True,
+                 read_only: bool = False) -> None:
         """``recover``: remove leftover ``.tmp`` files and index unindexed rounds (what the
         server does at start; a command run beside a live server must not: its ``.tmp``
         files are rounds being written). ``retention``: pruned after each save; None keeps
-        everything."""
+        everything. ``read_only``: list and serve what is there, write nothing (a read-only
+        or full disk); the index must exist."""
         self.dir = Path(data_dir)
         self.replays = self.dir / "replays"
-        self.replays.mkdir(parents=True, exist_ok=True)
+        self.read_only = read_only
         self.lock_wait_s = lock_wait_s
         self.retention = retention
         self.rounds = 0  # indexed rounds and their bytes, as of the last write or refresh
@@ -153,6 +161,12 @@ class ReplayStore:
         self._wlock = threading.Lock()  # the writing connection
         self._counts: dict[tuple[str, tuple[Any, ...]], int] = {}
         self._counts_stamp: tuple[int, int] = (-1, -1)
+        if read_only:
+            self._wdb: sqlite3.Connection | None = None
+            self._db = self._connect_read_only()
+            self.refresh_usage()
+            return
+        self.replays.mkdir(parents=True, exist_ok=True)
         self._wdb = self._connect()
         try:
             if self._wdb.execute("PRAGMA user_version").fetchone()[0] < INDEX_VERSION:
@@ -164,11 +178,53 @@ class ReplayStore:
         except BaseException:
             self._wdb.close()
             raise
+        self.identity = self._identity()
         if recover:
             self._recover()
             if retention is not None:
                 self.prune(retention)
         self.refresh_usage()
+
+    def _identity(self) -> tuple[int, int] | None:
+        """The index file's device and inode: another file (or none) there means the data
+        directory was removed or replaced under the server."""
+        try:
+            st = (self.dir / "index.sqlite").stat()
+        except OSError:
+            return None
+        return st.st_dev, st.st_ino
+
+    def still_there(self) -> bool:
+        """The index this store has open is still the data directory's."""
+        return not self.read_only and self._identity() == self.identity and \
+            self.replays.is_dir()
+
+    def _connect_read_only(self) -> sqlite3.Connection:
+        """The index for reading only: as it is (``mode=ro``), or, where SQLite cannot make
+        its shared-memory file (a read-only filesystem), as a file nothing changes
+        (``immutable=1``)."""
+        path = self.dir / "index.sqlite"
+        if not path.is_file():
+            raise FileNotFoundError(2, "no replay index", str(path))
+        last: sqlite3.Error | None = None
+        for mode in ("mode=ro", "immutable=1"):
+            db = sqlite3.connect(f"file:{urllib.parse.quote(str(path))}?{mode}", uri=True,
+                                 check_same_thread=False, isolation_level=None,
+                                 timeout=BUSY_TIMEOUT_S)
+            try:
+                version = db.execute("PRAGMA user_version").fetchone()[0]
+                db.execute("SELECT COUNT(*) FROM rounds").fetchone()
+            except sqlite3.Error as e:
+                db.close()
+                last = e
+                continue
+            if version < INDEX_VERSION:
+                db.close()
+                raise sqlite3.DatabaseError("the index is from an older version and cannot "
+                                            "be brought up to date read-only")
+            return db
+        assert last is not None
+        raise last
 
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.dir / "index.sqlite", check_same_thread=False,
@@ -231,6 +287,8 @@ class ReplayStore:
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[None]:
         """Holds the writing connection; commits what the block did, or none of it."""
+        if self._wdb is None:
+            raise sqlite3.OperationalError("the replay index is open read-only")
         with self._wlock:
             self._wdb.execute("BEGIN IMMEDIATE")
             try:
@@ -240,18 +298,37 @@ class ReplayStore:
                 raise
             self._wdb.execute("COMMIT")
 
+    def lock_is_free(self) -> bool:
+        """Whether a write could take the index's lock now (tried, then let go)."""
+        try:
+            with self._transaction():
+                pass
+        except sqlite3.OperationalError as e:
+            if _locked(e):
+                return False
+            raise
+        return True
+
     def _recover(self) -> None:
         for tmp in self.replays.glob("*.cbr.tmp"):
             log.info("removing unfinished replay %s", tmp.name)
             tmp.unlink(missing_ok=True)
         with self._lock:
             known = {r[0] for r in self._db.execute("SELECT id FROM rounds")}
-        on_disk = {p.stem for p in self.replays.glob("*.cbr")}
-        gone = sorted(known - on_disk)
-        if gone:  # a prune cut short after the file went, or files removed by hand
-            log.warning("removing %d index rows whose replay file is gone", len(gone))
-            self._write(lambda: self._wdb.executemany("DELETE FROM rounds WHERE id = ?",
-                                                      [(g,) for g in gone]))
+        for aside in self.replays.glob("*.cbr.del"):  # a prune cut short (see _remove)
+            rid = aside.name[:-len(".cbr.del")]
+            if rid in known:
+                os.replace(aside, self.replays / f"{rid}.cbr")
+            else:
+                aside.unlink(missing_ok=True)
+        self.reconcile()
+
+    def reconcile(self) -> int:
+        """Indexes the finished files the index lacks, from their own header. Returns how
+        many."""
+        indexed = 0
+        with self._lock:
+            known = {r[0] for r in self._db.execute("SELECT id FROM rounds")}
         for path in sorted(self.replays.glob("*.cbr")):
             rid = path.stem
             if rid in known:
@@ -259,9 +336,11 @@ class ReplayStore:
             try:
                 header = read_replay_header(path)
                 self._index(header, path)
+                indexed += 1
                 log.info("indexed replay %s from its header", path.name)
             except (OSError, ReplayError, ValueError, KeyError, EOFError) as e:
                 log.warning("ignoring damaged replay %s: %s", path.name, e)
+        return indexed
 
     def _index(self, header: dict[str, Any], path: Path) -> None:
         self.index_many([(header, path.name, path.stat().st_size)])
@@ -302,6 +381,8 @@ class ReplayStore:
         rid = header["id"]
         if not ID_RE.match(rid):
             raise ValueError(f"replay id {rid!r} is not valid")
+        if self.read_only:
+            raise sqlite3.OperationalError("the replay index is open read-only")
         path = self.replays / f"{rid}.cbr"
         write_replay(path, header, records)
         self._index(header, path)
@@ -327,6 +408,13 @@ class ReplayStore:
         ``max_bytes`` (never the newest). Each round's row and file go together (see the
         module's docstring). Returns the rounds removed (or, ``dry_run``, that would be)."""
         now = time.time() if now is None else now
+        with self._lock:
+            total, oldest = self._db.execute(
+                "SELECT COALESCE(SUM(bytes), 0), MIN(ended_at) FROM rounds").fetchone()
+        if total <= retention.max_bytes and (oldest is None or
+                                             oldest >= now - retention.max_age_s):
+            self.refresh_usage()
+            return []  # the usual case after a save: nothing to read row by row
         with self._lock:
             rows = self._db.execute(
                 "SELECT id, ended_at, bytes FROM rounds ORDER BY ended_at DESC, id DESC"
@@ -354,13 +442,29 @@ class ReplayStore:
         return out
 
     def _remove(self, rid: str) -> None:
-        """Deletes the round's row and its file, both or neither: the row's deletion
-        commits only once the file is gone (or was already)."""
-        def remove() -> None:
-            self._wdb.execute("DELETE FROM rounds WHERE id = ?", (rid,))
-            (self.replays / f"{rid}.cbr").unlink(missing_ok=True)
+        """Deletes the round's row and its file, both or neither: the file is renamed
+        aside (``.cbr.del``), the row's deletion committed, then the file removed. If the
+        commit fails the file is put back; after a crash, the next start puts back a file
+        whose row is still there and removes one whose row is gone (``_recover``)."""
+        path = self.replays / f"{rid}.cbr"
+        aside = self.replays / f"{rid}.cbr.del"
 
-        self._write(remove)
+        def remove() -> None:
+            with contextlib.suppress(FileNotFoundError):  # already gone: the row goes
+                os.replace(path, aside)
+            self._wdb.execute("DELETE FROM rounds WHERE id = ?", (rid,))
+
+        try:
+            self._write(remove)
+        except BaseException:
+            if aside.exists() and not path.exists():
+                os.replace(aside, path)
+            raise
+        self._discard(aside)
+
+    @staticmethod
+    def _discard(path: Path) -> None:
+        path.unlink(missing_ok=True)
 
     @staticmethod
     def _queries(room_id: str | None, player: str | None, code: str | None, limit: int = 100,
@@ -507,7 +611,227 @@ class ReplayStore:
     def close(self) -> None:
         with self._lock, self._wlock:
             self._db.close()
-            self._wdb.close()
+            if self._wdb is not None:
+                self._wdb.close()
+
+
+class StorageOff(Exception):
+    """A round was not recorded: why, in one line (the data directory's problem)."""
+
+
+# What each problem needs before recording can resume (the end of its one line).
+_RESUMES = {
+    "full": "once space is freed",
+    "read-only": "once it can be written",
+    "missing": "once it can be created",
+    "locked": "once the other program lets go of index.sqlite",
+    "unusable": "once it is fixed",
+}
+
+
+class Storage:
+    """The data directory as the server uses it: a ``ReplayStore`` that records when the
+    directory can be written, that only lists and serves when it cannot (full, read-only,
+    locked), or none (missing, unusable); ``problem`` says in one line what is wrong and
+    what the server does, and is logged whenever it changes.
+
+    ``check`` looks again (the server calls it every ``Limits.storage_check_s``, and after a
+    failed save): recording resumes by itself once the problem is gone, and rounds written
+    meanwhile as files are indexed. A directory removed while the server runs is created
+    anew (as at a first start) with an empty index. Every disk access runs on the one
+    ``replay-writer`` thread, never on the event loop or the index's query threads.
+    """
+
+    def __init__(self, data_dir: Path | str, *, retention: Retention | None = None,
+                 min_free_bytes: int = 64 << 20, lock_wait_s: float = LOCK_WAIT_S) -> None:
+        self.dir = Path(data_dir)
+        self.retention = retention
+        self.min_free_bytes = min_free_bytes
+        self.lock_wait_s = lock_wait_s
+        self.store: ReplayStore | None = None
+        self.kind: str | None = None  # full, read-only, missing, locked, unusable
+        self.problem: str | None = None  # the one line; None while recording
+        self.free_bytes: int | None = None
+        self.saving = 0  # saves under way (on the writer thread or waiting for it)
+        self._lock_trouble = False
+        self._logged_without_store = False
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="replay-writer")
+
+    # --- on the event loop -------------------------------------------------------------------
+    async def _run(self, fn: Callable[..., Any], *args: Any) -> Any:
+        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+
+    async def check(self) -> None:
+        await self._run(self.check_now)
+
+    async def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]
+                   ) -> dict[str, Any]:
+        """Records one round (on the writer thread); ``StorageOff`` naming why not."""
+        self.saving += 1
+        try:
+            return await self._run(self.save_now, header, records)
+        finally:
+            self.saving -= 1
+
+    # --- on the writer thread (or before the server starts) ---------------------------------
+    def save_now(self, header: dict[str, Any], records: list[tuple[int, bytes]]
+                 ) -> dict[str, Any]:
+        store = self.store
+        if store is None or store.read_only:
+            raise StorageOff(f"recording is off: {self.problem}")
+        try:
+            return store.save(header, records)
+        except sqlite3.OperationalError as e:
+            if not _locked(e):
+                self._failed(e)
+            self._lock_trouble = True
+            self.check_now()
+            raise StorageOff(f"the replay index {self.dir / 'index.sqlite'} stayed locked "
+                             f"for {self.lock_wait_s:g} s; the round's file is kept and "
+                             "indexed once the lock is free") from e
+        except (OSError, sqlite3.Error) as e:
+            self._failed(e)
+
+    def _failed(self, e: BaseException) -> typing.NoReturn:
+        err = getattr(e, "errno", None)
+        self.check_now(hint=_ERRNO_KINDS.get(err) if err is not None else None,
+                       reason=str(e))
+        raise StorageOff(f"recording is off: {self.problem}" if self.problem else
+                         f"could not write the replay: {e}") from e
+
+    def check_now(self, hint: str | None = None, reason: str = "") -> None:
+        """Looks at the directory again and acts on what it finds (see the class)."""
+        found = self._diagnose()
+        if found is None and hint is not None:
+            # A write just failed for a reason the directory does not show now (a full
+            # disk with room for a small probe): believe the write until the next check.
+            found = hint, f"{_KIND_WORDS[hint]} (a write failed: {reason})"
+        if found is None:
+            found = self._open_for_recording()
+        if found is None:
+            self._set(None, None)
+            return
+        kind, what = found
+        if self.store is not None and not self.store.read_only and kind != "locked":
+            self.store.close()
+            self.store = None
+        if self.store is None and kind not in ("missing", "unusable"):
+            try:
+                self.store = ReplayStore(self.dir, read_only=True)
+            except (OSError, sqlite3.Error):
+                self.store = None
+        self._set(kind, what)
+
+    def _open_for_recording(self) -> tuple[str, str] | None:
+        store = self.store
+        if store is not None and not store.read_only and store.still_there():
+            if self._lock_trouble:
+                try:
+                    if not store.lock_is_free():
+                        return "locked", "(index.sqlite) is locked by another program"
+                    store.reconcile()  # the rounds written while it was locked
+                except (OSError, sqlite3.Error) as e:
+                    return "unusable", f"cannot be used ({e})"
+                self._lock_trouble = False
+            return None
+        first = store is None and self.kind is None
+        if store is not None and not store.read_only:
+            log.warning("the data directory %s was removed or replaced while the server "
+                        "ran: recording goes on in a new index there (the rounds listed "
+                        "before are gone)", self.dir)
+        try:
+            new = ReplayStore(self.dir, retention=self.retention, lock_wait_s=self.lock_wait_s,
+                              recover=first)
+            if not first:
+                # Not .tmp files: the rounds being written now are someone's.
+                new.reconcile()
+        except sqlite3.OperationalError as e:
+            if _locked(e):
+                self._lock_trouble = True
+                return "locked", "(index.sqlite) is locked by another program"
+            return "unusable", f"cannot be used ({e})"
+        except (OSError, sqlite3.Error) as e:
+            err = getattr(e, "errno", None)
+            return _ERRNO_KINDS.get(err, "unusable") if err else "unusable", \
+                f"cannot be used ({e})"
+        if store is not None:
+            store.close()
+        self.store = new
+        return None
+
+    def _diagnose(self) -> tuple[str, str] | None:
+        """(kind, what is wrong) that keeps the directory from recording, or None."""
+        d = self.dir
+        if not d.exists():
+            try:
+                (d / "replays").mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                return "missing", f"is missing and cannot be created ({e.strerror or e})"
+            if self.kind is not None or self.store is not None:
+                log.warning("the data directory %s was missing: created it anew", d)
+        if not d.is_dir():
+            return "unusable", "is not a directory"
+        try:
+            st = os.statvfs(d)
+        except OSError as e:
+            return "unusable", f"cannot be read ({e.strerror or e})"
+        if st.f_flag & os.ST_RDONLY:
+            return "read-only", "is on a read-only filesystem"
+        self.free_bytes = st.f_bavail * st.f_frsize
+        if self.free_bytes < self.min_free_bytes:
+            return "full", (f"is full ({self.free_bytes / 2**20:.1f} MiB free; recording "
+                            f"needs {self.min_free_bytes / 2**20:g} MiB)")
+        # Write and remove a small file: permissions, quotas and read-only mounts the
+        # numbers above do not show.
+        where = d / "replays" if (d / "replays").is_dir() else d
+        probe = where / f".probe-{os.getpid()}"
+        try:
+            fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            try:
+                os.write(fd, b"\0" * 4096)
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+                probe.unlink(missing_ok=True)
+        except OSError as e:
+            kind = _ERRNO_KINDS.get(e.errno or 0, "unusable")
+            return kind, f"{_KIND_WORDS[kind]} (a write failed: {e.strerror or e})"
+        return None
+
+    def _set(self, kind: str | None, what: str | None) -> None:
+        if kind is None:
+            if self.kind is not None:
+                log.warning("recording resumed: the data directory %s can be written again",
+                            self.dir)
+            self.kind = self.problem = None
+            return
+        if self.store is not None:
+            serves = "stored rounds stay listed and downloadable (read-only)"
+        else:
+            serves = "no stored rounds can be served"
+        if kind == "locked":
+            serves = "rounds are kept as files, to be indexed"
+        problem = (f"data directory {str(self.dir)!r} {what}; {serves}; recording resumes "
+                   f"by itself {_RESUMES[kind]}")
+        if (kind, self.store is None) != (self.kind, self._logged_without_store):
+            log.error("recording is off: %s", problem)  # once per change, not every check
+        self._logged_without_store = self.store is None
+        self.kind, self.problem = kind, problem
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+        if self.store is not None:
+            self.store.close()
+            self.store = None
+
+
+_KIND_WORDS = {"full": "is full", "read-only": "cannot be written", "missing": "is missing",
+               "locked": "is locked", "unusable": "cannot be used"}
+_ERRNO_KINDS = {
+    errno.ENOSPC: "full", errno.EDQUOT: "full", errno.EFBIG: "full",
+    errno.EROFS: "read-only", errno.EACCES: "read-only", errno.EPERM: "read-only",
+    errno.ENOENT: "missing",
+}
 
 
 def _locked(e: sqlite3.OperationalError) -> bool:

@@ -11,6 +11,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,8 @@ def save_round(data: Path, payload: bytes, records: int) -> tuple[str, bytes]:
     try:
         rid = new_round_id()
         header = dict(id=rid, room_id="r", room_name="r", scene="tiny", round=1, players=[],
-                      scores=[0, 0, 0, 0], started_at=0.0, ended_at=1.0, duration_s=1.0)
+                      scores=[0, 0, 0, 0], started_at=time.time() - 1, ended_at=time.time(),
+                      duration_s=1.0)  # now: retention keeps it
         store.save(header, [(1, payload[i::records]) for i in range(records)])
         return rid, (data / "replays" / f"{rid}.cbr").read_bytes()
     finally:

@@ -4,11 +4,15 @@ with its file and index row together; the disk in use in ``/api/stats``; the
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
 import sqlite3
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -100,10 +104,10 @@ def test_a_file_that_cannot_be_removed_keeps_its_row(tmp_path: Path, monkeypatch
     store = ReplayStore(tmp_path)
     rounds = fill(store, 5, 1.7e9)
 
-    def refuse(self: Path, missing_ok: bool = False) -> None:
-        raise PermissionError(13, "Permission denied", str(self))
+    def refuse(src: Any, dst: Any) -> None:
+        raise PermissionError(13, "Permission denied", str(src))
 
-    monkeypatch.setattr(Path, "unlink", refuse)
+    monkeypatch.setattr(os, "replace", refuse)
     with pytest.raises(PermissionError):
         store.prune(Retention(1, 1e9), now=1.7e9)
     monkeypatch.undo()
@@ -111,28 +115,57 @@ def test_a_file_that_cannot_be_removed_keeps_its_row(tmp_path: Path, monkeypatch
     store.close()
 
 
-def test_a_prune_cut_short_after_the_file_went_is_completed_at_the_next_start(
-        tmp_path: Path, monkeypatch) -> None:
-    """A crash between removing the file and committing: the row comes back without its
-    file (the transaction rolled back); the next start removes it."""
+def test_a_failed_commit_puts_the_file_back(tmp_path: Path, monkeypatch) -> None:
     store = ReplayStore(tmp_path)
-    rounds = fill(store, 5, 1.7e9)
-    real_unlink = Path.unlink
+    rounds = fill(store, 3, 1.7e9)
+    real = store._transaction
 
-    def crash(self: Path, missing_ok: bool = False) -> None:
-        real_unlink(self, missing_ok=missing_ok)
-        raise SystemExit("killed")  # nothing after the unlink runs: no commit
+    @contextlib.contextmanager
+    def failing() -> Iterator[None]:
+        with real():
+            yield
+            raise sqlite3.OperationalError("disk I/O error")  # rolled back
 
-    monkeypatch.setattr(Path, "unlink", crash)
-    with pytest.raises(SystemExit):
+    monkeypatch.setattr(store, "_transaction", failing)
+    with pytest.raises(sqlite3.OperationalError):
         store.prune(Retention(1, 1e9), now=1.7e9)
     monkeypatch.undo()
+    assert on_disk(tmp_path) == indexed(tmp_path) == set(rounds)
+    assert not list((tmp_path / "replays").glob("*.del"))
     store.close()
-    (lost,) = set(rounds) - on_disk(tmp_path)
-    assert lost in indexed(tmp_path)
-    again = ReplayStore(tmp_path)
-    assert on_disk(tmp_path) == indexed(tmp_path) == set(rounds) - {lost}
-    assert again.get(lost) is None
+
+
+# A process that prunes one round and is killed (os._exit: nothing more runs) at one point.
+CRASH = """
+import os, sys
+from clothball.server.replays import ReplayStore, Retention
+store = ReplayStore(sys.argv[1])
+if sys.argv[2] == "before-commit":
+    real = os.replace
+    def replace(a, b):
+        real(a, b)
+        os._exit(9)  # the file is aside, the row's deletion not committed
+    os.replace = replace
+else:
+    ReplayStore._discard = staticmethod(lambda p: os._exit(9))  # committed, file aside
+store.prune(Retention(1, 1e12), now=1.7e9)
+"""
+
+
+@pytest.mark.parametrize("when", ["before-commit", "after-commit"])
+def test_a_prune_killed_midway_leaves_both_or_neither_after_the_next_start(
+        tmp_path: Path, when: str) -> None:
+    store = ReplayStore(tmp_path)
+    rounds = fill(store, 3, 1.7e9)
+    store.close()
+    oldest = min(rounds, key=lambda r: rounds[r][0])
+    proc = subprocess.run([sys.executable, "-c", CRASH, str(tmp_path), when])
+    assert proc.returncode == 9
+    assert (tmp_path / "replays" / f"{oldest}.cbr.del").exists()
+    again = ReplayStore(tmp_path)  # the next start
+    want = set(rounds) if when == "before-commit" else set(rounds) - {oldest}
+    assert on_disk(tmp_path) == indexed(tmp_path) == want
+    assert not list((tmp_path / "replays").glob("*.del"))
     again.close()
 
 
