@@ -12,7 +12,6 @@ import logging
 import math
 import os
 import secrets
-import sqlite3
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -26,7 +25,7 @@ from .conn import Conn
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
-from .replays import ReplayStore, Retention, access_key
+from .replays import ReplayStore, Retention, Storage, StorageOff, access_key
 from .room import Room, RoomSettings
 from .ws import Connection, WsEndpoint
 
@@ -65,14 +64,12 @@ class GameServer:
         # only the host's account can read.
         self.host_token = host_token or secrets.token_urlsafe(24)
         # A data directory that cannot be written does not stop the game: matches go on
-        # without recording, and every place that would show replays says why.
-        self.store: ReplayStore | None = None
-        self.recording_error: str | None = None
-        try:
-            self.store = ReplayStore(self.data_dir, retention=Retention.from_limits(self.limits))
-        except (OSError, sqlite3.Error) as e:
-            self.recording_error = f"data directory {str(self.data_dir)!r} is unusable: {e}"
-            log.error("recording is off: %s", self.recording_error)
+        # without recording, stored rounds are served if they can be read, every place
+        # that would show replays says why, and recording resumes once it can.
+        lim = self.limits
+        self.storage = Storage(self.data_dir, retention=Retention.from_limits(lim),
+                               min_free_bytes=int(lim.storage_min_free_mib * 2**20))
+        self.storage.check_now()
         self._write_host_token()
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
                            max_rooms=self.limits.max_rooms)
@@ -104,8 +101,7 @@ class GameServer:
                 open_timeout=None,  # Connection bounds its own handshake (server.ws)
             )
         except BaseException:
-            if self.store is not None:
-                self.store.close()
+            self.storage.close()
             raise
         sock = next(iter(self._server.sockets))
         self.port = sock.getsockname()[1]
@@ -117,6 +113,7 @@ class GameServer:
                 self.main_room.add_bot(None, settings.bot_difficulty)
         self._spawn(self._housekeeping())
         self._spawn(self._push_room_lists())
+        self._spawn(self._watch_storage())
         return self.host, self.port
 
     @property
@@ -143,8 +140,7 @@ class GameServer:
         if self._saves:
             await asyncio.gather(*self._saves, return_exceptions=True)
         self.http.close()
-        if self.store is not None:
-            self.store.close()
+        self.storage.close()
 
     def _write_host_token(self) -> None:
         path = self.data_dir / "host-token"
@@ -167,6 +163,23 @@ class GameServer:
         while True:
             await asyncio.sleep(10.0)
             await self.lobby.close_idle(asyncio.get_running_loop().time())
+
+    @property
+    def store(self) -> ReplayStore | None:
+        """The replay index, when stored rounds can be read (see ``recording_error``)."""
+        return self.storage.store
+
+    @property
+    def recording_error(self) -> str | None:
+        """Why rounds are not being recorded now (one line), or None."""
+        return self.storage.problem
+
+    async def _watch_storage(self) -> None:
+        """The data directory looked at again and again: problems named as they come,
+        recording resumed as they go (``server.replays.Storage``)."""
+        while True:
+            await asyncio.sleep(self.limits.storage_check_s)
+            await self.storage.check()
 
     async def _push_room_lists(self) -> None:
         """Lobby clients get the public room list again whenever it changes (rooms opened or
@@ -217,16 +230,13 @@ class GameServer:
                         reason=reason)
 
         async def save() -> None:
-            store = self.store
-            if store is None:
-                failed(f"recording is off: {self.recording_error}")
-                return
             try:
-                row = await asyncio.to_thread(store.save, header, records)
-            except (OSError, sqlite3.Error) as e:
-                # Disk full, read-only, gone: this round is lost, the match goes on.
-                log.error("could not save round %s: %s", header.get("id"), e)
-                failed(f"could not write the replay: {e}")
+                row = await self.storage.save(header, records)
+            except StorageOff as e:
+                # Disk full, read-only, gone, locked: this round is lost (or, locked, kept
+                # as a file to be indexed), the match goes on.
+                log.warning("round %s not recorded: %s", header.get("id"), e)
+                failed(str(e))
                 return
             except Exception as e:  # pragma: no cover - a bug must not stop the match
                 log.exception("could not save round %s", header.get("id"))
@@ -256,7 +266,8 @@ class GameServer:
             }
         return {
             "uptime_s": time.perf_counter() - self._wall0,
-            "recording": "on" if self.store is not None else f"off: {self.recording_error}",
+            "recording": "on" if self.recording_error is None else
+                         f"off: {self.recording_error}",
             "storage": self.storage_snapshot(),
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),
@@ -270,7 +281,9 @@ class GameServer:
         """The replay store's use of the disk against its retention (no I/O: the counts as
         of its last write)."""
         r = Retention.from_limits(self.limits)
-        out: dict[str, Any] = {"max_bytes": r.max_bytes, "max_days": r.max_age_s / 86400}
+        out: dict[str, Any] = {"max_bytes": r.max_bytes, "max_days": r.max_age_s / 86400,
+                               "state": self.storage.kind or "ok",
+                               "free_bytes": self.storage.free_bytes}
         if self.store is not None:
             out.update(rounds=self.store.rounds, bytes=self.store.bytes)
         return out

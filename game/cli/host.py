@@ -80,7 +80,7 @@ async def serve(args: argparse.Namespace) -> int:
     backend = room.sim.cloth.backend if room is not None else args.backend
     print(f"clothball server on {server.ws_url}  (scene {', '.join(scenes)}, backend {backend})")
     print(f"spectate in a browser: {server.http_url}")
-    if server.store is None:
+    if server.recording_error is not None:
         print(f"NOT recording rounds: {server.recording_error}")
     else:
         print(f"recorded rounds in {Path(data).resolve()}  ({server.http_url}api/replays)")
