@@ -696,8 +696,8 @@ class Storage:
         err = getattr(e, "errno", None)
         self.check_now(hint=_ERRNO_KINDS.get(err) if err is not None else None,
                        reason=str(e))
-        raise StorageOff(f"recording is off: {self.problem}" if self.problem else
-                         f"could not write the replay: {e}") from e
+        raise StorageOff(f"could not write the replay: {e}" + (
+            f"; recording is off: {self.problem}" if self.problem else "")) from e
 
     def check_now(self, hint: str | None = None, reason: str = "") -> None:
         """Looks at the directory again and acts on what it finds (see the class)."""

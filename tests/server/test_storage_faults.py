@@ -218,7 +218,8 @@ def test_a_failed_write_names_a_full_disk_even_with_room_for_the_probe(
                     raise OSError(28, "No space left on device")
 
                 monkeypatch.setattr(replays, "write_replay", no_space)
-                with pytest.raises(StorageOff, match="full.*No space left on device"):
+                with pytest.raises(StorageOff, match="could not write the replay: .*No "
+                                                     "space left on device.*is full"):
                     await srv.storage.save(header(1), [])
                 assert srv.storage.kind == "full"
                 assert "full" in await recording(srv)
