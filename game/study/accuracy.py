@@ -8,8 +8,13 @@ The study (``clothball accuracy`` runs it; ``docs/accuracy.md`` explains the res
   let go at the scene's start position, and the run lasts ``duration`` seconds. Every
   ``sample_ms`` the node positions, and every frame the ball, are compared with a float64
   run of the same integrator whose step is 16 times smaller than the smallest step of the
-  sweep: ``error_rms_m`` is the RMS node distance over all nodes and samples,
-  ``ball_error_m`` the RMS ball distance over the frames.
+  sweep. After contact the motion is chaotic (``decorrelation_time``: a 1e-10 m
+  perturbation reaches 1e-4 m within a few hundred ms), so an error over the whole run
+  saturates whatever the step. ``error_short_m`` is the RMS node distance over the samples
+  up to a short window past the first contact (``short_window_end``: ``short_after_s``,
+  and at most halfway from contact to decorrelation): there each integrator's error
+  scales with its order, which ``orders`` fits. ``error_rms_m`` (all samples) and
+  ``ball_error_m`` (the ball, every frame) cover the whole run.
 * **Steady-state sag**: the hanging cloth's centre sag from Newton's method on F(x) = 0
   (``static_equilibrium``), and how it converges as the grid is refined
   (``sag_convergence``): the spatial error, which no time step removes. Every integrator
@@ -49,6 +54,7 @@ from ..sim.scene import Scene
 from ..sim.stability import auto_substeps
 from .integrators_ref import (
     INTEGRATORS,
+    ORDERS,
     IntegratingCloth,
     centre_sag,
     kinetic_energy,
@@ -256,6 +262,114 @@ def trajectory_errors(run: Trajectory, ref: Trajectory) -> tuple[float, float]:
     return math.sqrt(float(np.mean(node))), math.sqrt(float(np.mean(ball)))
 
 
+def contact_time(run: Trajectory, radius: float) -> float:
+    """First mesh sample at which a node is inside the ball (inf: never)."""
+    if not run.times_s:
+        return math.inf
+    frame_dt = run.times_s[1] - run.times_s[0] if len(run.times_s) > 1 else 1.0
+    for t, pos in zip(run.sample_times_s, run.pos, strict=True):
+        b = run.ball[min(len(run.ball) - 1, round(t / frame_dt))]
+        if float(np.min(np.linalg.norm(pos - b, axis=-1))) < radius:
+            return t
+    return math.inf
+
+
+def short_window_end(contact_s: float, after_s: float, duration_s: float,
+                     decorrelation_s: float = math.inf) -> float:
+    """End of the short-horizon window: ``after_s`` past the first contact, but at most
+    halfway from contact to decorrelation (so a perturbation is still far below the
+    threshold: the error is the integrator's, not chaos's), and within the run. Without
+    contact the whole run."""
+    if not math.isfinite(contact_s):
+        return duration_s
+    end = contact_s + after_s
+    if math.isfinite(decorrelation_s) and decorrelation_s > contact_s:
+        end = min(end, 0.5 * (contact_s + decorrelation_s))
+    return min(end, duration_s)
+
+
+def short_error(run: Trajectory, ref: Trajectory, end_s: float) -> float:
+    """RMS node distance over the mesh samples with 0 < t <= ``end_s``."""
+    if run.failed:
+        return math.inf
+    k = min(len(run.pos), len(ref.pos))
+    sq = [np.sum((run.pos[i] - ref.pos[i]) ** 2, axis=-1).mean() for i in range(1, k)
+          if run.sample_times_s[i] <= end_s + 1e-12]
+    if not sq or not np.all(np.isfinite(sq)):
+        return math.inf
+    return math.sqrt(float(np.mean(sq)))
+
+
+# The long-horizon quantities' reference integrator (float64, REFERENCE_FACTOR x finer).
+LONG_REFERENCE = "velocity_verlet"
+# The late-time means ("settled") are over this last fraction of the run.
+SETTLE_FRACTION = 0.2
+
+
+@dataclass
+class Quantities:
+    """What a haptic user and a physicist read off a run, robust to chaos: the peak of the
+    corner force after the first contact, the late-time mean of the corner force and of the
+    ball's height (the last ``SETTLE_FRACTION`` of the run), and the amplitude spectrum of
+    the corner force from the first contact on (Hann window)."""
+
+    peak_force_n: float
+    settled_force_n: float
+    ball_rest_m: float
+    freqs_hz: np.ndarray
+    spectrum: np.ndarray
+
+
+def quantities(run: Trajectory, contact_s: float) -> Quantities | None:
+    """The run's long-horizon quantities; None where it failed or never made contact."""
+    if run.failed or not math.isfinite(contact_s) or len(run.times_s) < 8:
+        return None
+    t = np.asarray(run.times_s)
+    f = np.asarray(run.corner_force)
+    y = np.asarray([b[1] for b in run.ball])
+    hit = t >= contact_s
+    tail = t >= t[-1] - SETTLE_FRACTION * (t[-1] - t[0])
+    sig = f[hit] - f[hit].mean()
+    if len(sig) < 4:
+        return None
+    amp = np.abs(np.fft.rfft(sig * np.hanning(len(sig))))
+    freqs = np.fft.rfftfreq(len(sig), float(t[1] - t[0]))
+    return Quantities(float(f[hit].max()), float(f[tail].mean()), float(y[tail].mean()),
+                      freqs, amp)
+
+
+def quantity_errors(got: Quantities | None, ref: Quantities | None) -> dict[str, float]:
+    """Errors of ``got`` against ``ref``: relative for the forces and the spectrum (L2 of the
+    amplitude difference over the reference's), metres for the ball's rest height."""
+    keys = ("peak_force_err", "settled_force_err", "ball_rest_err_m", "spectrum_err")
+    if got is None or ref is None:
+        return dict.fromkeys(keys, math.inf if ref is not None else math.nan)
+    k = min(len(got.spectrum), len(ref.spectrum))
+    spec = float(np.linalg.norm(got.spectrum[:k] - ref.spectrum[:k])
+                 / max(np.linalg.norm(ref.spectrum[:k]), 1e-300))
+    return {
+        "peak_force_err": abs(got.peak_force_n - ref.peak_force_n) / ref.peak_force_n,
+        "settled_force_err": abs(got.settled_force_n - ref.settled_force_n)
+        / ref.settled_force_n,
+        "ball_rest_err_m": abs(got.ball_rest_m - ref.ball_rest_m),
+        "spectrum_err": spec,
+    }
+
+
+def long_summary(q: Quantities | None, integrator: str, substeps: int,
+                 contact_s: float) -> dict[str, Any]:
+    """The long reference's quantities, for the table, the JSON and the spectrum plot."""
+    out: dict[str, Any] = {"integrator": integrator, "substeps": substeps,
+                           "contact_s": contact_s}
+    if q is None:
+        return out
+    peak = int(np.argmax(q.spectrum[1:])) + 1 if len(q.spectrum) > 1 else 0
+    out.update(peak_force_n=q.peak_force_n, settled_force_n=q.settled_force_n,
+               ball_rest_m=q.ball_rest_m, dominant_hz=float(q.freqs_hz[peak]),
+               spectrum={"freqs_hz": q.freqs_hz.tolist(), "amplitude": q.spectrum.tolist()})
+    return out
+
+
 def energy_drift(run: Trajectory, scale: float) -> float:
     if run.failed or not run.energy or not np.all(np.isfinite(run.energy)):
         return math.inf
@@ -335,13 +449,20 @@ class Row:
     substeps: int
     dt_us: float
     level: int  # 0: the largest step; k: 2^-k of it
-    error_rms_m: float
+    error_short_m: float  # RMS node error from the start to the end of the short window
+    error_rms_m: float  # over the whole run: saturates once the run decorrelates
     ball_error_m: float
     sag_error_m: float
     energy_drift: float
     us_per_sim_ms: float
     engine: str
     reference_substeps: int
+    short_window_s: float = math.nan  # where the short window ends (simulated time)
+    # Long-horizon quantities against the long reference (``Study.long_reference``).
+    peak_force_err: float = math.nan  # relative
+    settled_force_err: float = math.nan  # relative
+    ball_rest_err_m: float = math.nan
+    spectrum_err: float = math.nan  # relative L2 of the corner force's amplitude spectrum
     note: str = ""
 
 
@@ -352,6 +473,7 @@ class Study:
     fig4: dict[str, Any]
     meta: dict[str, Any]
     decorrelation: dict[str, Any] | None = None  # asdict(Decorrelation) and its case
+    long_reference: dict[int, dict[str, Any]] = field(default_factory=dict)  # per n
 
     def to_json(self) -> dict[str, Any]:
         def clean(v: Any) -> Any:
@@ -360,13 +482,18 @@ class Study:
             return v
 
         rows = [{k: clean(v) for k, v in asdict(r).items()} for r in self.rows]
-        fits = [{"integrator": i, "precision": p, "n": n,
+        fits = [{"integrator": i, "precision": p, "n": n, "metric": "error_short_m",
                  "order": o if isinstance(o, float) else None,
-                 "note": "" if isinstance(o, float) else o}
+                 "textbook_order": ORDERS.get(i),
+                 "note": order_note(i, o)}
                 for (i, p, n), o in orders(self.rows).items()]
         dec = ({k: clean(v) for k, v in self.decorrelation.items()}
                if self.decorrelation else None)
-        return {"rows": rows, "summary": {"fitted_order": fits, "decorrelation": dec},
+        longs = [{k: clean(v) for k, v in d.items() if k != "spectrum"}
+                 for d in self.long_reference.values()]
+        return {"rows": rows, "summary": {"fitted_order": fits, "decorrelation": dec,
+                                          "long_reference": longs,
+                                          "spatial_vs_temporal": spatial_vs_temporal(self)},
                 "sag_convergence": self.sag_convergence, "fig4": self.fig4, "meta": self.meta}
 
 
@@ -385,10 +512,12 @@ class Plan:
     sag: bool = True
     hold_s: float = 1.0
     decorrelation: bool = False  # also measure the decorrelation time (needs the ball)
+    short_after_s: float = 0.02  # the short window ends this long after the first contact
 
     def cases(self) -> int:
         per_n = len(self.integrators) * (len(self.precisions) * self.levels + 1)
-        return len(self.sizes) * per_n
+        dec = 1 if self.decorrelation and "ball" in self.scene.effects else 0
+        return len(self.sizes) * per_n + dec
 
 
 def sized(scene: Scene, n: int) -> Scene:
@@ -403,6 +532,22 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
     sample_frames = max(1, round(plan.sample_ms * 1e-3 / float(plan.scene["sim"]["frame_dt"])))
     frame_dt = float(plan.scene["sim"]["frame_dt"])
     sag_conv: dict[int, dict[str, float]] = {}
+    dec = None
+    if plan.decorrelation and "ball" in plan.scene.effects:
+        # The native engine's own case, at the smallest n and the integrator's largest step;
+        # measured first: the short window must end before it.
+        integ = next((i for i in plan.integrators if i in native_integrators()),
+                     plan.integrators[0])
+        prec = "float64" if "float64" in plan.precisions else plan.precisions[0]
+        scene = sized(plan.scene, plan.sizes[0])
+        sub = start_substeps(scene, integ, impact_speed(scene, fig4_start(scene)))
+        d = decorrelation_time(scene, integ, prec, sub, plan.backend,
+                               horizon_s=max(plan.duration_s, 1.0))
+        dec = {**asdict(d), "integrator": integ, "precision": prec, "n": plan.sizes[0],
+               "substeps": sub}
+        tick(f"n={plan.sizes[0]} decorrelation time")
+    dec_s = dec["time_s"] if dec else math.inf
+    long_ref: dict[int, dict[str, Any]] = {}
     for n in plan.sizes:
         scene = sized(plan.scene, n)
         start = fig4_start(scene)
@@ -411,15 +556,29 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
         e_scale = drop_energy(scene, start) if "ball" in scene.effects else 1.0
         quiet = with_effects(scene, ["ball"])
         eq_quiet = start.pos  # static_equilibrium leaves the ball out
+        radius = float(scene["ball"]["radius"]) if "ball" in scene.effects else 0.0
+        first = {integ: start_substeps(scene, integ, speed) for integ in plan.integrators}
+        refs: dict[str, tuple[Trajectory, int]] = {}
         for integ in plan.integrators:
-            s0 = start_substeps(scene, integ, speed)
-            finest = s0 * 2 ** (plan.levels - 1)
-            s_ref = finest * REFERENCE_FACTOR
-            ref_sim, ref_engine = make_sim(scene, integ, "float64", s_ref, plan.backend,
-                                           reference=True)
-            ref = run_trajectory(ref_sim, scene, start, plan.duration_s, sample_frames)
+            s_ref = first[integ] * 2 ** (plan.levels - 1) * REFERENCE_FACTOR
+            ref_sim, _ = make_sim(scene, integ, "float64", s_ref, plan.backend, reference=True)
+            refs[integ] = (run_trajectory(ref_sim, scene, start, plan.duration_s,
+                                          sample_frames), s_ref)
             del ref_sim
             tick(f"n={n} {integ} reference ({s_ref} substeps/frame)")
+        # The long-horizon quantities are physical, so every integrator is held to one
+        # reference: the most accurate, velocity Verlet's (else each its own).
+        long_integ = LONG_REFERENCE if LONG_REFERENCE in refs else None
+        for integ in plan.integrators:
+            ref, s_ref = refs[integ]
+            lref, ls_ref = refs[long_integ or integ]
+            contact = contact_time(ref, radius)
+            short_end = short_window_end(contact, plan.short_after_s, plan.duration_s, dec_s)
+            lcontact = contact_time(lref, radius)
+            lq = quantities(lref, lcontact)
+            if integ == (long_integ or plan.integrators[0]):
+                long_ref[n] = {"n": n, **long_summary(lq, long_integ or integ, ls_ref, lcontact)}
+            s0 = first[integ]
             for prec in plan.precisions:
                 for level in range(plan.levels):
                     s = s0 * 2**level
@@ -428,12 +587,14 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
                         sim, engine = make_sim(scene, integ, prec, s, plan.backend)
                     except ValueError as e:
                         rows.append(Row(integ, prec, n, s, frame_dt / s * 1e6, level, math.nan,
-                                        math.nan, math.nan, math.nan, math.nan, "-", s_ref,
-                                        note=str(e)))
+                                        math.nan, math.nan, math.nan, math.nan, math.nan, "-",
+                                        s_ref, short_end, note=str(e)))
                         tick(label)
                         continue
                     run = run_trajectory(sim, scene, start, plan.duration_s, sample_frames)
                     err, berr = trajectory_errors(run, ref)
+                    err_short = short_error(run, ref, short_end)
+                    qerr = quantity_errors(quantities(run, contact_time(run, radius)), lq)
                     cost = cost_us_per_sim_ms(run, frame_dt)
                     del sim
                     drift = math.nan
@@ -453,8 +614,9 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
                         except SimulationError as e:
                             note = note or str(e)
                         del ssim
-                    rows.append(Row(integ, prec, n, s, frame_dt / s * 1e6, level, err, berr,
-                                    sag_err, drift, cost, engine, s_ref, note=note))
+                    rows.append(Row(integ, prec, n, s, frame_dt / s * 1e6, level, err_short, err,
+                                    berr, sag_err, drift, cost, engine, s_ref, short_end,
+                                    note=note, **qerr))
                     if n == plan.sizes[0] and level == 0:
                         fig4[f"{integ} {prec} {s} substeps"] = {
                             "t_s": run.times_s, "ball_y_m": [float(b[1]) for b in run.ball],
@@ -485,22 +647,36 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
         "reference_factor": REFERENCE_FACTOR,
         "hold_s": plan.hold_s,
     }
-    dec = None
-    if plan.decorrelation and "ball" in plan.scene.effects:
-        # The native engine's own case, at the smallest n and the integrator's largest step.
-        integ = next((i for i in plan.integrators if i in native_integrators()),
-                     plan.integrators[0])
-        prec = "float64" if "float64" in plan.precisions else plan.precisions[0]
-        scene = sized(plan.scene, plan.sizes[0])
-        sub = start_substeps(scene, integ, impact_speed(scene, fig4_start(scene)))
-        d = decorrelation_time(scene, integ, prec, sub, plan.backend,
-                               horizon_s=max(plan.duration_s, 1.0))
-        dec = {**asdict(d), "integrator": integ, "precision": prec, "n": plan.sizes[0],
-               "substeps": sub}
-    return Study(rows, conv, fig4, meta, dec)
+    meta["settle_fraction"] = SETTLE_FRACTION
+    meta["short_after_s"] = plan.short_after_s
+    return Study(rows, conv, fig4, meta, dec, long_ref)
 
 
 # --- analysis -------------------------------------------------------------------------------
+def spatial_vs_temporal(study: Study) -> list[dict[str, Any]]:
+    """Per n: the spatial error of the static sag (its distance from the sag on the finest
+    grid computed, so a lower bound of the true spatial error) beside the temporal errors of
+    the ball's rest height at the largest and the smallest step of each float64 curve."""
+    conv = {int(c["n"]): c["sag_m"] for c in study.sag_convergence}
+    if not conv:
+        return []
+    finest = max(conv)
+    out = []
+    for n in sorted({r.n for r in study.rows}):
+        entry: dict[str, Any] = {"n": n, "finest_n": finest,
+                                 "spatial_sag_m": abs(conv[n] - conv[finest])
+                                 if n in conv and n != finest else None}
+        for integ in dict.fromkeys(r.integrator for r in study.rows):
+            rs = sorted((r for r in study.rows if (r.n, r.integrator, r.precision)
+                         == (n, integ, "float64") and math.isfinite(r.ball_rest_err_m)),
+                        key=lambda r: r.level)
+            if rs:
+                entry[f"temporal_ball_rest_m {integ}"] = [rs[0].ball_rest_err_m,
+                                                          rs[-1].ball_rest_err_m]
+        out.append(entry)
+    return out
+
+
 def fitted_order(dts: Sequence[float], errors: Sequence[float]) -> float:
     """Least-squares slope of log(error) against log(dt)."""
     x, y = np.log(np.asarray(dts)), np.log(np.asarray(errors))
@@ -526,41 +702,112 @@ ROUNDOFF_M = 1e-9
 MIN_FIT_POINTS = 3
 
 
-def orders(rows: Sequence[Row]) -> dict[tuple[str, str, int], float | str]:
-    """Fitted error order of each (integrator, precision, n) curve, or, where no order
-    can honestly be fitted, a short reason saying why (printed instead of a number)."""
+# Local slopes (between neighbouring steps) that agree within this span are one asymptotic
+# range: coarser, the error is pre-asymptotic; finer, rounding flattens it.
+SLOPE_SPAN = 0.3
+
+
+def asymptotic_range(dts: Sequence[float], errors: Sequence[float]) -> list[int]:
+    """Indices (sorted by dt) of the longest run of neighbouring steps whose local slopes
+    log(e_i / e_j) / log(dt_i / dt_j) all lie within ``SLOPE_SPAN`` of each other."""
+    idx = sorted(range(len(dts)), key=lambda i: dts[i])
+    if len(idx) < 2:
+        return idx
+    slopes = [math.log(errors[b] / errors[a]) / math.log(dts[b] / dts[a])
+              for a, b in zip(idx, idx[1:], strict=False)]
+    best = (0, 1)  # slopes[lo:hi]
+    for lo in range(len(slopes)):
+        for hi in range(lo + 1, len(slopes) + 1):
+            seg = slopes[lo:hi]
+            if max(seg) - min(seg) <= SLOPE_SPAN and hi - lo > best[1] - best[0]:
+                best = (lo, hi)
+    return idx[best[0]:best[1] + 1]
+
+
+def orders(rows: Sequence[Row], metric: str = "error_short_m",
+           ) -> dict[tuple[str, str, int], float | str]:
+    """Fitted order of ``metric`` against dt for each (integrator, precision, n) curve, or,
+    where no order can honestly be fitted, a short reason why (printed instead of a
+    number): fewer than ``MIN_FIT_POINTS`` errors above round-off, or no asymptotic range
+    of that many points."""
     out: dict[tuple[str, str, int], float | str] = {}
     keys = sorted({(r.integrator, r.precision, r.n) for r in rows})
     for key in keys:
-        pts = [(r.dt_us, r.error_rms_m) for r in rows
+        pts = [(r.dt_us, getattr(r, metric)) for r in rows
                if (r.integrator, r.precision, r.n) == key
-               and math.isfinite(r.error_rms_m) and r.error_rms_m >= ROUNDOFF_M]
-        if len(pts) >= MIN_FIT_POINTS:
-            out[key] = fitted_order([p[0] for p in pts], [p[1] for p in pts])
-        else:
+               and math.isfinite(getattr(r, metric)) and getattr(r, metric) >= ROUNDOFF_M]
+        if len(pts) < MIN_FIT_POINTS:
             out[key] = (f"no order: {len(pts)} point(s) above round-off ({ROUNDOFF_M:g} m), "
                         f"{MIN_FIT_POINTS} needed")
+            continue
+        keep = asymptotic_range([p[0] for p in pts], [p[1] for p in pts])
+        if len(keep) < MIN_FIT_POINTS:
+            out[key] = (f"no order: local slopes disagree (no {MIN_FIT_POINTS} steps in an "
+                        f"asymptotic range)")
+            continue
+        out[key] = fitted_order([pts[i][0] for i in keep], [pts[i][1] for i in keep])
     return out
 
 
-def table(study: Study) -> str:
-    head = (f"{'integrator':<20} {'prec':<7} {'n':>4} {'subst':>5} {'dt us':>8} "
-            f"{'err rms m':>10} {'ball err m':>10} {'sag err m':>10} {'E drift':>9} "
-            f"{'us/sim ms':>10}  engine")
-    lines = [head, "-" * len(head)]
+# A fitted order this close to the textbook one shows the asymptotic range.
+ORDER_TOLERANCE = 0.25
 
+
+def order_note(integrator: str, order: float | str) -> str:
+    """What a fitted order says: why there is none, or whether the steps were in the
+    integrator's asymptotic range (the textbook order, within ``ORDER_TOLERANCE``)."""
+    if not isinstance(order, float):
+        return order
+    book = ORDERS.get(integrator)
+    if book is None:
+        return ""
+    if abs(order - book) <= ORDER_TOLERANCE:
+        return f"textbook order {book}"
+    if order < book:
+        return (f"pre-asymptotic (textbook order {book}): the steps are too large for the "
+                f"error to scale as dt^{book}")
+    return f"above the textbook order {book}: error cancellation, not a trend"
+
+
+def table(study: Study) -> str:
     def f(v: float, w: int = 10) -> str:
         return f"{'-':>{w}}" if not math.isfinite(v) else f"{v:>{w}.3g}"
 
+    key = f"{'integrator':<20} {'prec':<7} {'n':>4} {'subst':>5} {'dt us':>8} "
+    head = key + f"{'short m':>10} {'us/sim ms':>10}  engine"
+    lines = ["short-horizon error and cost", head, "-" * len(head)]
     for r in study.rows:
         lines.append(
             f"{r.integrator:<20} {r.precision:<7} {r.n:>4} {r.substeps:>5} {r.dt_us:>8.2f} "
-            f"{f(r.error_rms_m)} {f(r.ball_error_m)} {f(r.sag_error_m)} {f(r.energy_drift, 9)} "
-            f"{f(r.us_per_sim_ms)}  {r.engine}{'  ' + r.note if r.note else ''}")
+            f"{f(r.error_short_m)} {f(r.us_per_sim_ms)}  {r.engine}"
+            f"{'  ' + r.note if r.note else ''}")
+    head2 = key + (f"{'peak F':>9} {'settled F':>9} {'ball rest':>10} {'spectrum':>9} "
+                   f"{'E drift':>9} {'sag m':>9} {'run err m':>9}")
+    lines += ["", "long horizon (forces and spectrum relative; ball rest height and sag in m)",
+              head2, "-" * len(head2)]
+    for r in study.rows:
+        lines.append(
+            f"{r.integrator:<20} {r.precision:<7} {r.n:>4} {r.substeps:>5} {r.dt_us:>8.2f} "
+            f"{f(r.peak_force_err, 9)} {f(r.settled_force_err, 9)} {f(r.ball_rest_err_m)} "
+            f"{f(r.spectrum_err, 9)} {f(r.energy_drift, 9)} {f(r.sag_error_m, 9)} "
+            f"{f(r.error_rms_m, 9)}")
+    ends = sorted({round(r.short_window_s, 3) for r in study.rows
+                   if math.isfinite(r.short_window_s)})
     lines.append("")
-    lines.append("fitted order (slope of log error vs log dt):")
+    lines.append("short: RMS node error up to " + (", ".join(f"{e:g}" for e in ends) or "-")
+                 + " s (the first contact plus a short window, before decorrelation)")
+    for d in study.long_reference.values():
+        if "peak_force_n" in d:
+            lines.append(
+                f"long reference n={d['n']}: {d['integrator']} float64 {d['substeps']} "
+                f"substeps/frame: peak corner force {d['peak_force_n']:.3g} N, settled "
+                f"{d['settled_force_n']:.3g} N, ball rest height {d['ball_rest_m']:.4g} m, "
+                f"spectrum peak {d['dominant_hz']:.3g} Hz (settled: mean over the last "
+                f"{SETTLE_FRACTION:.0%} of the run)")
+    lines.append("run err: RMS node error over the whole run (saturates once it decorrelates)")
+    lines.append("fitted short-horizon order (slope of log error vs log dt):")
     for (integ, prec, n), p in orders(study.rows).items():
-        shown = f"{p:5.2f}" if isinstance(p, float) else p
+        shown = f"{p:5.2f}  {order_note(integ, p)}" if isinstance(p, float) else p
         lines.append(f"  {integ:<20} {prec:<7} n={n:<4} {shown}")
     if study.decorrelation:
         d = study.decorrelation
@@ -570,6 +817,17 @@ def table(study: Study) -> str:
         lines.append(f"decorrelation: {d['perturb_m']:g} m grows to {d['threshold_m']:g} m "
                      f"in {when} (growth {d['rate_per_s']:.3g}/s; {d['integrator']} "
                      f"{d['precision']} n={d['n']}): trajectories past this cannot be compared")
+    svt = spatial_vs_temporal(study)
+    if svt:
+        lines.append("")
+        lines.append("spatial against temporal error (m): the sag's change to the finest n "
+                     "beside the ball rest height's error at the largest / smallest step")
+        for e in svt:
+            sp = e["spatial_sag_m"]
+            parts = [f"  n={e['n']:<4} spatial {f(sp) if sp is not None else '-':>10}"]
+            for k, (hi, lo) in ((k, v) for k, v in e.items() if k.startswith("temporal")):
+                parts.append(f"{k.split()[1]} {hi:.2g} / {lo:.2g}")
+            lines.append("   ".join(parts))
     if study.sag_convergence:
         lines.append("")
         lines.append("static sag (Newton) against grid size:")
@@ -601,16 +859,34 @@ def pyplot() -> Any:
     return plt
 
 
+# The plot's panels: (Row field, panel title, y label).
+METRICS = (
+    ("error_short_m", "short-horizon trajectory error", "RMS node error (m)"),
+    ("peak_force_err", "peak corner force after impact", "relative error"),
+    ("settled_force_err", "settled corner force (late-time mean)", "relative error"),
+    ("ball_rest_err_m", "ball rest height (late-time mean)", "error (m)"),
+    ("spectrum_err", "corner-force spectrum", "relative L2 error"),
+    ("energy_drift", "energy drift, undamped", "max |dE| / impact energy"),
+)
+
+
 def plot_error_vs_cost(study: Study, path: str) -> None:
+    """One panel per metric and grid size (two rows of three a size): error against wall
+    time per simulated ms, log-log, a curve per integrator and precision (the step halves
+    along it), and that panel's Pareto front circled."""
     plt = pyplot()
+    from matplotlib.ticker import NullFormatter  # noqa: PLC0415
 
     sizes = sorted({r.n for r in study.rows})
-    fig, axes = plt.subplots(2, len(sizes), figsize=(5.5 * len(sizes), 8.5), squeeze=False)
-    for col, n in enumerate(sizes):
-        for row, (attr, what) in enumerate((("error_rms_m", "RMS node error (m)"),
-                                            ("ball_error_m", "RMS ball error (m)"))):
-            ax = axes[row][col]
-            pts, all_rows = [], []
+    cols = 3
+    per = -(-len(METRICS) // cols)  # rows of panels a size
+    fig, axes = plt.subplots(per * len(sizes), cols, squeeze=False,
+                             figsize=(5.4 * cols, 4.0 * per * len(sizes) + 0.8))
+    handles: dict[str, Any] = {}
+    for k, n in enumerate(sizes):
+        for i, (attr, title, what) in enumerate(METRICS):
+            ax = axes[k * per + i // cols][i % cols]
+            pts = []
             for integ in INTEGRATORS:
                 for prec in PRECISIONS:
                     rs = [r for r in study.rows
@@ -620,40 +896,47 @@ def plot_error_vs_cost(study: Study, path: str) -> None:
                     if not rs:
                         continue
                     color, marker = STYLE.get(integ, ("k", "x"))
-                    ax.plot([r.us_per_sim_ms for r in rs], [getattr(r, attr) for r in rs],
-                            color=color, marker=marker,
-                            linestyle="-" if prec == "float64" else "--",
-                            markerfacecolor=color if prec == "float64" else "none",
-                            label=f"{integ} {prec}")
-                    for r in rs:
-                        pts.append((r.us_per_sim_ms, getattr(r, attr)))
-                        all_rows.append(r)
+                    (line,) = ax.plot([r.us_per_sim_ms for r in rs],
+                                      [getattr(r, attr) for r in rs],
+                                      color=color, marker=marker,
+                                      linestyle="-" if prec == "float64" else "--",
+                                      markerfacecolor=color if prec == "float64" else "none")
+                    handles.setdefault(f"{integ} {prec}", line)
+                    pts += [(r.us_per_sim_ms, getattr(r, attr)) for r in rs]
             front = pareto_front(pts)
             if front:
                 fx = [pts[i][0] for i in front]
                 fy = [pts[i][1] for i in front]
                 ax.step(fx, fy, where="post", color="k", linewidth=1, alpha=0.6)
-                ax.scatter(fx, fy, s=160, facecolors="none", edgecolors="k", linewidths=1.5,
-                           label="Pareto front", zorder=5)
-            ax.set_xscale("log")
-            ax.set_yscale("log")
+                handles.setdefault("Pareto front", ax.scatter(
+                    fx, fy, s=150, facecolors="none", edgecolors="k", linewidths=1.4, zorder=5))
+            if pts:
+                ax.set_xscale("log")
+                ax.set_yscale("log")
+                ax.xaxis.set_minor_formatter(NullFormatter())  # they overlap
+                ax.yaxis.set_minor_formatter(NullFormatter())
+            else:
+                ax.text(0.5, 0.5, "not measured", ha="center", va="center",
+                        transform=ax.transAxes)
             ax.set_xlabel("wall time per simulated ms (us)")
             ax.set_ylabel(what)
-            ax.set_title(f"n = {n}")
+            ax.set_title(f"{title}, n = {n}", fontsize=10)
             ax.grid(True, which="both", alpha=0.3)
-            if col == 0 and row == 0:
-                ax.legend(fontsize=7)
-    fig.suptitle(f"clothball accuracy vs cost ({study.meta.get('backend')}, "
-                 f"{study.meta.get('scene')}; step halves along each curve)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    for ax in axes.flat[len(sizes) * per * cols:]:
+        ax.set_visible(False)
+    fig.legend(list(handles.values()), list(handles.keys()), loc="lower center",
+               ncol=min(4, max(1, len(handles))), fontsize=9)
+    fig.suptitle(f"Error against cost ({study.meta.get('backend')}, "
+                 f"{study.meta.get('scene')}): the step halves along each curve", fontsize=12)
+    fig.tight_layout(rect=(0, 0.8 / fig.get_figheight(), 1, 0.98))
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
 def plot_fig4(study: Study, path: str) -> None:
     plt = pyplot()
 
-    fig, (a, b) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    fig, (a, b, c) = plt.subplots(3, 1, figsize=(8, 10))
     for label, d in study.fig4.items():
         integ = label.split()[0]
         color, _ = STYLE.get(integ, ("k", "x"))
@@ -671,7 +954,16 @@ def plot_fig4(study: Study, path: str) -> None:
     b.set_xlabel("time (s)")
     b.set_title("Fig. 4 (b): force on the haptic device at a corner")
     a.legend(fontsize=7)
-    for ax in (a, b):
+    for d in study.long_reference.values():
+        if "spectrum" in d:
+            c.semilogy(d["spectrum"]["freqs_hz"], d["spectrum"]["amplitude"],
+                       label=f"n = {d['n']}, {d['integrator']} float64 {d['substeps']} substeps")
+    c.set_xlabel("frequency (Hz)")
+    c.set_ylabel("amplitude (N, Hann window)")
+    c.set_title("corner force spectrum after the first contact (the long reference)")
+    if c.lines:
+        c.legend(fontsize=7)
+    for ax in (a, b, c):
         ax.grid(True, alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -19,6 +19,8 @@ from clothball.game.study.accuracy import (
     Plan,
     Row,
     Study,
+    asymptotic_range,
+    contact_time,
     decorrelation_time,
     fig4_start,
     fitted_order,
@@ -30,6 +32,8 @@ from clothball.game.study.accuracy import (
     plot_fig4,
     run_study,
     run_trajectory,
+    short_error,
+    short_window_end,
     start_substeps,
     table,
     trajectory_errors,
@@ -83,6 +87,58 @@ def test_error_order(integrator: str, backend: str) -> None:
     assert dts[0] < stable_dt(scene)  # the explicit ones are inside their bound throughout
     order = fitted_order(dts, errs)
     assert abs(order - ORDERS[integrator]) < 0.25, (integrator, order, errs)
+
+
+def short_drop() -> Scene:
+    """The ball let go 5 cm above a small cloth: contact after ~40 ms."""
+    return Scene.from_dict({"cloth": {"n": 8, "size": 0.5},
+                            "ball": {"position": [0.0, 0.95, 0.0], "radius": 0.1},
+                            "sim": {"cg_tolerance": 1e-10, "cg_max_iterations": 200}})
+
+
+# Substeps per frame of the coarsest step. The explicit ones start at their stability bound.
+# Implicit Euler's error only scales as dt once dt is far below the period of the fastest
+# modes the impact excites (it damps them by ~exp(-w^2 dt t / 2)); at larger steps it is
+# pre-asymptotic (the study reports that; `test_error_order` covers the smooth case).
+SHORT_START = {"semi_implicit_euler": None, "velocity_verlet": None, "implicit_euler": 16}
+
+
+@pytest.mark.parametrize("integrator", list(ORDERS))
+def test_short_horizon_error_order_through_impact(integrator: str, backend: str) -> None:
+    """The study's short-horizon metric on a ball drop (contact, then 20 ms): fitted over
+    four halvings by the study's own `orders`, the slope is the textbook order within 0.25,
+    and the window ends before the run decorrelates."""
+    scene = short_drop()
+    start = fig4_start(scene)
+    s0 = SHORT_START[integrator] or start_substeps(scene, integrator,
+                                                   impact_speed(scene, start))
+    levels = [s0 * 2**k for k in range(4)]
+    duration = 0.08
+    ref_sim, _ = make_sim(scene, integrator, "float64", levels[-1] * 16, backend,
+                          reference=True)
+    ref = run_trajectory(ref_sim, scene, start, duration, 2)
+    contact = contact_time(ref, scene["ball"]["radius"])
+    dec = decorrelation_time(scene, "semi_implicit_euler", "float64",
+                             start_substeps(scene, "semi_implicit_euler",
+                                            impact_speed(scene, start)),
+                             backend, horizon_s=0.6)
+    assert 0 < contact < dec.time_s
+    end = short_window_end(contact, 0.02, duration, dec.time_s)
+    assert contact < end < dec.time_s
+    rows = []
+    for level, s in enumerate(levels):
+        sim, engine = make_sim(scene, integrator, "float64", s, backend)
+        assert engine == f"native-{backend}"
+        err = short_error(run_trajectory(sim, scene, start, duration, 2), ref, end)
+        assert err >= ROUNDOFF_M
+        rows.append(Row(integrator, "float64", scene.n, s, 1e3 / s, level,
+                        error_short_m=err, error_rms_m=math.nan, ball_error_m=math.nan,
+                        sag_error_m=math.nan, energy_drift=math.nan, us_per_sim_ms=math.nan,
+                        engine=engine, reference_substeps=16 * levels[-1]))
+    order = orders(rows)[(integrator, "float64", scene.n)]
+    assert isinstance(order, float), order
+    assert abs(order - ORDERS[integrator]) <= 0.25, (integrator, order,
+                                                     [r.error_short_m for r in rows])
 
 
 def test_implicit_bounded_where_semi_implicit_euler_blows_up(backend: str) -> None:
@@ -157,7 +213,9 @@ def test_fitted_order_and_pareto() -> None:
 
 def test_no_order_fitted_from_round_off_or_too_few_points() -> None:
     def row(integ: str, dt: float, err: float) -> Row:
-        return Row(integ, "float64", 6, 1, dt, 0, err, 0.0, 0.0, 0.0, 1.0, "cpu", 16)
+        return Row(integ, "float64", 6, 1, dt, 0, error_short_m=err, error_rms_m=1.0,
+                   ball_error_m=0.0, sag_error_m=0.0, energy_drift=0.0, us_per_sim_ms=1.0,
+                   engine="cpu", reference_substeps=16)
 
     dts = [8.0, 4.0, 2.0, 1.0]
     rows = ([row("a", d, 1e-3 * d**2) for d in dts]               # clean order 2
@@ -176,6 +234,25 @@ def test_no_order_fitted_from_round_off_or_too_few_points() -> None:
     assert ROUNDOFF_M == 1e-9
 
 
+def test_order_fitted_only_over_the_asymptotic_range() -> None:
+    """A curve whose finest steps flatten (rounding) and whose coarsest is pre-asymptotic:
+    the order comes from the middle points, where the local slopes agree; a curve whose
+    local slopes never agree gets no order."""
+    dts = [16.0, 8.0, 4.0, 2.0, 1.0]
+    assert sorted(asymptotic_range(dts, [9e-3, 1e-3, 2.5e-4, 6.25e-5, 5e-5])) == [1, 2, 3]
+
+    def row(integ: str, dt: float, err: float) -> Row:
+        return Row(integ, "float32", 8, 1, dt, 0, error_short_m=err, error_rms_m=1.0,
+                   ball_error_m=0.0, sag_error_m=0.0, energy_drift=0.0, us_per_sim_ms=1.0,
+                   engine="cpu", reference_substeps=16)
+
+    errs = {"velocity_verlet": [9e-3, 1e-3, 2.5e-4, 6.25e-5, 5e-5],
+            "semi_implicit_euler": [1e-3, 1e-4, 5e-5, 4e-5, 1e-5]}
+    fits = orders([row(i, d, e) for i, es in errs.items() for d, e in zip(dts, es, strict=True)])
+    assert fits[("velocity_verlet", "float32", 8)] == pytest.approx(2.0)
+    assert "no order" in fits[("semi_implicit_euler", "float32", 8)]
+
+
 def test_decorrelation_time_ball_drop_vs_no_ball() -> None:
     """The ball's contact makes the motion chaotic: a 1e-10 m perturbation reaches 1e-4 m
     within the horizon, growing exponentially; the same cloth without the ball damps it."""
@@ -190,32 +267,44 @@ def test_decorrelation_time_ball_drop_vs_no_ball() -> None:
 
 
 def test_tiny_study_end_to_end(tmp_path) -> None:
+    """Two integrators through the first contact: every row has the short-horizon error,
+    the cost and the long-horizon errors (velocity Verlet's own against itself as the long
+    reference shrink with its step); the JSON, the table and both plots are written."""
     scene = Scene.from_dict({"cloth": {"n": 6, "size": 0.5},
                              "ball": {"position": [0.0, 0.95, 0.0], "radius": 0.1}})
-    plan = Plan(scene=scene, sizes=[6], integrators=["semi_implicit_euler"],
-                precisions=["float32", "float64"], levels=2, duration_s=0.02, sample_ms=5,
+    plan = Plan(scene=scene, sizes=[6], integrators=["semi_implicit_euler", "velocity_verlet"],
+                precisions=["float32", "float64"], levels=2, duration_s=0.08, sample_ms=5,
                 sag_sizes=[5], hold_s=0.02, decorrelation=True)
     labels: list[str] = []
     study = run_study(plan, labels.append)
     assert len(labels) == plan.cases() + 1
-    assert len(study.rows) == 4
+    assert len(study.rows) == 8
     for r in study.rows:
-        assert math.isfinite(r.error_rms_m) and r.error_rms_m >= 0
+        assert math.isfinite(r.error_short_m) and r.error_short_m > 0
         assert math.isfinite(r.us_per_sim_ms) and r.us_per_sim_ms > 0
-        assert r.reference_substeps == 16 * 2 * study.rows[0].substeps
+        assert r.reference_substeps == 16 * 2 * [x for x in study.rows
+                                                 if x.integrator == r.integrator][0].substeps
+        assert 0 < r.short_window_s <= 0.08
+        for q in ("peak_force_err", "settled_force_err", "ball_rest_err_m", "spectrum_err"):
+            assert math.isfinite(getattr(r, q)) and getattr(r, q) >= 0, (q, r)
     assert study.rows[1].substeps == 2 * study.rows[0].substeps
     assert [c["n"] for c in study.sag_convergence] == [5, 6]
+    lr = study.long_reference[6]
+    assert lr["integrator"] == "velocity_verlet" and lr["peak_force_n"] > lr["settled_force_n"] > 0
     text = table(study)
-    assert "semi_implicit_euler" in text and "fitted order" in text
+    assert "semi_implicit_euler" in text and "fitted short-horizon order" in text
+    assert "long reference n=6" in text and "spatial against temporal" in text
     data = study.to_json()
-    json.dumps(data)  # serialisable (no NaN objects that break strict readers)
+    json.dumps(data, allow_nan=False)  # strict: no NaN or inf
     dec = data["summary"]["decorrelation"]
     assert dec["n"] == 6 and dec["perturb_m"] == 1e-10
     assert dec["time_s"] is None or dec["time_s"] > 0  # None: not within the horizon
     assert "decorrelation:" in text
-    for key in ("integrator", "precision", "n", "substeps", "error_rms_m", "ball_error_m",
-                "us_per_sim_ms"):
+    for key in ("integrator", "precision", "n", "substeps", "error_short_m", "us_per_sim_ms",
+                "peak_force_err", "spectrum_err"):
         assert key in data["rows"][0]
+    for fit in data["summary"]["fitted_order"]:
+        assert fit["order"] is None or fit["note"]  # an order always says what it shows
     plot_error_vs_cost(study, str(tmp_path / "cost.png"))
     plot_fig4(study, str(tmp_path / "fig4.png"))
     for name in ("cost.png", "fig4.png"):
