@@ -5,6 +5,7 @@ Pareto front, and a tiny end-to-end study that writes its table, JSON and both p
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from clothball.game import Cloth, Scene, SimulationError
 from clothball.game.cli import main
+from clothball.game.cli.accuracy import configure, make_plan
 from clothball.game.sim.cloth import UnstableSceneWarning
 from clothball.game.sim.stability import stable_dt
 from clothball.game.study.accuracy import (
@@ -325,3 +327,18 @@ def test_ball_is_recorded_every_frame() -> None:
     run = run_trajectory(sim, scene, start, 0.01, 5)
     assert len(run.ball) == 11 and len(run.pos) == 3
     assert np.allclose(run.times_s[-1], 0.01)
+
+
+def test_quick_plan_runs_through_the_impact() -> None:
+    """`clothball accuracy --quick` lasts past the ball's free fall onto the resting cloth
+    (its contact time from the fall height, independent of the simulation) by more than the
+    short window and the 0.1 s the corner force takes to peak (Fig. 4)."""
+    p = argparse.ArgumentParser()
+    configure(p)
+    plan = make_plan(p.parse_args(["--quick"]))
+    scene = plan.scene.with_changes({"cloth": {"n": plan.sizes[0]}})
+    start = fig4_start(scene)
+    drop = start.ball_pos[1] - (scene["cloth"]["height"] - start.sag_m + scene["ball"]["radius"])
+    contact = math.sqrt(2 * drop / 9.81)
+    assert plan.duration_s > contact + plan.short_after_s + 0.1
+    assert plan.decorrelation
