@@ -1,9 +1,14 @@
 // Linearised implicit Euler on the CUDA backend (see core/integrators.hpp). A substep is a
-// right-hand-side kernel (specialised on the effect set), cg_max_iterations pairs of CG
-// kernels (the operator, specialised on the stiffness effects only, and the node-local
-// update), and a finishing kernel, all captured into the frame's graph. CG's scalars stay
-// on the device: block sums plus atomics, the last block acting on the totals, and every
-// kernel of an iteration after convergence returning at once (it reads the same scalars).
+// right-hand-side kernel (specialised on the effect set), CG iterations of two kernels each
+// (the operator, specialised on the stiffness effects only, and the node-local update), and
+// a finishing kernel, all captured into the frame's graph. CG's scalars stay on the device:
+// block sums plus atomics, the last block acting on the totals.
+//
+// The iterations are the body of a conditional WHILE node (CUDA >= 12.4): the update's last
+// block counts the iteration and, when CG has converged or reached cg_max_iterations, ends
+// the loop on the device, so a substep costs the iterations it uses. With an older toolkit
+// all cg_max_iterations pairs are captured and those after convergence return at once
+// (they read the same scalars), which still costs their launches.
 // Compiled once per real type (CB_REAL).
 #include <algorithm>
 #include <stdexcept>
@@ -14,6 +19,28 @@
 #include "cuda/check.hpp"
 #include "cuda/integrators.hpp"
 #include "cuda/reduce.cuh"
+
+// -DCB_CG_WHILE=0 forces the captured loop (to measure against it).
+#ifndef CB_CG_WHILE
+#if CUDART_VERSION >= 12040
+#define CB_CG_WHILE 1
+#else
+#define CB_CG_WHILE 0
+#endif
+#endif
+#if CB_CG_WHILE
+#if CUDART_VERSION >= 13000  // the edge-data signatures lost their suffixes in 13.0
+#define CB_CAPTURE_INFO cudaStreamGetCaptureInfo
+#define CB_GRAPH_ADD_NODE cudaGraphAddNode
+#define CB_UPDATE_CAPTURE_DEPS cudaStreamUpdateCaptureDependencies
+#else
+#define CB_CAPTURE_INFO cudaStreamGetCaptureInfo_v3
+#define CB_GRAPH_ADD_NODE cudaGraphAddNode_v2
+#define CB_UPDATE_CAPTURE_DEPS cudaStreamUpdateCaptureDependencies_v2
+#endif
+#elif CUDART_VERSION < 12030
+using cudaGraphConditionalHandle = unsigned long long;  // unused without conditional nodes
+#endif
 
 namespace cb {
 namespace {
@@ -29,6 +56,8 @@ struct IeArgs {
   R* sc;
   R* acc;  // 11 sums for the last-block patterns
   unsigned* ticket;
+  unsigned* iter;     // the device-side loop's iteration count, then the update's ticket
+  int max_iter;
   R tol, a_node, a_ball, dt;
 };
 __device__ __forceinline__ R* slot(const IeArgs& a, int k) { return a.sc + 1 + 3 * k; }
@@ -56,12 +85,13 @@ __global__ void __launch_bounds__(kBlock)
     slot(a, 0)[0] = t[10] + rz;
     for (int k = 0; k < 11; ++k) a.acc[k] = R(0);
     *a.ticket = 0;
+    a.iter[0] = 0;
   }
 }
 
 template <unsigned S>
-__global__ void __launch_bounds__(kBlock)
-    ie_apply_kernel(IeArgs a, Planes<R> P, const Ball<R>* __restrict__ ball, int k) {
+__device__ __forceinline__ void ie_apply(const IeArgs& a, Planes<R> P,
+                                         const Ball<R>* __restrict__ ball, int k) {
   const R* s = slot(a, k);
   if (cg_stopped(k, a.sc[0], k > 0 ? s[-1] : R(0), s[1], a.tol)) return;  // uniform
   const int n = a.p.n, N = n * n, from = k & 1;
@@ -88,16 +118,60 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
-__global__ void __launch_bounds__(kBlock) ie_update_kernel(IeArgs a, int N, int k) {
+#if CB_CG_WHILE
+// Iteration k read from the device (the body of the WHILE node).
+template <unsigned S>
+__global__ void __launch_bounds__(kBlock)
+    ie_apply_kernel(IeArgs a, Planes<R> P, const Ball<R>* __restrict__ ball) {
+  ie_apply<S>(a, P, ball, int(a.iter[0]));
+}
+#else
+// Iteration k given at capture (all iterations captured).
+template <unsigned S>
+__global__ void __launch_bounds__(kBlock)
+    ie_apply_kernel(IeArgs a, Planes<R> P, const Ball<R>* __restrict__ ball, int k) {
+  ie_apply<S>(a, P, ball, k);
+}
+#endif
+
+// x += alpha p, r -= alpha A p, z = M^-1 r, and the sums r . z, r . r of iterate k + 1. In
+// the loop (`loop`) the last block also advances the count and ends the loop through
+// `cond` once CG stops before iteration k + 1 (the same test as ie_apply's).
+__device__ __forceinline__ void ie_update(const IeArgs& a, int N, int k, bool loop,
+                                          cudaGraphConditionalHandle cond) {
   const R* s = slot(a, k);
   const R pap = s[2];
-  if (!(pap > R(0))) return;  // iteration k stopped (or found p . A p <= 0): uniform
+  if (!(pap > R(0))) {  // iteration k stopped (or found p . A p <= 0): uniform
+#if CB_CG_WHILE
+    if (loop && blockIdx.x == 0 && threadIdx.x == 0) cudaGraphSetConditional(cond, 0);
+#endif
+    return;
+  }
   const R alpha = s[0] / pap;
   R sums[2] = {R(0), R(0)};  // r . z, r . r of iterate k + 1
   for (int q = blockIdx.x * blockDim.x + threadIdx.x; q <= N; q += gridDim.x * blockDim.x)
     ie_update_entry(a.cg, 1 - (k & 1), q, alpha, sums[1], sums[0]);
-  ci::grid_sum(sums, slot(a, k + 1), static_cast<unsigned*>(nullptr));
+  if (ci::grid_sum(sums, slot(a, k + 1), loop ? a.iter + 1 : static_cast<unsigned*>(nullptr))) {
+    a.iter[1] = 0;
+    a.iter[0] = unsigned(k + 1);
+#if CB_CG_WHILE
+    const R rr = ci::acc_read(slot(a, k + 1), 1);
+    if (k + 1 >= a.max_iter || cg_stopped(k + 1, a.sc[0], pap, rr, a.tol))
+      cudaGraphSetConditional(cond, 0);
+#endif
+  }
 }
+
+#if CB_CG_WHILE
+__global__ void __launch_bounds__(kBlock)
+    ie_update_loop_kernel(IeArgs a, int N, cudaGraphConditionalHandle cond) {
+  ie_update(a, N, int(a.iter[0]), true, cond);
+}
+#else
+__global__ void __launch_bounds__(kBlock) ie_update_kernel(IeArgs a, int N, int k) {
+  ie_update(a, N, k, false, cudaGraphConditionalHandle{});
+}
+#endif
 
 __global__ void __launch_bounds__(kBlock)
     ie_finish_kernel(IeArgs a, Planes<R> P, Planes<R> V, Planes<R> P2, Planes<R> V2,
@@ -113,7 +187,11 @@ __global__ void __launch_bounds__(kBlock)
 }
 
 using RhsKernel = void (*)(IeArgs, Planes<R>, Planes<R>, const FrameInputs<R>*, const Ball<R>*);
+#if CB_CG_WHILE
+using ApplyKernel = void (*)(IeArgs, Planes<R>, const Ball<R>*);
+#else
 using ApplyKernel = void (*)(IeArgs, Planes<R>, const Ball<R>*, int);
+#endif
 template <unsigned E>
 struct RhsEntry {
   static constexpr RhsKernel fn = &ie_rhs_kernel<E>;
@@ -122,6 +200,7 @@ template <unsigned I>
 struct ApplyEntry {
   static constexpr ApplyKernel fn = &ie_apply_kernel<stiff_set(I)>;
 };
+
 
 class CudaImplicit final : public CudaIntegrator<R> {
  public:
@@ -138,6 +217,8 @@ class CudaImplicit final : public CudaIntegrator<R> {
     sc_count_ = 1 + 3 * (size_t(max_iter_) + 1);
     CB_CUDA(cudaMalloc(&sc_, sizeof(R) * (sc_count_ + 12)));
     CB_CUDA(cudaMemset(sc_, 0, sizeof(R) * (sc_count_ + 12)));
+    CB_CUDA(cudaMalloc(&iter_, sizeof(unsigned) * 2));
+    CB_CUDA(cudaMemset(iter_, 0, sizeof(unsigned) * 2));
     auto planes = [&](int k) {
       R* b = vec_ + size_t(3 * k) * entries;
       return Planes<R>{b, b + entries, b + 2 * entries};
@@ -147,11 +228,14 @@ class CudaImplicit final : public CudaIntegrator<R> {
     args_.sc = sc_;
     args_.acc = sc_ + sc_count_;
     args_.ticket = reinterpret_cast<unsigned*>(sc_ + sc_count_ + 11);
+    args_.iter = iter_;
+    args_.max_iter = max_iter_;
     args_.tol = R(c.cg_tolerance);
   }
   ~CudaImplicit() override {
     cudaFree(vec_);
     cudaFree(sc_);
+    cudaFree(iter_);
   }
 
   void substep(cudaStream_t s, const CudaView<R>& v, int b, R dt) override {
@@ -161,25 +245,76 @@ class CudaImplicit final : public CudaIntegrator<R> {
     a.a_ball = R(mb_ + double(dt) * cb_);
     const unsigned blocks = ci::grid_blocks(N_, v.max_blocks);
     CB_CUDA(cudaMemsetAsync(sc_, 0, sizeof(R) * sc_count_, s));
+    const unsigned update_blocks = ci::grid_blocks(N_ + 1, v.max_blocks);
     rhs_<<<blocks, kBlock, 0, s>>>(a, v.pos[b], v.vel[b], v.fin, v.ball + b);
+#if CB_CG_WHILE
+    if (max_iter_ > 0) cg_loop(s, a, v.pos[b], v.ball + b, blocks, update_blocks);
+#else
     for (int k = 0; k < max_iter_; ++k) {
       apply_<<<blocks, kBlock, 0, s>>>(a, v.pos[b], v.ball + b, k);
-      ie_update_kernel<<<ci::grid_blocks(N_ + 1, v.max_blocks), kBlock, 0, s>>>(a, N_, k);
+      ie_update_kernel<<<update_blocks, kBlock, 0, s>>>(a, N_, k);
     }
+#endif
     ie_finish_kernel<<<blocks, kBlock, 0, s>>>(a, v.pos[b], v.vel[b], v.pos[1 - b],
                                               v.vel[1 - b], v.ball + b, v.ball + (1 - b),
                                               v.nonfinite, (effects_ & BALL) != 0);
   }
 
  private:
+#if CB_CG_WHILE
+  // Adds to the graph being captured on `s` a WHILE node whose body is one CG iteration (the
+  // operator, then the update, whose last block ends the loop), and makes it what the
+  // stream's next work depends on.
+  void cg_loop(cudaStream_t s, const IeArgs& a, Planes<R> P, const Ball<R>* ball,
+               unsigned blocks, unsigned update_blocks) {
+    cudaStreamCaptureStatus status;
+    cudaGraph_t graph;
+    const cudaGraphNode_t* deps = nullptr;
+    const cudaGraphEdgeData* edges = nullptr;
+    size_t ndeps = 0;
+    CB_CUDA(CB_CAPTURE_INFO(s, &status, nullptr, &graph, &deps, &edges, &ndeps));
+    if (status != cudaStreamCaptureStatusActive)
+      throw std::logic_error("implicit Euler's substep must be captured into a graph");
+    cudaGraphConditionalHandle cond;
+    // Reset to 1 at every launch of the frame's graph: the body runs at least once (its
+    // first operator kernel returns at once where CG has nothing to do).
+    CB_CUDA(cudaGraphConditionalHandleCreate(&cond, graph, 1, cudaGraphCondAssignDefault));
+    cudaGraphNodeParams cp{};
+    cp.type = cudaGraphNodeTypeConditional;
+    cp.conditional.handle = cond;
+    cp.conditional.type = cudaGraphCondTypeWhile;
+    cp.conditional.size = 1;
+    cudaGraphNode_t loop;
+    CB_CUDA(CB_GRAPH_ADD_NODE(&loop, graph, deps, edges, ndeps, &cp));
+    cudaGraph_t body = cp.conditional.phGraph_out[0];
+    IeArgs args = a;
+    int n = N_;
+    void* apply_args[] = {&args, &P, &ball};
+    void* update_args[] = {&args, &n, &cond};
+    cudaKernelNodeParams kp{};
+    kp.blockDim = dim3(kBlock);
+    kp.func = reinterpret_cast<void*>(apply_);
+    kp.gridDim = dim3(blocks);
+    kp.kernelParams = apply_args;
+    cudaGraphNode_t apply_node, update_node;
+    CB_CUDA(cudaGraphAddKernelNode(&apply_node, body, nullptr, 0, &kp));
+    kp.func = reinterpret_cast<void*>(&ie_update_loop_kernel);
+    kp.gridDim = dim3(update_blocks);
+    kp.kernelParams = update_args;
+    CB_CUDA(cudaGraphAddKernelNode(&update_node, body, &apply_node, 1, &kp));
+    CB_CUDA(CB_UPDATE_CAPTURE_DEPS(s, &loop, nullptr, 1, cudaStreamSetCaptureDependencies));
+  }
+#endif
+
   const int N_;
   const unsigned effects_;
   const int max_iter_;
   const double m_, c_, mb_, cb_;
   const RhsKernel rhs_;
-  const ApplyKernel apply_;
+  const ApplyKernel apply_;  // the operator kernel for the scene's stiffness effects
   R* vec_ = nullptr;  // the 7 CG vectors of N + 1 entries, 3 planes each
   R* sc_ = nullptr;   // CG scalars, then 11 sums and the ticket
+  unsigned* iter_ = nullptr;  // IeArgs::iter
   size_t sc_count_ = 0;
   IeArgs args_{};
 };
