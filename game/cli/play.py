@@ -147,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
 
     fast = args.device.startswith("falcon")
     net = NetThread(url, name=name, device=device if not args.spectate else None,
-                    corner_rate=1000.0 if fast else 120.0, hip_rate=1000.0 if fast else 120.0)
+                    corner_rate=1000.0 if fast else 120.0, hip_rate=1000.0 if fast else 120.0,
+                    report=_say)
     auto_join = None
     if args.room is not None or args.local:
         auto_join = {"room": args.room, "seat": args.seat, "code": args.code,
@@ -185,7 +186,12 @@ def run(args: argparse.Namespace) -> int:
         net.stop()
         if local is not None:
             local.stop()
-    return 0
+    return 1 if model.connection == "failed" else 0
+
+
+def _say(line: str) -> None:
+    """A connection problem on the terminal too (the window shows it as well)."""
+    print(f"clothball play: {line}", file=sys.stderr, flush=True)
 
 
 def _login_name() -> str:

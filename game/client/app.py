@@ -36,6 +36,14 @@ from .replay import ReplayPlayer
 log = logging.getLogger("clothball.client")
 
 FONT_SIZE = 12
+# The lobby's title while not connected (the details go in the HUD's lines).
+CONNECTION_TITLES = {
+    "connecting": "clothball - connecting...",
+    "reconnecting": "clothball - reconnecting...",
+    "retrying": "clothball - cannot connect yet, retrying",
+    "failed": "clothball - cannot connect",
+    "closed": "clothball - disconnected",
+}
 
 
 def _rgb255(c: tuple[float, float, float], a: int = 255) -> tuple[int, int, int, int]:
@@ -50,6 +58,24 @@ def fit_label(label: pyglet.text.Label, width: float, smallest: int = 8) -> None
     while label.content_width > width and len(text) > 1:
         text = text[:-1]
         label.text = text.rstrip() + "…"
+
+
+def hand_help(device: Any) -> str:
+    """How this seat's hand is moved, for the HUD (the device the player actually holds)."""
+    if isinstance(device, MouseDevice):
+        return "mouse moves, wheel / right-drag lifts, C recentres"
+    name = getattr(device, "name", "")
+    error = getattr(device, "error", None) if name.startswith("falcon") else None
+    if error:
+        return f"Falcon lost: {error}; replug it and join again"
+    if name == "falcon":
+        return "move the Falcon's grip; you feel the cloth pull back"
+    if name == "falcon-emulator":
+        return ("the emulated Falcon: no hand holds its grip, it goes where the cloth pulls "
+                "it; a real one: --device falcon")
+    if name == "bot":
+        return "a bot plays this corner for you"
+    return f"{name or 'your device'} moves it"
 
 
 class ClientWindow(pyglet.window.Window):
@@ -275,7 +301,7 @@ class ClientWindow(pyglet.window.Window):
                 lines.append(self._score_line(m.scores, m.seats))
                 if m.seat is not None:
                     lines.append(f"you: corner {m.seat}, guarding the {EDGE_NAMES[m.seat]} "
-                                 "edge  (mouse moves, wheel / right-drag lifts)")
+                                 f"edge  ({hand_help(self.device)})")
                     pull = self.frame.pull if self.frame is not None else None
                     if pull is not None:
                         lines.append(f"pull {pull.force:5.1f} N")
@@ -284,12 +310,17 @@ class ClientWindow(pyglet.window.Window):
                                      if not m.ready() else "ready: waiting for the others")
                 else:
                     lines.append("watching")
+            elif m.connection != "connected" and m.detail:
+                lines.append(m.detail)  # what happened and what to do (net.client)
+                if m.connection == "failed":
+                    lines.append("Enter (or the Retry button): try again    Esc: quit")
             self._set(self.events_label, "\n".join(m.recent_events(now)))
             self.events_label.y = 34 if m.room is not None else 96  # above the lobby buttons
             self._set(self.status, f"{m.server_url}  {m.connection_text()}  "
                                    f"[M wire mesh  Esc leave]")
         self._set(self.hud, "\n".join(lines))
-        self.hud.y = h - 12
+        # in the lobby the lines (a connection problem) go below its centred title
+        self.hud.y = h - 12 if self.replay is not None or m.room is not None else h - 70
         cd = m.countdown(now) if self.replay is None else None
         self._set(self.big, str(cd) if cd is not None else "")
         self.big.x, self.big.y = w // 2, h // 2
@@ -369,7 +400,7 @@ class ClientWindow(pyglet.window.Window):
                      "create": f"new room name: {self.lobby.name_input}_",
                      "seats": "choose a corner"}.get(self.lobby.screen, "")
             if self.model.connection != "connected":
-                title = f"clothball - {self.model.connection} {self.model.detail}"
+                title = CONNECTION_TITLES.get(self.model.connection, self.model.connection)
         self._set(self.title_label, title)
         self.title_label.x, self.title_label.y = w // 2, h - 40
         key = (w, h, tuple((b.action, b.label, b.enabled) for b in buttons))
@@ -455,6 +486,9 @@ class ClientWindow(pyglet.window.Window):
         kind = action[0]
         if kind == "refresh":
             self._track("refresh", net.list_rooms())
+        elif kind == "retry":
+            self.model.set_connection("connecting", net.url)
+            net.retry()
         elif kind == "create_room":
             self._track("create_room", net.create_room(action[1]))
         elif kind == "join":
@@ -521,7 +555,9 @@ class ClientWindow(pyglet.window.Window):
         elif symbol == key.C and isinstance(self.device, MouseDevice):
             self.device.centre()
         elif self.model.room is None:
-            if symbol == key.F5:
+            if symbol in (key.ENTER, key.RETURN) and self.model.connection == "failed":
+                self.perform(("retry",))
+            elif symbol == key.F5:
                 self.perform(("refresh",))
             elif symbol == key.N:
                 self.lobby.act(("create",))
@@ -576,4 +612,4 @@ def fps_summary(window: ClientWindow) -> str:
             f"{np.median(times) * 1e3:.1f} ms, max {max(times) * 1e3:.1f} ms")
 
 
-__all__ = ["ClientWindow", "fps_summary", "run_window"]
+__all__ = ["ClientWindow", "fps_summary", "hand_help", "run_window"]

@@ -1,6 +1,7 @@
 """The lobby screens as pure state: layout, hit tests and the action each click means.
 
-Screens: **rooms** (the server's public rooms; refresh, create, select one), **create**
+Screens: **rooms** (the server's public rooms; refresh, create, select one; when the
+connection failed, a Retry button instead), **create**
 (type a name, Enter), **seats** (the chosen room's four corners: take a free one, or
 watch), and in a room the **room bar** (ready, add a bot to a free corner, start, leave).
 ``buttons()`` lays the current screen out for a window size; ``hit()`` says which
@@ -81,6 +82,10 @@ class LobbyUI:
                      f"{free} corner{'s' if free != 1 else ''} to take   {scores}")
             out.append(Button(("select_room", r.get("id")), label, x, top - i * (bh + 8), bw, bh))
         y = 40.0
+        if model.connection == "failed":  # the network thread waits for the user's word
+            out.append(Button(("retry",), "Retry (Enter)", x, y, 180, bh,
+                              colour=(0.2, 0.5, 0.3)))
+            return out
         out.append(Button(("refresh",), "Refresh (F5)", x, y, 180, bh))
         out.append(Button(("create",), "Create room (N)", x + 200, y, 200, bh))
         return out
@@ -162,7 +167,7 @@ class LobbyUI:
                 return None
             return ("join", self.selected, "player" if kind == "take_seat" else "spectator",
                     action[1] if kind == "take_seat" else None)
-        return action  # refresh, ready, add_bot, leave
+        return action  # refresh, retry, ready, add_bot, leave
 
     def type_text(self, text: str) -> None:
         if self.screen == "create":

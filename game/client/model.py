@@ -212,7 +212,9 @@ class ClientModel:
             elif msg.get("resumed"):
                 text = f"{msg.get('name')} is back"
             else:
-                text = f"{msg.get('name')} takes the {corner} corner"
+                why = {"replaced_bot": " (the bot makes way)",
+                       "backfill": " (an empty seat filled)"}.get(str(msg.get("reason")), "")
+                text = f"{msg.get('name')} takes the {corner} corner{why}"
         elif ev == "replay_saved":
             rid = msg.get("id")
             if isinstance(rid, str):

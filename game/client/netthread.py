@@ -35,7 +35,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any, Generic, TypeVar
 
 from ..devices.base import CornerState, Device
-from ..net.client import NetClient, ServerError
+from ..net.client import NetClient, ServerError, explain_connect_error
 from ..wire import protocol as P
 from .interp import MeshFrame
 
@@ -89,7 +89,8 @@ class NetThread:
     def __init__(self, url: str, name: str = "player", device: Device | None = None, *,
                  corner_rate: float = 120.0, hip_rate: float = 120.0,
                  ping_interval: float = 1.0, reconnect_tries: int = 5,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
+                 clock: Callable[[], float] = time.perf_counter,
+                 report: Callable[[str], None] | None = None) -> None:
         self.url = url
         self.name = name
         self.device = device
@@ -98,6 +99,8 @@ class NetThread:
         self.ping_interval = ping_interval
         self.reconnect_tries = reconnect_tries
         self.clock = clock
+        self.report = report  # called (on the network thread) with connection problems
+        self._retry: asyncio.Event | None = None  # set while a failure waits for retry()
         self.messages: queue.SimpleQueue[tuple[float, dict[str, Any]]] = queue.SimpleQueue()
         self.frames = FrameInbox()
         self.corner: Latest[tuple[CornerState, P.Corner]] = Latest()
@@ -186,9 +189,11 @@ class NetThread:
             loop.run_until_complete(self._main)
         except asyncio.CancelledError:
             pass
-        except Exception as e:  # noqa: BLE001 - report it, the window decides
-            log.exception("network thread failed")
-            self._status("failed", f"{type(e).__name__}: {e}")
+        except Exception as e:  # noqa: BLE001 - told in a line, the window decides
+            log.debug("network thread failed", exc_info=True)
+            text = f"the connection failed: {type(e).__name__}: {e}"
+            self._status("failed", text)
+            self._say(text)
         finally:
             try:
                 loop.run_until_complete(self._shutdown())
@@ -205,7 +210,26 @@ class NetThread:
                 await asyncio.wait_for(self.client.close(), 3.0)
             except (TimeoutError, OSError, asyncio.CancelledError):
                 pass
-        self._status("closed", "")
+        if self._stopping:  # otherwise the last status says why the session ended
+            self._status("closed", "")
+
+    def retry(self) -> None:
+        """Connect again now (after a failure the thread waits for this)."""
+        loop, event = self.loop, self._retry
+        if loop is not None and event is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(event.set)
+
+    async def _retry_wanted(self) -> None:
+        self._retry = asyncio.Event()
+        try:
+            await self._retry.wait()
+        finally:
+            self._retry = None
+
+    def _say(self, line: str) -> None:
+        """A connection problem for the terminal (``report``), as the window shows it."""
+        if self.report is not None:
+            self.report(line)
 
     def _status(self, state: str, detail: str = "") -> None:
         self.messages.put((self.clock(), {"type": "_status", "state": state, "detail": detail}))
@@ -224,14 +248,28 @@ class NetThread:
                 else:
                     client = await NetClient.connect(self.url, name=self.name, role="lobby",
                                                      decode_mesh=False)
-            except (OSError, TimeoutError, ConnectionError, ServerError) as e:
-                tries += 1
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # noqa: BLE001 - every failure is explained to the user
                 if isinstance(e, ServerError) and e.code == "bad_token":
                     self.client, self._join_args = None, None  # the seat is gone
-                if tries > self.reconnect_tries:
-                    self._status("failed", f"cannot connect to {self.url}: {e}")
-                    return
-                await asyncio.sleep(min(2.0, 0.25 * 2 ** tries))
+                    self._status("reconnecting", "the seat was given up: back to the lobby")
+                    continue
+                text, transient = explain_connect_error(self.url, e)
+                tries += 1
+                if transient and tries <= self.reconnect_tries:
+                    delay = min(2.0, 0.25 * 2 ** tries)
+                    self._status("retrying", f"{text} (try {tries} of "
+                                             f"{self.reconnect_tries + 1}, again in {delay:g} s)")
+                    if tries == 1:
+                        self._say(f"{text}; retrying...")
+                    await asyncio.sleep(delay)
+                    continue
+                self._status("failed", text)
+                self._say(text if tries == 1 else f"gave up after {tries} tries: {text}")
+                self._say("press Enter (Retry) in the window to try again, Esc to quit")
+                await self._retry_wanted()
+                tries = 0
                 continue
             tries = 0
             self._attach(client)
@@ -260,6 +298,7 @@ class NetThread:
                 # kicked, or never seated: no seat to resume
                 self._status("closed", why)
                 if client.close_code == 4000:
+                    self._say(f"the server removed this client: {client.close_reason}")
                     return
             self._status("reconnecting", why)
             await asyncio.sleep(0.3)

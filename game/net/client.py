@@ -21,14 +21,18 @@ from __future__ import annotations
 import asyncio
 import collections
 import itertools
+import json
 import math
+import socket
+import ssl
 import time
+import urllib.parse
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
 from ..devices.base import CornerState, Reach
 from ..wire import protocol as P
@@ -50,6 +54,53 @@ class ServerError(RuntimeError):
         self.code = str(msg.get("code"))
         self.message = str(msg.get("message"))
         self.reply = msg
+
+
+def explain_connect_error(url: str, e: BaseException) -> tuple[str, bool]:
+    """Why connecting to ``url`` failed, in one line that says what to do, and whether
+    trying again later may help (a server not up yet) or not (a wrong address, a version
+    mismatch, a refusal)."""
+    parts = urllib.parse.urlsplit(url)
+    where = parts.netloc or url
+    fix_url = f"ws://{parts.netloc}/ws"
+    if isinstance(e, ServerError):
+        if e.code == "bad_version":
+            return (f"version mismatch: this client speaks protocol {P.PROTOCOL_VERSION}, the "
+                    f"server says \"{e.message}\"; play with the clothball version it runs",
+                    False)
+        return f"the server refused: {e.message} ({e.code})", e.code == "server_busy"
+    if isinstance(e, ConnectionRefusedError):
+        return (f"nothing is listening at {where} (connection refused): start one with "
+                "'clothball host', or check --server", True)
+    if isinstance(e, socket.gaierror):
+        return f"unknown host {parts.hostname!r}: check the address given to --server", False
+    if isinstance(e, ssl.SSLError) or (parts.scheme == "wss" and isinstance(
+            e, ConnectionResetError | EOFError)):  # a plain server drops a TLS hello
+        return (f"{where} does not speak TLS (wss://): try {fix_url}", False)
+    if isinstance(e, TimeoutError):
+        return (f"no answer from {where} in time: is the server up, and is the port "
+                "open in the firewall?", True)
+    if isinstance(e, InvalidStatus):
+        status = e.response.status_code
+        body = bytes(e.response.body or b"").decode("utf-8", "replace").strip()
+        try:  # the game server's refusals are {"error": why}
+            body = str(json.loads(body)["error"])
+        except (ValueError, TypeError, KeyError):
+            pass
+        if status in (403, 503) and body:
+            return f"the server refused: {body[:160]} (HTTP {status})", status == 503
+        return (f"no game at {url} (HTTP {status}): the game's address is {fix_url}",
+                False)
+    if isinstance(e, InvalidHandshake):
+        scheme = "ws://" if parts.scheme == "wss" else "wss://"
+        return (f"{where} is not a clothball websocket ({e}): check the address, or try "
+                f"{scheme}", False)
+    if isinstance(e, ConnectionError) and "closed" in str(e):
+        return f"the server closed the connection: {e}", True
+    if isinstance(e, OSError):
+        why = e.strerror or str(e) or type(e).__name__
+        return f"cannot reach {where}: {why}; check the network and --server", True
+    return f"cannot connect to {url}: {e}", False
 
 
 class NetClient:

@@ -132,3 +132,17 @@ def test_lobby_create_and_room_bar() -> None:
     m.apply({"type": "room", **room("r9", state="playing",
                                     seats=seats("bot", "human", "empty", "empty"))}, 3.0)
     assert [b.action for b in ui.buttons(m, 1280, 800)] == [("leave",)]
+
+
+def test_seat_events_say_why_a_player_took_a_corner() -> None:
+    """A human who takes a bot's corner: the event says the bot made way; a bot put on an
+    empty corner when a match starts says it filled it; a plain join says neither."""
+    m = ClientModel()
+    m.apply({"type": "event", "event": "seat", "seat": 1, "kind": "human", "name": "ann",
+             "reason": "replaced_bot"}, 0.0)
+    m.apply({"type": "event", "event": "seat", "seat": 3, "kind": "bot", "name": "bot-3",
+             "reason": "backfill"}, 0.0)
+    m.apply({"type": "event", "event": "seat", "seat": 2, "kind": "human", "name": "bo"}, 0.0)
+    assert m.recent_events(0.0) == ["ann takes the east corner (the bot makes way)",
+                                    "bot-3 takes the west corner (an empty seat filled)",
+                                    "bo takes the south corner"]
