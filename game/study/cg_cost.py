@@ -40,7 +40,7 @@ def _cloth(scene: Scene, backend: str, precision: str, tol: float, cap: int) -> 
     return Cloth(scene.with_changes({"sim": sim}), backend=backend, precision=precision)
 
 
-def measure(n: int, backend: str, precision: str, frames: int) -> list[dict[str, Any]]:
+def measure(n: int, backend: str, precisions: list[str], frames: int) -> list[dict[str, Any]]:
     scene = sized(Scene.load("classic"), n)
     start = fig4_start(scene)
     # The state just after the impact, from the default settings, shared by every case.
@@ -52,31 +52,41 @@ def measure(n: int, backend: str, precision: str, frames: int) -> list[dict[str,
     ball = warm.ball()
     out = []
     cases = [(0.0, k) for k in FORCED] + [(t, 200) for t in TOLERANCES]
+    used: dict[float, float] = {}  # iterations a substep needs, per tolerance
     for tol, cap in cases:
-        c = _cloth(scene, backend, precision, tol, cap)
-        c.set_state(pos, vel)
-        c.set_ball(*ball)
-        c.step(3)  # warm-up: the frame's graph is captured on first use
-        c.set_state(pos, vel)
-        c.set_ball(*ball)
-        times = []
-        for _ in range(frames):
-            t0 = time.perf_counter()
-            c.step(1)
-            times.append(time.perf_counter() - t0)
-        used = float(cap)
         if tol > 0:
             ref = IntegratingCloth(scene, "implicit_euler", cg_tol=tol, cg_max_iter=cap)
             ref.pos, ref.vel = pos.copy(), vel.copy()
             ref.ball_pos, ref.ball_vel = ball[0].copy(), ball[1].copy()
             ref.step(frames, 1)
-            used = ref.cg_iterations / frames
-        out.append({"n": n, "backend": backend, "precision": precision, "cg_tolerance": tol,
-                    "cg_max_iterations": cap, "iterations": used,
-                    "us_per_substep": statistics.median(times) * 1e6})
-        print(f"n={n:<4} {precision} tol {tol:<7g} cap {cap:<4} iterations {used:6.1f}  "
-              f"{out[-1]['us_per_substep']:8.1f} us/substep", flush=True)
+            used[tol] = ref.cg_iterations / frames
+    for precision in precisions:
+        for tol, cap in cases:
+            us = _time(scene, backend, precision, tol, cap, pos, vel, ball, frames)
+            it = used.get(tol, float(cap))
+            out.append({"n": n, "backend": backend, "precision": precision,
+                        "cg_tolerance": tol, "cg_max_iterations": cap, "iterations": it,
+                        "us_per_substep": us})
+            print(f"n={n:<4} {precision} tol {tol:<7g} cap {cap:<4} iterations {it:6.1f}  "
+                  f"{us:8.1f} us/substep", flush=True)
     return out
+
+
+def _time(scene: Scene, backend: str, precision: str, tol: float, cap: int, pos: Any,
+          vel: Any, ball: Any, frames: int) -> float:
+    """Median wall time (us) of a frame of one substep, from the given state."""
+    c = _cloth(scene, backend, precision, tol, cap)
+    c.set_state(pos, vel)
+    c.set_ball(*ball)
+    c.step(3)  # warm-up: the frame's graph is captured on first use
+    c.set_state(pos, vel)
+    c.set_ball(*ball)
+    times = []
+    for _ in range(frames):
+        t0 = time.perf_counter()
+        c.step(1)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e6
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,8 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         print(f"cg_cost: --sizes: expected whole numbers, got {a.sizes!r}", file=sys.stderr)
         return 2
-    rows = [r for n in sizes for prec in a.precisions.split(",")
-            for r in measure(n, a.backend, prec, a.frames)]
+    rows = [r for n in sizes for r in measure(n, a.backend, a.precisions.split(","), a.frames)]
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)
