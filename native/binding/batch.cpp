@@ -16,16 +16,24 @@ namespace {
 
 class BatchEngine {
  public:
-  BatchEngine(const std::string& backend, bool dbl, cb::Config c, int capacity) : n_(c.n) {
+  BatchEngine(const std::string& backend, bool dbl, cb::Config c, int capacity, int threads)
+      : n_(c.n) {
     const bool cpu = backend == "cpu";
     if (cpu) c.threads = 1;  // a slot is one thread's work; the slots share the cores
-    // CPU slots step in one parallel region; CUDA slots queue their own work, in turn.
+    // CPU slots step in one parallel region; CUDA slots in one graph a frame where the
+    // configuration allows (cb::make_cuda_batch_stepper), else each its own, in turn.
+    cb::Batch::StepperFactory stepper;
+    if (!cpu)
+      stepper = [dbl](cb::Backend& first, int cap) {
+        return cb::make_cuda_batch_stepper(first, cap, dbl);
+      };
     batch_ = std::make_unique<cb::Batch>(cbind::backend_factory(backend, dbl), c, capacity,
-                                         cpu);
+                                         cpu, threads, std::move(stepper));
   }
   int capacity() const { return batch_->capacity(); }
   void open(int s) { batch_->open(s); }
   void close(int s) { batch_->close(s); }
+  void set_active(int s, bool on) { batch_->set_active(s, on); }
   void set_hips_all(Array h) { batch_->set_hips_all(per_slot(h, 12, "hips").data()); }
   void set_wind_all(Array w) { batch_->set_wind_all(per_slot(w, 3, "wind").data()); }
   py::tuple corners_all() {
@@ -69,11 +77,13 @@ class BatchEngine {
 
 void bind_batch(py::module_& m) {
   py::class_<BatchEngine>(m, "BatchEngine")
-      .def(py::init<const std::string&, bool, cb::Config, int>(), py::arg("backend"),
-           py::arg("double_precision"), py::arg("config"), py::arg("capacity"))
+      .def(py::init<const std::string&, bool, cb::Config, int, int>(), py::arg("backend"),
+           py::arg("double_precision"), py::arg("config"), py::arg("capacity"),
+           py::arg("threads") = 0)
       .def("capacity", &BatchEngine::capacity)
       .def("open", &BatchEngine::open)
       .def("close", &BatchEngine::close)
+      .def("set_active", &BatchEngine::set_active, py::arg("slot"), py::arg("active"))
       .def("set_hips_all", &BatchEngine::set_hips_all)
       .def("set_wind_all", &BatchEngine::set_wind_all)
       .def("corners_all", &BatchEngine::corners_all)

@@ -1,7 +1,9 @@
 // Compiled once per real type: CB_REAL is float or double (see native/CMakeLists.txt).
 // CUDA backend: the shared core as one kernel per substep, the substeps of a frame captured
 // in a CUDA graph. Per frame only the 4 corners and the ball are copied back; the mesh is
-// copied only when asked for. This file never includes pybind11.
+// copied only when asked for. The kernels' bodies are cuda/substep.cuh's, which the batch's
+// kernels (cuda/batch.cu) share; CudaBatch below steps many cloths with them, one graph a
+// frame for all. This file never includes pybind11.
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -16,224 +18,34 @@
 #include <vector>
 
 #include "core/backend.hpp"
+#include "core/batch_stepper.hpp"
 #include "cuda/check.hpp"
 #include "core/forces.hpp"
 #include "cuda/integrators.hpp"
 #include "cuda/reduce.cuh"
+#include "cuda/substep.cuh"
 
 namespace cb {
 namespace {
 
 using ci::kBlock;
-using ci::warp_sum;
 
-// Per-frame readback: 4 corners (position, velocity), the ball (position, velocity), a flag.
-constexpr int kReadback = 4 * 6 + 6 + 1;  // + the non-finite flag
-
-template <class R>
-struct DevBuf {
-  Planes<R> pos, vel;
-};
-
-// A non-negative real as an unsigned integer of its width: the integers order as the reals
-// do, so atomicMin on them takes the minimum distance.
-template <class R>
-struct RealBits {
-  using T = std::conditional_t<sizeof(R) == 4, unsigned, unsigned long long>;
-  static __host__ __device__ T of(R v) {
-    T b;
-    std::memcpy(&b, &v, sizeof b);
-    return b;
-  }
-  static __host__ __device__ R real(T b) {
-    R v;
-    std::memcpy(&v, &b, sizeof v);
-    return v;
-  }
-};
-
-// Nodes are reported to the ball's nearest-distance sum only within twice its radius: the
-// test of contact_possible then stays exact while the ball moves less than its radius in a
-// substep (every node is then >= 2r - r from it), and is on (conservative) beyond. Warps
-// far from the ball so skip their atomic on the one shared word (thousands of blocks
-// serialised on it at large n).
-template <class R>
-__host__ __device__ R near_cutoff2(const Params<R>& p) {
-  const R c = R(2) * p.ball_radius;
-  return c * c;
-}
-
-// One substep's ball sums: the contact force on the ball and the squared distance from the
-// nearest node (after its update) to the ball's centre (before the ball's update), or the
-// cutoff when no node is nearer.
-template <class R>
-struct BallAcc {
-  R f[3];
-  typename RealBits<R>::T nearest2;
-
-  static __host__ __device__ BallAcc zero(const Params<R>& p) {
-    return {{R(0), R(0), R(0)}, RealBits<R>::of(near_cutoff2(p))};
-  }
-};
-
-// What outlives a frame: whether the frame's first substep computes contact.
-struct BallCtl {
-  int contact_on;      // may a node touch the ball in the next substep?
-  int strain_limited;  // set by the host: strain limiting keeps contact on
-};
-
-// The ball's buffers as one launch sees them. Substep k of a frame reads the state buffer b
-// and the ball slot b (`cur`); its sums go to ring[k % 3] (`acc`), the previous substep's
-// are ring[(k - 1) % 3] (`acc_prev`, beside the ball slot 1 - b, `prev`).
-template <class R>
-struct SubstepBall {
-  const Ball<R>* prev;         // the previous substep's ball; null: the frame's first substep
-  const BallAcc<R>* acc_prev;  // the previous substep's sums
-  Ball<R>* cur;                // this substep's ball: read when prev is null, else written
-  Ball<R>* next;               // no ball effect: where the unchanged ball is carried
-  BallAcc<R>* acc;             // this substep's sums
-  BallAcc<R>* acc_next;        // cleared for the launch after next
-  BallAcc<R>* ring;            // all three (the frame's end clears them)
-  BallCtl* ctl;
-};
-
-// The ball at the start of a substep, and whether that substep computes contact.
-template <class R>
-struct BallNow {
-  Ball<R> b;
-  bool contact;
-};
-
-// The ball's update for the previous substep, deferred to here (eqs. 5-6): every block of a
-// substep computes it alike from the previous substep's finished sums, so no block waits
-// for the others inside a launch (no last-block ticket); the launch boundary is the barrier.
-// `prev` null: the first substep of a frame, whose ball the last frame finished.
-template <class R, unsigned E>
-__device__ BallNow<R> ball_now(const Params<R>& p, const Ball<R>* prev, const BallAcc<R>* acc,
-                               const Ball<R>* cur, const BallCtl* ctl, R dt) {
-  if (prev == nullptr) return {*cur, ctl->contact_on != 0};
-  const Ball<R> b0 = *prev;
-  const V3<R> sum{acc->f[0], acc->f[1], acc->f[2]};
-  const Ball<R> b = ball_update<R, E>(p, b0, sum, dt);
-  return {b, contact_possible(p, RealBits<R>::real(acc->nearest2), b.p - b0.p,
-                              ctl->strain_limited != 0)};
-}
-
-// Programmatic dependent launch (Hopper): a launch made programmatic (`launch` below) may
-// start while the one before it still runs, hiding its launch latency, and waits here
-// until that one's writes are visible. For any other launch both are no-ops.
-__device__ inline void follow_previous_launch() {
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
-  asm volatile("griddepcontrol.launch_dependents;" ::: "memory");
-  asm volatile("griddepcontrol.wait;" ::: "memory");
-#endif
-}
-
-template <class R>
-__device__ R warp_min(R v) {
-  for (int o = 16; o > 0; o >>= 1) v = fmin(v, __shfl_down_sync(0xffffffffu, v, o));
-  return v;
-}
-
-// One semi-implicit Euler substep for every node. With the ball on, each thread first
-// brings the ball up to this substep (ball_now; at large n a launch of its own did), then
-// each warp adds its nodes' contact forces and nearest distance to this substep's sums
-// (`acc`), which the next launch reads; block 0 stores the ball and clears the sums the
-// launch after next will use (`acc_next`).
+// One semi-implicit Euler substep for every node of the cloth (se_substep_body).
 template <class R, unsigned E>
 __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, DevBuf<R> out,
                                                      const FrameInputs<R>* __restrict__ fin,
                                                      SubstepBall<R> sb, int* nonfinite, R dt) {
   follow_previous_launch();
-  const int n = p.n;
-  const int first = blockIdx.x * blockDim.x + threadIdx.x;
-  V3<R> contact{R(0), R(0), R(0)};
-  V3<R> ball_p{R(0), R(0), R(0)};
-  bool touch = false;
-  if constexpr ((E & BALL) != 0) {
-    const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
-    ball_p = now.b.p;
-    touch = now.contact;
-    if (blockIdx.x == 0 && threadIdx.x == 0) {
-      if (sb.prev != nullptr) *sb.cur = now.b;
-      *sb.acc_next = BallAcc<R>::zero(p);
-    }
-  }
-  // A grid-stride loop over the resident blocks (each thread then pays the ball's update
-  // once), or one node a thread for the largest cloths (see capture).
-  R check = 0;
-  // While no node can touch the ball the sweep runs compiled without contact (the same
-  // decision for the whole grid), still tracking the node nearest the ball.
-  R near2 = std::numeric_limits<R>::infinity();
-  for (int q = first; q < n * n; q += gridDim.x * blockDim.x) {
-    const int i = q / n, j = q - i * n;
-    if constexpr ((E & BALL) != 0) {
-      V3<R> x;
-      if (touch)
-        contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
-                                        dt, check, &x);
-      else
-        se_node_update<R, (E & ~BALL)>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
-                                       dt, check, &x);
-      const V3<R> d = x - ball_p;
-      near2 = fmin(near2, dot(d, d));
-    } else {
-      contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
-                                      dt, check);
-    }
-  }
-  if (check != R(0)) *nonfinite = 1;  // sticky until the host resets the state
-  if constexpr ((E & BALL) == 0) {
-    if (first == 0) *sb.next = *sb.cur;  // no ball in this scene: carry its state unchanged
-  }
-  if constexpr ((E & BALL) != 0) {
-    // Each warp adds to the sums directly: only the few warps at the ball have anything to
-    // add, and the others skip the shuffles too (whole warps reach here: the loop exits
-    // per lane, but every lane of a launched warp arrives).
-    const unsigned all = 0xffffffffu;
-    const bool lead = (threadIdx.x & 31) == 0;
-    if (__any_sync(all, contact.x != R(0) || contact.y != R(0) || contact.z != R(0))) {
-      const R c[3] = {warp_sum(contact.x), warp_sum(contact.y), warp_sum(contact.z)};
-      if (lead)
-        for (int k = 0; k < 3; ++k) atomicAdd(&sb.acc->f[k], c[k]);
-    }
-    if (__any_sync(all, near2 < near_cutoff2(p))) {
-      near2 = warp_min(near2);
-      if (lead) atomicMin(&sb.acc->nearest2, RealBits<R>::of(near2));
-    }
-  }
+  se_substep_body<R, E>(p, in, out, fin, sb, nonfinite, dt, int(blockIdx.x), int(gridDim.x));
 }
 
-// The end of a frame: the last substep's deferred ball update (when `sb.prev` is set),
-// then the corners, the ball and the non-finite flag to the mapped read-back. With no
-// read-back (`out` null) it is the ball's own launch before a substep (large n).
+// The end of a frame (finish_body), or with no read-back (`out` null) the ball's own launch
+// before a substep (large n).
 template <class R, unsigned E>
 __global__ void finish_frame(Params<R> p, DevBuf<R> s, SubstepBall<R> sb, const int* nonfinite,
                              R dt, R* out) {
   follow_previous_launch();
-  const int t = threadIdx.x;
-  if (t < 4 && out != nullptr) {
-    const int q = corner_node(t, p.n);
-    V3<R> x = s.pos.get(q), v = s.vel.get(q);
-    R* o = out + 6 * t;
-    o[0] = x.x; o[1] = x.y; o[2] = x.z; o[3] = v.x; o[4] = v.y; o[5] = v.z;
-  } else if (t == 4) {
-    Ball<R> b = *sb.cur;
-    if constexpr ((E & BALL) != 0) {
-      if (sb.prev != nullptr) {
-        const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
-        b = now.b;
-        *sb.cur = b;
-        sb.ctl->contact_on = now.contact ? 1 : 0;
-        for (int k = 0; k < 3; ++k) sb.ring[k] = BallAcc<R>::zero(p);
-      }
-    }
-    if (out == nullptr) return;
-    R* o = out + 24;
-    o[0] = b.p.x; o[1] = b.p.y; o[2] = b.p.z;
-    o[3] = b.v.x; o[4] = b.v.y; o[5] = b.v.z;
-    o[6] = R(*nonfinite);
-  }
+  finish_body<R, E>(p, s, sb, nonfinite, dt, out, int(threadIdx.x));
 }
 
 template <class R>
@@ -293,6 +105,9 @@ const std::array<Kernels<R>, kNumEffectSets>& kernel_table() {
 }
 
 template <class R>
+class CudaBatch;
+
+template <class R>
 class CudaCloth final : public Backend {
  public:
   explicit CudaCloth(const Config& c) : n_(c.n), N_(c.n * c.n) {
@@ -311,8 +126,10 @@ class CudaCloth final : public Backend {
     CB_CUDA(cudaMemset(nonfinite_, 0, sizeof(int)));
     // Mapped pinned memory: kernels read the hands and write the per-frame read-back
     // directly, with no copy nodes in the frame's graph.
-    CB_CUDA(cudaHostAlloc(&fin_host_, sizeof(FrameInputs<R>), cudaHostAllocMapped));
-    CB_CUDA(cudaHostAlloc(&readback_host_, sizeof(R) * kReadback, cudaHostAllocMapped));
+    CB_CUDA(cudaHostAlloc(&fin_own_, sizeof(FrameInputs<R>), cudaHostAllocMapped));
+    CB_CUDA(cudaHostAlloc(&readback_own_, sizeof(R) * kReadback, cudaHostAllocMapped));
+    fin_host_ = fin_own_;
+    readback_host_ = readback_own_;
     CB_CUDA(cudaHostGetDevicePointer(&fin_mapped_, fin_host_, 0));
     CB_CUDA(cudaHostGetDevicePointer(&readback_mapped_, readback_host_, 0));
     int sms = 0;
@@ -336,7 +153,7 @@ class CudaCloth final : public Backend {
   ~CudaCloth() override {
     drop_graphs();
     cudaFree(state_); cudaFree(ball_); cudaFree(ring_); cudaFree(ctl_); cudaFree(fin_dev_); cudaFree(nonfinite_);
-    cudaFreeHost(fin_host_); cudaFreeHost(readback_host_);
+    cudaFreeHost(fin_own_); cudaFreeHost(readback_own_);
     cudaStreamDestroy(stream_);
   }
 
@@ -428,10 +245,7 @@ class CudaCloth final : public Backend {
 
  private:
   R* buf(int b) const { return state_ + size_t(b) * 6 * N_; }
-  DevBuf<R> dev(int b) const {
-    R* d = buf(b);
-    return {{d, d + N_, d + 2 * size_t(N_)}, {d + 3 * size_t(N_), d + 4 * size_t(N_), d + 5 * size_t(N_)}};
-  }
+  DevBuf<R> dev(int b) const { return dev_buf(buf(b), N_); }
 
   // Capture one frame starting from buffer `start`: hips in, substeps, corners and ball out.
   cudaGraphExec_t capture(int start, int substeps, R dt) {
@@ -445,7 +259,7 @@ class CudaCloth final : public Backend {
     // (tools/lab/substep_bench.cu): the loop is faster up to n = 2048 (84.4 against 86.1
     // us), one node a thread at n = 4096 (333 against 414 us).
     const int node_blocks = (N_ + kBlock - 1) / kBlock;
-    const bool wide = force_wide_ >= 0 ? force_wide_ == 1 : node_blocks > 64 * resident_blocks_;
+    const bool wide = node_a_thread();
     const bool ball_launch = wide && (effects_ & BALL) != 0;
     const unsigned blocks = unsigned(wide ? node_blocks : std::min(node_blocks, resident_blocks_));
     for (int s = 0; s < substeps; ++s) {
@@ -481,33 +295,59 @@ class CudaCloth final : public Backend {
     return exec;
   }
 
+  // (make_cuda_batch_stepper_t asks.)
+ public:
+  bool node_a_thread() const {
+    const int node_blocks = (N_ + kBlock - 1) / kBlock;
+    return force_wide_ >= 0 ? force_wide_ == 1 : node_blocks > 64 * resident_blocks_;
+  }
+
+  // Whether CudaBatch steps this configuration: semi-implicit Euler without strain
+  // limiting, at the sizes where a lone cloth's substep is one grid-stride launch. The
+  // rest steps slot by slot, each slot's own graph: velocity Verlet and implicit Euler
+  // (their own units, and a priming pass outside the graph), strain limiting (its line
+  // passes), and the largest cloths (one node a thread, the ball's update a launch of its
+  // own; one such slot fills the device by itself). CLOTHBALL_CUDA_BATCH=0 turns the
+  // batched path off, to measure what it saves.
+  bool batchable() const {
+    const char* env = std::getenv("CLOTHBALL_CUDA_BATCH");
+    if (env && std::string(env) == "0") return false;
+    return !alt_ && strain_sweeps_ == 0 && !node_a_thread();
+  }
+
+ private:
+  // The batch's view of this cloth, the current buffer first.
+  SlotDev<R> slot_dev() const {
+    return {{buf(cur_), buf(1 - cur_)}, {ball_ + cur_, ball_ + (1 - cur_)}, ring_, ctl_,
+            fin_dev_, fin_mapped_, nonfinite_, readback_mapped_};
+  }
+
+  // Moves the mapped inputs and read-back to a batch's rows (host pointers and their
+  // device views), with their current values; the graphs, which hold the old ones, go.
+  void bind_io(FrameInputs<R>* fin, FrameInputs<R>* fin_mapped, R* rb, R* rb_mapped) {
+    *fin = *fin_host_;
+    std::copy(readback_host_, readback_host_ + kReadback, rb);
+    fin_host_ = fin;
+    fin_mapped_ = fin_mapped;
+    readback_host_ = rb;
+    readback_mapped_ = rb_mapped;
+    drop_graphs();
+  }
+
   CudaView<R> alt_view() const {
     const DevBuf<R> a = dev(0), b = dev(1);
     return {p_, max_blocks_, {a.pos, b.pos}, {a.vel, b.vel}, ball_, fin_dev_, nonfinite_};
   }
 
-  // A launch into the frame's graph that may overlap the one before it (see
-  // follow_previous_launch); an ordinary launch where that is off.
+  // A launch into the frame's graph that may overlap the one before it.
   template <class... Ps, class... As>
   void launch(void (*kernel)(Ps...), unsigned grid, unsigned block, As&&... args) {
-    cudaLaunchConfig_t cfg{};
-    cfg.gridDim = dim3(grid);
-    cfg.blockDim = dim3(block);
-    cfg.stream = stream_;
-    cudaLaunchAttribute overlap{};
-    overlap.id = cudaLaunchAttributeProgrammaticStreamSerialization;
-    overlap.val.programmaticStreamSerializationAllowed = 1;
-    cfg.attrs = &overlap;
-    cfg.numAttrs = overlap_launches_ ? 1 : 0;
-    CB_CUDA(cudaLaunchKernelEx(&cfg, kernel, std::forward<As>(args)...));
+    launch_kernel(stream_, overlap_launches_, kernel, grid, block, std::forward<As>(args)...);
   }
 
   // Substep k of a frame that reads state buffer b (k = substeps: the frame's end).
   SubstepBall<R> substep_ball(int k, int b) const {
-    Ball<R>* cur = ball_ + b;
-    Ball<R>* other = ball_ + (1 - b);
-    return {k == 0 ? nullptr : other, ring_ + (k + 2) % 3, cur, other,
-            ring_ + k % 3, ring_ + (k + 1) % 3, ring_, ctl_};
+    return substep_ball_at(ball_ + b, ball_ + (1 - b), ring_, ctl_, k);
   }
 
   // Contact on until a substep shows that no node can reach the ball (forces.hpp).
@@ -548,6 +388,10 @@ class CudaCloth final : public Backend {
   BallAcc<R>* ring_ = nullptr;  // three substeps' ball sums (SubstepBall)
   BallCtl* ctl_ = nullptr;
   FrameInputs<R>* fin_dev_ = nullptr;
+  FrameInputs<R>* fin_own_ = nullptr;      // this cloth's mapped inputs
+  R* readback_own_ = nullptr;               // and read-back
+  // The mapped inputs and read-back in use: this cloth's own, or in a batch its rows of
+  // the batch's arrays (bind_io).
   FrameInputs<R>* fin_host_ = nullptr;
   FrameInputs<R>* fin_mapped_ = nullptr;  // device view of fin_host_
   int* nonfinite_ = nullptr;
@@ -564,6 +408,159 @@ class CudaCloth final : public Backend {
   using GraphKey = std::tuple<int, R, int>;
   std::map<GraphKey, cudaGraphExec_t> graphs_;
   std::unique_ptr<CudaIntegrator<R>> alt_;  // null: semi-implicit Euler (se_substep)
+
+  friend class CudaBatch<R>;
+};
+
+// Every slot of a batch (cb::Batch) of CudaCloths of one configuration in one graph a
+// frame: one launch copies all slots' hands and wind in from one mapped array, each
+// substep is one launch over all slots (blockIdx.x slot-major; a slot's blocks are its
+// lone cloth's grid-stride grid, running the same se_substep_body), and one launch writes
+// every slot's corners, ball and non-finite flag to one mapped read-back array; one
+// synchronisation a frame for all. A slot's own calls keep working: its mapped inputs and
+// read-back are its rows of those arrays (CudaCloth::bind_io). The table of slots, and so
+// the graphs, are rebuilt only when the stepped set changes (slots added, removed,
+// paused) or a slot's current buffer is not where the table has it.
+template <class R>
+class CudaBatch final : public BatchStepper {
+ public:
+  CudaBatch(const CudaCloth<R>& first, int capacity)
+      : p_(first.p_),
+        N_(first.N_),
+        effects_(first.effects_),
+        blocks_(std::min((first.N_ + kBlock - 1) / kBlock, first.resident_blocks_)),
+        overlap_(first.overlap_launches_),
+        kernels_(batch_kernel_table<R>()[first.effects_ & (kNumEffectSets - 1)]),
+        cloths_(size_t(capacity), nullptr) {
+    const size_t cap = size_t(capacity);
+    CB_CUDA(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
+    CB_CUDA(cudaMalloc(&table_, sizeof(SlotDev<R>) * cap));
+    CB_CUDA(cudaHostAlloc(&fin_host_, sizeof(FrameInputs<R>) * cap, cudaHostAllocMapped));
+    CB_CUDA(cudaHostAlloc(&readback_host_, sizeof(R) * kReadback * cap, cudaHostAllocMapped));
+    CB_CUDA(cudaHostGetDevicePointer(&fin_mapped_, fin_host_, 0));
+    CB_CUDA(cudaHostGetDevicePointer(&readback_mapped_, readback_host_, 0));
+    std::fill(fin_host_, fin_host_ + cap, FrameInputs<R>{});
+    std::fill(readback_host_, readback_host_ + kReadback * cap, R(0));
+  }
+
+  ~CudaBatch() override {
+    drop_graphs();
+    cudaFree(table_);
+    cudaFreeHost(fin_host_);
+    cudaFreeHost(readback_host_);
+    cudaStreamDestroy(stream_);
+  }
+
+  void attach(int s, Backend& b) override {
+    auto* c = dynamic_cast<CudaCloth<R>*>(&b);
+    if (c == nullptr || c->N_ != N_ || c->effects_ != effects_)
+      throw std::logic_error("CudaBatch: slot " + std::to_string(s) +
+                             " is not a CUDA cloth of the batch's configuration");
+    const size_t row = size_t(s);
+    c->bind_io(fin_host_ + row, fin_mapped_ + row, readback_host_ + kReadback * row,
+               readback_mapped_ + kReadback * row);
+    cloths_.at(row) = c;
+    dirty_ = true;
+  }
+
+  void detach(int s) override {
+    cloths_.at(size_t(s)) = nullptr;
+    dirty_ = true;
+  }
+
+  void step(const int* slots, int m, int frames, int substeps, double dt) override {
+    if (frames <= 0 || m <= 0) return;
+    if (!table_holds(slots, m)) build(slots, m);
+    for (int f = 0; f < frames; ++f) {
+      // As a lone cloth: one graph per (substeps, dt, buffer the table's slots start from).
+      cudaGraphExec_t& g = graphs_[GraphKey{substeps, R(dt), flip_}];
+      if (!g) g = capture(substeps, R(dt), flip_);
+      CB_CUDA(cudaGraphLaunch(g, stream_));
+      if (substeps % 2) flip_ = 1 - flip_;
+    }
+    CB_CUDA(cudaStreamSynchronize(stream_));
+    for (size_t k = 0; k < built_.size(); ++k)
+      cloths_[size_t(built_[k])]->cur_ = built_cur_[k] ^ flip_;
+  }
+
+ private:
+  // Whether the device table describes exactly these slots, each at its current buffer.
+  bool table_holds(const int* slots, int m) const {
+    if (dirty_ || size_t(m) != built_.size()) return false;
+    for (int k = 0; k < m; ++k) {
+      if (slots[k] != built_[size_t(k)]) return false;
+      const CudaCloth<R>* c = cloths_.at(size_t(slots[k]));
+      if (c == nullptr || c->cur_ != (built_cur_[size_t(k)] ^ flip_)) return false;
+    }
+    return true;
+  }
+
+  void build(const int* slots, int m) {
+    std::vector<SlotDev<R>> h(static_cast<size_t>(m));
+    built_.assign(slots, slots + m);
+    built_cur_.resize(size_t(m));
+    for (int k = 0; k < m; ++k) {
+      const CudaCloth<R>* c = cloths_.at(size_t(slots[k]));
+      if (c == nullptr)
+        throw std::logic_error("CudaBatch: slot " + std::to_string(slots[k]) + " is not attached");
+      h[size_t(k)] = c->slot_dev();
+      built_cur_[size_t(k)] = c->cur_;
+    }
+    CB_CUDA(cudaMemcpyAsync(table_, h.data(), sizeof(SlotDev<R>) * h.size(),
+                            cudaMemcpyHostToDevice, stream_));
+    CB_CUDA(cudaStreamSynchronize(stream_));
+    drop_graphs();
+    flip_ = 0;
+    dirty_ = false;
+  }
+
+  // One frame for every slot of the table, each starting from its table buffer b0.
+  cudaGraphExec_t capture(int substeps, R dt, int b0) {
+    const int m = int(built_.size());
+    const SlotDev<R>* t = table_;
+    cudaGraph_t graph;
+    CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
+    launch_kernel(stream_, false, kernels_.load, unsigned((m + kBlock - 1) / kBlock),
+                  unsigned(kBlock), t, m);
+    int b = b0;
+    for (int k = 0; k < substeps; ++k) {
+      launch_kernel(stream_, overlap_, kernels_.substep, unsigned(m) * unsigned(blocks_),
+                    unsigned(kBlock), p_, t, blocks_, k, b, dt);
+      b = 1 - b;
+    }
+    launch_kernel(stream_, overlap_, kernels_.finish, unsigned(m), 32u, p_, t, substeps, b, dt);
+    CB_CUDA(cudaStreamEndCapture(stream_, &graph));
+    cudaGraphExec_t exec;
+    CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
+    CB_CUDA(cudaGraphDestroy(graph));
+    return exec;
+  }
+
+  void drop_graphs() {
+    for (auto& kv : graphs_)
+      if (kv.second) cudaGraphExecDestroy(kv.second);
+    graphs_.clear();
+  }
+
+  const Params<R> p_;
+  const int N_;
+  const unsigned effects_;
+  const int blocks_;  // a slot's blocks in a substep launch: its lone cloth's grid
+  const bool overlap_;
+  const BatchKernels<R> kernels_;
+  std::vector<CudaCloth<R>*> cloths_;  // by slot; null: not attached
+  cudaStream_t stream_ = nullptr;
+  SlotDev<R>* table_ = nullptr;        // the stepped slots (built_), on the device
+  FrameInputs<R>* fin_host_ = nullptr;  // a row a slot, mapped
+  FrameInputs<R>* fin_mapped_ = nullptr;
+  R* readback_host_ = nullptr;          // kReadback values a slot, mapped
+  R* readback_mapped_ = nullptr;
+  std::vector<int> built_;              // the slots in table_, in its order
+  std::vector<int> built_cur_;          // each one's current buffer when the table was built
+  int flip_ = 0;                        // table buffer the next frame starts from
+  bool dirty_ = true;                   // a slot was attached or detached since build
+  using GraphKey = std::tuple<int, R, int>;
+  std::map<GraphKey, cudaGraphExec_t> graphs_;
 };
 
 }  // namespace
@@ -571,6 +568,13 @@ class CudaCloth final : public Backend {
 template <>
 std::unique_ptr<Backend> make_cuda_backend_t<CB_REAL>(const Config& c) {
   return std::make_unique<CudaCloth<CB_REAL>>(c);
+}
+
+template <>
+std::unique_ptr<BatchStepper> make_cuda_batch_stepper_t<CB_REAL>(Backend& first, int capacity) {
+  auto* c = dynamic_cast<CudaCloth<CB_REAL>*>(&first);
+  if (c == nullptr || !c->batchable()) return nullptr;
+  return std::make_unique<CudaBatch<CB_REAL>>(*c, capacity);
 }
 
 }  // namespace cb

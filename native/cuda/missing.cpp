@@ -2,6 +2,7 @@
 #include <stdexcept>
 
 #include "core/backend.hpp"
+#include "core/batch_stepper.hpp"
 
 namespace cb {
 
@@ -21,6 +22,16 @@ std::unique_ptr<Backend> make_cuda_backend_t<float>(const Config&) {
 template <>
 std::unique_ptr<Backend> make_cuda_backend_t<double>(const Config&) {
   throw std::runtime_error("CUDA backend unavailable: " + cuda_unavailable_reason());
+}
+
+// Never reached: no CUDA backend is made without CUDA.
+template <>
+std::unique_ptr<BatchStepper> make_cuda_batch_stepper_t<float>(Backend&, int) {
+  return nullptr;
+}
+template <>
+std::unique_ptr<BatchStepper> make_cuda_batch_stepper_t<double>(Backend&, int) {
+  return nullptr;
 }
 
 }  // namespace cb

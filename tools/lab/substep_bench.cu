@@ -13,6 +13,7 @@
 #define CB_REAL float
 #define CB_LAB_EFFECT_SET (STRUCTURAL | GRAVITY | DAMPING | BALL | COUPLING)
 #include "../../native/cuda/cloth.cu"
+#include "../../native/cuda/batch.cu"  // the batch's kernels, which cloth.cu's CudaBatch names
 #include "../../native/cuda/device.cu"
 
 #include <chrono>

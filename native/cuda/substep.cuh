@@ -1,0 +1,299 @@
+// The semi-implicit Euler substep and the frame's end as device functions, shared by the
+// lone cloth's kernels (cuda/cloth.cu: one cloth a launch) and the batch's kernels
+// (cuda/batch.cu: every slot of a ClothBatch in one launch), so both run one copy of the
+// equations. Included by .cu files only.
+#pragma once
+#include <cuda_runtime.h>
+
+#include <array>
+#include <cstring>
+#include <limits>
+#include <type_traits>
+#include <utility>
+
+#include "core/forces.hpp"
+#include "core/params.hpp"
+#include "cuda/check.hpp"
+#include "cuda/reduce.cuh"
+
+namespace cb {
+
+// Per-frame readback: 4 corners (position, velocity), the ball (position, velocity), a flag.
+constexpr int kReadback = 4 * 6 + 6 + 1;  // + the non-finite flag
+
+template <class R>
+struct DevBuf {
+  Planes<R> pos, vel;
+};
+
+// One state buffer of 6 planes (x y z vx vy vz) of N values each.
+template <class R>
+__host__ __device__ inline DevBuf<R> dev_buf(R* d, int N) {
+  return {{d, d + N, d + 2 * size_t(N)}, {d + 3 * size_t(N), d + 4 * size_t(N), d + 5 * size_t(N)}};
+}
+
+// A non-negative real as an unsigned integer of its width: the integers order as the reals
+// do, so atomicMin on them takes the minimum distance.
+template <class R>
+struct RealBits {
+  using T = std::conditional_t<sizeof(R) == 4, unsigned, unsigned long long>;
+  static __host__ __device__ T of(R v) {
+    T b;
+    std::memcpy(&b, &v, sizeof b);
+    return b;
+  }
+  static __host__ __device__ R real(T b) {
+    R v;
+    std::memcpy(&v, &b, sizeof v);
+    return v;
+  }
+};
+
+// Nodes are reported to the ball's nearest-distance sum only within twice its radius: the
+// test of contact_possible then stays exact while the ball moves less than its radius in a
+// substep (every node is then >= 2r - r from it), and is on (conservative) beyond. Warps
+// far from the ball so skip their atomic on the one shared word (thousands of blocks
+// serialised on it at large n).
+template <class R>
+__host__ __device__ R near_cutoff2(const Params<R>& p) {
+  const R c = R(2) * p.ball_radius;
+  return c * c;
+}
+
+// One substep's ball sums: the contact force on the ball and the squared distance from the
+// nearest node (after its update) to the ball's centre (before the ball's update), or the
+// cutoff when no node is nearer.
+template <class R>
+struct BallAcc {
+  R f[3];
+  typename RealBits<R>::T nearest2;
+
+  static __host__ __device__ BallAcc zero(const Params<R>& p) {
+    return {{R(0), R(0), R(0)}, RealBits<R>::of(near_cutoff2(p))};
+  }
+};
+
+// What outlives a frame: whether the frame's first substep computes contact.
+struct BallCtl {
+  int contact_on;      // may a node touch the ball in the next substep?
+  int strain_limited;  // set by the host: strain limiting keeps contact on
+};
+
+// The ball's buffers as one launch sees them. Substep k of a frame reads the state buffer b
+// and the ball slot b (`cur`); its sums go to ring[k % 3] (`acc`), the previous substep's
+// are ring[(k - 1) % 3] (`acc_prev`, beside the ball slot 1 - b, `prev`).
+template <class R>
+struct SubstepBall {
+  const Ball<R>* prev;         // the previous substep's ball; null: the frame's first substep
+  const BallAcc<R>* acc_prev;  // the previous substep's sums
+  Ball<R>* cur;                // this substep's ball: read when prev is null, else written
+  Ball<R>* next;               // no ball effect: where the unchanged ball is carried
+  BallAcc<R>* acc;             // this substep's sums
+  BallAcc<R>* acc_next;        // cleared for the launch after next
+  BallAcc<R>* ring;            // all three (the frame's end clears them)
+  BallCtl* ctl;
+};
+
+// Substep k of a frame whose state buffer b goes with ball `cur` (the other buffer's ball:
+// `other`); k = substeps: the frame's end.
+template <class R>
+__host__ __device__ inline SubstepBall<R> substep_ball_at(Ball<R>* cur, Ball<R>* other,
+                                                          BallAcc<R>* ring, BallCtl* ctl, int k) {
+  return {k == 0 ? nullptr : other, ring + (k + 2) % 3, cur, other,
+          ring + k % 3, ring + (k + 1) % 3, ring, ctl};
+}
+
+// The ball at the start of a substep, and whether that substep computes contact.
+template <class R>
+struct BallNow {
+  Ball<R> b;
+  bool contact;
+};
+
+// The ball's update for the previous substep, deferred to here (eqs. 5-6): every block of a
+// substep computes it alike from the previous substep's finished sums, so no block waits
+// for the others inside a launch (no last-block ticket); the launch boundary is the barrier.
+// `prev` null: the first substep of a frame, whose ball the last frame finished.
+template <class R, unsigned E>
+__device__ BallNow<R> ball_now(const Params<R>& p, const Ball<R>* prev, const BallAcc<R>* acc,
+                               const Ball<R>* cur, const BallCtl* ctl, R dt) {
+  if (prev == nullptr) return {*cur, ctl->contact_on != 0};
+  const Ball<R> b0 = *prev;
+  const V3<R> sum{acc->f[0], acc->f[1], acc->f[2]};
+  const Ball<R> b = ball_update<R, E>(p, b0, sum, dt);
+  return {b, contact_possible(p, RealBits<R>::real(acc->nearest2), b.p - b0.p,
+                              ctl->strain_limited != 0)};
+}
+
+// Programmatic dependent launch (Hopper): a launch made programmatic (`launch_kernel`
+// below) may start while the one before it still runs, hiding its launch latency, and
+// waits here until that one's writes are visible. For any other launch both are no-ops.
+__device__ inline void follow_previous_launch() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  asm volatile("griddepcontrol.launch_dependents;" ::: "memory");
+  asm volatile("griddepcontrol.wait;" ::: "memory");
+#endif
+}
+
+template <class R>
+__device__ R warp_min(R v) {
+  for (int o = 16; o > 0; o >>= 1) v = fmin(v, __shfl_down_sync(0xffffffffu, v, o));
+  return v;
+}
+
+// One semi-implicit Euler substep for the nodes of one cloth, by its `blocks` blocks of
+// which this thread's is `block` (a grid-stride loop over them). With the ball on, each
+// thread first brings the ball up to this substep (ball_now; at large n a launch of its own
+// did), then each warp adds its nodes' contact forces and nearest distance to this
+// substep's sums (`acc`), which the next launch reads; block 0 stores the ball and clears
+// the sums the launch after next will use (`acc_next`).
+template <class R, unsigned E>
+__device__ __forceinline__ void se_substep_body(Params<R> p, DevBuf<R> in,
+                                                DevBuf<R> out,
+                                                const FrameInputs<R>* __restrict__ fin,
+                                                SubstepBall<R> sb, int* nonfinite, R dt,
+                                                int block, int blocks) {
+  const int n = p.n;
+  const int first = block * blockDim.x + threadIdx.x;
+  V3<R> contact{R(0), R(0), R(0)};
+  V3<R> ball_p{R(0), R(0), R(0)};
+  bool touch = false;
+  if constexpr ((E & BALL) != 0) {
+    const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
+    ball_p = now.b.p;
+    touch = now.contact;
+    if (block == 0 && threadIdx.x == 0) {
+      if (sb.prev != nullptr) *sb.cur = now.b;
+      *sb.acc_next = BallAcc<R>::zero(p);
+    }
+  }
+  // A grid-stride loop over the resident blocks (each thread then pays the ball's update
+  // once), or one node a thread for the largest cloths (see CudaCloth::capture).
+  R check = 0;
+  // While no node can touch the ball the sweep runs compiled without contact (the same
+  // decision for the whole grid), still tracking the node nearest the ball.
+  R near2 = std::numeric_limits<R>::infinity();
+  for (int q = first; q < n * n; q += blocks * blockDim.x) {
+    const int i = q / n, j = q - i * n;
+    if constexpr ((E & BALL) != 0) {
+      V3<R> x;
+      if (touch)
+        contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
+                                        dt, check, &x);
+      else
+        se_node_update<R, (E & ~BALL)>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
+                                       dt, check, &x);
+      const V3<R> d = x - ball_p;
+      near2 = fmin(near2, dot(d, d));
+    } else {
+      contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
+                                      dt, check);
+    }
+  }
+  if (check != R(0)) *nonfinite = 1;  // sticky until the host resets the state
+  if constexpr ((E & BALL) == 0) {
+    if (first == 0) *sb.next = *sb.cur;  // no ball in this scene: carry its state unchanged
+  }
+  if constexpr ((E & BALL) != 0) {
+    // Each warp adds to the sums directly: only the few warps at the ball have anything to
+    // add, and the others skip the shuffles too (whole warps reach here: the loop exits
+    // per lane, but every lane of a launched warp arrives).
+    const unsigned all = 0xffffffffu;
+    const bool lead = (threadIdx.x & 31) == 0;
+    if (__any_sync(all, contact.x != R(0) || contact.y != R(0) || contact.z != R(0))) {
+      const R c[3] = {ci::warp_sum(contact.x), ci::warp_sum(contact.y),
+                      ci::warp_sum(contact.z)};
+      if (lead)
+        for (int k = 0; k < 3; ++k) atomicAdd(&sb.acc->f[k], c[k]);
+    }
+    if (__any_sync(all, near2 < near_cutoff2(p))) {
+      near2 = warp_min(near2);
+      if (lead) atomicMin(&sb.acc->nearest2, RealBits<R>::of(near2));
+    }
+  }
+}
+
+// The end of a frame for one cloth, thread t of a block of 32: the last substep's deferred
+// ball update (when `sb.prev` is set), then the corners, the ball and the non-finite flag to
+// the mapped read-back. With no read-back (`out` null) it is the ball's own launch before
+// a substep (large n).
+template <class R, unsigned E>
+__device__ __forceinline__ void finish_body(const Params<R>& p, const DevBuf<R>& s,
+                                            const SubstepBall<R>& sb, const int* nonfinite, R dt,
+                                            R* out, int t) {
+  if (t < 4 && out != nullptr) {
+    const int q = corner_node(t, p.n);
+    V3<R> x = s.pos.get(q), v = s.vel.get(q);
+    R* o = out + 6 * t;
+    o[0] = x.x; o[1] = x.y; o[2] = x.z; o[3] = v.x; o[4] = v.y; o[5] = v.z;
+  } else if (t == 4) {
+    Ball<R> b = *sb.cur;
+    if constexpr ((E & BALL) != 0) {
+      if (sb.prev != nullptr) {
+        const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
+        b = now.b;
+        *sb.cur = b;
+        sb.ctl->contact_on = now.contact ? 1 : 0;
+        for (int k = 0; k < 3; ++k) sb.ring[k] = BallAcc<R>::zero(p);
+      }
+    }
+    if (out == nullptr) return;
+    R* o = out + 24;
+    o[0] = b.p.x; o[1] = b.p.y; o[2] = b.p.z;
+    o[3] = b.v.x; o[4] = b.v.y; o[5] = b.v.z;
+    o[6] = R(*nonfinite);
+  }
+}
+
+// A launch into a frame's graph that may overlap the one before it (see
+// follow_previous_launch); an ordinary launch where `overlap` is off.
+template <class... Ps, class... As>
+void launch_kernel(cudaStream_t stream, bool overlap, void (*kernel)(Ps...), unsigned grid,
+                   unsigned block, As&&... args) {
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = dim3(grid);
+  cfg.blockDim = dim3(block);
+  cfg.stream = stream;
+  cudaLaunchAttribute attr{};
+  attr.id = cudaLaunchAttributeProgrammaticStreamSerialization;
+  attr.val.programmaticStreamSerializationAllowed = 1;
+  cfg.attrs = &attr;
+  cfg.numAttrs = overlap ? 1 : 0;
+  CB_CUDA(cudaLaunchKernelEx(&cfg, kernel, std::forward<As>(args)...));
+}
+
+// --- The batch: every slot of a ClothBatch in one launch (cuda/batch.cu) ----------------
+
+// One slot's device state as the batch's kernels see it, with the buffer that is current
+// when the table is built first (state[0] goes with ball[0]).
+template <class R>
+struct SlotDev {
+  R* state[2];                    // two buffers of 6 planes
+  Ball<R>* ball[2];
+  BallAcc<R>* ring;               // three substeps' ball sums (SubstepBall)
+  BallCtl* ctl;
+  FrameInputs<R>* fin;            // the slot's device copy of its frame inputs
+  const FrameInputs<R>* fin_src;  // its row of the batch's mapped inputs
+  int* nonfinite;                 // sticky flag
+  R* readback;                    // its row (kReadback values) of the mapped read-back
+};
+
+// The batch's kernels for one effect set. `b` is the table's buffer (0 or 1) a launch
+// reads; the substep runs `blocks` blocks a slot, slot-major.
+template <class R>
+struct BatchKernels {
+  void (*load)(const SlotDev<R>*, int);
+  void (*substep)(Params<R>, const SlotDev<R>*, int, int, int, R);
+  void (*finish)(Params<R>, const SlotDev<R>*, int, int, R);
+};
+
+// One entry per effect set, as cloth.cu's kernel table (defined in cuda/batch.cu, once per
+// real type).
+template <class R>
+const std::array<BatchKernels<R>, kNumEffectSets>& batch_kernel_table();
+template <>
+const std::array<BatchKernels<float>, kNumEffectSets>& batch_kernel_table<float>();
+template <>
+const std::array<BatchKernels<double>, kNumEffectSets>& batch_kernel_table<double>();
+
+}  // namespace cb
