@@ -293,7 +293,8 @@ function eventText(ev, seats) {
       const place = `${EDGES[ev.seat]} seat`;
       if (ev.kind === "empty") return `${place} is free (${ev.reason || "left"})`;
       if (ev.held_for) return `${ev.name || place} disconnected; seat held ${ev.held_for} s`;
-      return `${ev.name || ev.kind} ${ev.resumed ? "is back in" : "took"} the ${place}`;
+      const why = { replaced_bot: " (the bot made way)", backfill: " (an empty seat filled)" }[ev.reason] || "";
+      return `${ev.name || ev.kind} ${ev.resumed ? "is back in" : "took"} the ${place}${why}`;
     }
     case "replay_saved": return `round ${ev.round} saved as a replay`;
     case "replay_failed": return `round ${ev.round} not recorded: ${ev.reason}`;
@@ -348,6 +349,18 @@ function onEvent(ev) {
 
 // --- lobby: rooms and replays ----------------------------------------------------------
 
+// Which corners a human can take (empty, or a bot's: bots are backfill) and the command
+// that takes one; this page only watches, the desktop client plays.
+function seatHint(room) {
+  const open = (room.seats || []).map((s, i) => [s, i]).filter(([s]) => s.open ?? s.kind === "empty");
+  if (!open.length) return el("div", { class: "seat-hint" }, "Every corner has a player.");
+  const corners = open.map(([s, i]) => `${s.edge || EDGES[i]} (${s.kind === "bot" ? `${s.name}, a bot, makes way` : "free"})`);
+  const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`;
+  return el("div", { class: "seat-hint" },
+    `To play, take a corner: ${corners.join(", ")}. `,
+    el("code", {}, `clothball play --server ${ws} --room ${room.id} --seat ${open[0][1]}`));
+}
+
 function renderRoomList() {
   const list = $("rooms");
   list.replaceChildren();
@@ -362,7 +375,7 @@ function renderRoomList() {
       el("a", { href: `#/room/${encodeURIComponent(r.id)}`, class: "room-link" },
         el("strong", {}, r.name), ` ${r.scene} · ${r.n}×${r.n} · ${STATE_TEXT[r.state] || r.state}`
         + ` · round ${r.round} · first to ${r.first_to} · ${r.spectators} watching`),
-      seats));
+      seats, seatHint(r)));
   }
   // room filter options: live rooms and rooms seen in replays
   const sel = $("replay-room");

@@ -10,14 +10,20 @@
 
 import { multiply } from "./camera.js";
 
-export const SEAT_COLORS = ["#ef5b3f", "#3f8cef", "#3fc26b", "#e8c13a"];
-export const CLOTH_COLOR = [0.74, 0.66, 0.95];
-const BACKGROUND = [0.071, 0.082, 0.11];
-
 export function hexColor(hex) {
   const v = parseInt(hex.slice(1), 16);
   return [((v >> 16) & 255) / 255, ((v >> 8) & 255) / 255, (v & 255) / 255];
 }
+
+// The one palette of both clients (the desktop window reads the same file).
+export const PALETTE = await (await fetch(new URL("./palette.json", import.meta.url))).json();
+export const SEAT_COLORS = PALETTE.seats;
+const CLOTH_FRONT = hexColor(PALETTE.cloth_front);
+const CLOTH_BACK = hexColor(PALETTE.cloth_back);
+const BALL = hexColor(PALETTE.ball);
+const UNGUARDED = hexColor(PALETTE.unguarded);
+const BACKGROUND = hexColor(PALETTE.background);
+const FLOOR_LINES = hexColor(PALETTE.floor_lines);
 
 const CLOTH_VS = `#version 300 es
 precision highp float;
@@ -62,14 +68,15 @@ in vec2 vUV;
 uniform vec3 uEye;
 uniform vec3 uLight;
 uniform vec3 uColor;
+uniform vec3 uBack;
 uniform vec4 uEdge[4];
 uniform float uBand;
 out vec4 outColor;
 void main() {
   vec3 n = normalize(vNormal);
   vec3 v = normalize(uEye - vWorld);
-  if (dot(n, v) < 0.0) n = -n;  // both sides of the cloth are lit
   vec3 base = uColor;
+  if (dot(n, v) < 0.0) { n = -n; base = uBack; }  // both sides lit, the underside darker
   float chk = mod(floor(vUV.x * 12.0) + floor(vUV.y * 12.0), 2.0);
   base *= 0.94 + 0.06 * chk;
   // edge e runs from corner e to corner e+1: north i=0, east j=n-1, south i=n-1, west j=0
@@ -146,12 +153,13 @@ in vec2 vXZ;
 uniform float uCell;
 uniform float uExtent;
 uniform vec3 uBg;
+uniform vec3 uLines;
 out vec4 outColor;
 void main() {
   vec2 g = abs(fract(vXZ / uCell - 0.5) - 0.5) / fwidth(vXZ / uCell);
   float line = 1.0 - min(min(g.x, g.y), 1.0);
   float fade = 1.0 - smoothstep(0.3 * uExtent, uExtent, length(vXZ));
-  vec3 c = mix(uBg, vec3(0.32, 0.36, 0.45), line * fade * 0.8);
+  vec3 c = mix(uBg, uLines, line * fade * 0.8);
   outColor = vec4(c, 1.0);
 }`;
 
@@ -389,6 +397,7 @@ export class Renderer {
     gl.uniform1f(f.u.uExtent, 4 * this.size);
     gl.uniform1f(f.u.uCell, 0.25 * this.size);
     gl.uniform3fv(f.u.uBg, BACKGROUND);
+    gl.uniform3fv(f.u.uLines, FLOOR_LINES);
     gl.bindVertexArray(this.floorVao);
     gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
 
@@ -413,7 +422,8 @@ export class Renderer {
     gl.uniformMatrix4fv(c.u.uVP, false, vp);
     gl.uniform3fv(c.u.uEye, eye);
     gl.uniform3fv(c.u.uLight, this.light);
-    gl.uniform3fv(c.u.uColor, CLOTH_COLOR);
+    gl.uniform3fv(c.u.uColor, CLOTH_FRONT);
+    gl.uniform3fv(c.u.uBack, CLOTH_BACK);
     gl.uniform4fv(c.u.uEdge, this.edges.flat());
     gl.uniform1f(c.u.uBand, Math.min(0.12, Math.max(1.6 / (this.n - 1), 0.035)));
     gl.bindVertexArray(this.emptyVao);
@@ -431,7 +441,7 @@ export class Renderer {
     if (ballShown) {
       gl.uniform3fv(s.u.uCenter, this.ball.position);
       gl.uniform1f(s.u.uRadius, this.ball.radius);
-      gl.uniform4fv(s.u.uColor, [0.96, 0.96, 0.93, 1]);
+      gl.uniform4fv(s.u.uColor, [...BALL, 1]);
       gl.drawElements(gl.TRIANGLES, this.sphereCount, gl.UNSIGNED_SHORT, 0);
     }
     for (let e = 0; e < 4; e++) {
@@ -439,7 +449,7 @@ export class Renderer {
       const on = this.edges[e][3] > 0;
       gl.uniform3fv(s.u.uCenter, this.corners[e]);
       gl.uniform1f(s.u.uRadius, 0.03 * this.size);
-      gl.uniform4fv(s.u.uColor, on ? [...col, 1] : [0.45, 0.47, 0.52, 1]);
+      gl.uniform4fv(s.u.uColor, on ? [...col, 1] : [...UNGUARDED, 1]);
       gl.drawElements(gl.TRIANGLES, this.sphereCount, gl.UNSIGNED_SHORT, 0);
       if (on && this.hips) {
         gl.uniform3fv(s.u.uCenter, this.hips[e]);

@@ -19,27 +19,36 @@ from __future__ import annotations
 
 import bisect
 import collections
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-# Seat colours (RGB 0..1): corner handles, names and the edge each seat guards.
-SEAT_COLOURS: tuple[tuple[float, float, float], ...] = (
-    (0.91, 0.30, 0.24),  # 0 north: red
-    (0.20, 0.60, 0.86),  # 1 east: blue
-    (0.18, 0.80, 0.44),  # 2 south: green
-    (0.95, 0.77, 0.06),  # 3 west: yellow
-)
-UNGUARDED = (0.55, 0.55, 0.55)
+from ..sim.scene import ASSETS
+
+PALETTE_PATH = ASSETS / "web" / "palette.json"  # the colours of both clients, one file
+
+
+def _rgb(hex_colour: str) -> tuple[float, float, float]:
+    v = int(hex_colour.lstrip("#"), 16)
+    return ((v >> 16 & 255) / 255, (v >> 8 & 255) / 255, (v & 255) / 255)
+
+
+PALETTE: dict[str, Any] = json.loads(PALETTE_PATH.read_text(encoding="utf-8"))
+# Seat colours (RGB 0..1): corner handles, names and the edge each seat guards
+# (0 north: red, 1 east: blue, 2 south: green, 3 west: yellow).
+SEAT_COLOURS: tuple[tuple[float, float, float], ...] = tuple(
+    _rgb(c) for c in PALETTE["seats"])
+UNGUARDED = _rgb(PALETTE["unguarded"])
 # The scene's colours (the window test recognises the cloth by its hue).
-CLOTH_FRONT = (0.86, 0.78, 0.58)  # canvas
-CLOTH_BACK = (0.55, 0.46, 0.30)
-BALL_COLOUR = (0.95, 0.42, 0.12)
-BACKGROUND = (0.10, 0.12, 0.16)
-WIRE_COLOUR = (0.15, 0.15, 0.18)
-FLOOR_COLOUR = (0.16, 0.19, 0.24)
+CLOTH_FRONT = _rgb(PALETTE["cloth_front"])  # canvas
+CLOTH_BACK = _rgb(PALETTE["cloth_back"])
+BALL_COLOUR = _rgb(PALETTE["ball"])
+BACKGROUND = _rgb(PALETTE["background"])
+WIRE_COLOUR = _rgb(PALETTE["wire"])
+FLOOR_COLOUR = _rgb(PALETTE["floor"])
 EDGE_NAMES = ("north", "east", "south", "west")
 
 

@@ -15,11 +15,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from clothball.game.sim.scene import Scene
 from clothball.server.room import RoomSettings
 from clothball.server.thread import ServerThread
 
+from tests.client.test_client_window import cloth_like
 from tests.web.conftest import console_errors, find_browser, make_driver, wait_for, web_server
 from tests.web.web_vectors import VECTORS
 
@@ -33,15 +35,14 @@ SCENE.name = "small"
 SETTINGS = RoomSettings(autoplay=True, first_to=3, countdown=0.6, reset_speed=1.5,
                         restart_delay=1.0)
 
-# The cloth's colour in the page (render.js CLOTH_COLOR = 0.74, 0.66, 0.95) is lit as
-# base * (0.3 + 0.7 * diffuse) + a grey specular term: whatever the light, blue is the
-# largest channel, red next, green least. The background, floor grid (grey-blue, green >
-# red), the white ball and the four edge colours all break that order.
+# The cloth's colours in the page are the desktop's (assets/web/palette.json, read by both
+# clients), lit as base * (0.3 + 0.7 * diffuse) + a grey specular term: the hue ratio
+# of the desktop's window test (unchanged by the light's scale and by added grey) tells
+# cloth from the background, the floor grid and the ball.
 
 
 def is_cloth(rgb: tuple[int, ...]) -> bool:
-    r, g, b = rgb[:3]
-    return b > 60 and b > r + 10 and r > g + 4
+    return bool(cloth_like(np.array(rgb[:3], dtype=np.float64) / 255.0))
 
 
 @pytest.fixture(scope="module")
@@ -429,3 +430,40 @@ def test_phone_banner_keeps_names_whole_under_the_corner_labels(live: ServerThre
         assert z[0] > z[1]
     finally:
         driver.set_window_size(size["width"], size["height"])
+
+
+def test_lobby_says_which_corner_a_human_can_take(live: ServerThread, driver) -> None:
+    """Each live room says which corners a human may take (the server's ``open`` seats:
+    empty ones and bots', bots being backfill) and the command that takes one."""
+    open_page(driver, live.url)
+    hint = wait_for(lambda: driver.find_element("css selector", "#rooms .seat-hint").text,
+                    10, "the seat hint")
+    info = live.call(lambda s: s.main_room.info())
+    open_seats = [s for s in info["seats"] if s["open"]]
+    assert open_seats, info["seats"]  # the bots' room: every corner is a bot's
+    assert hint.startswith("To play, take a corner:")
+    for s in open_seats:
+        assert f"{s['edge']} ({s['name']}, a bot, makes way)" in hint, hint
+    ws = live.url.replace("http://", "ws://").rstrip("/") + "/ws"
+    assert (f"clothball play --server {ws} --room {info['id']} --seat "
+            f"{open_seats[0]['seat']}") in hint, hint
+    assert console_errors(driver) == []
+
+
+def test_one_palette_for_both_clients(live: ServerThread, driver) -> None:
+    """The page's seat colours (scoreboard swatches) and scene colours are the desktop
+    window's: both read assets/web/palette.json."""
+    from clothball.game.client.interp import BALL_COLOUR, CLOTH_BACK, CLOTH_FRONT, SEAT_COLOURS
+
+    rid = main_room(live)
+    open_page(driver, f"{live.url}#/room/{rid}")
+    wait_for(lambda: len(driver.find_elements("css selector", "#scoreboard .swatch")) == 4, 10,
+             "the scoreboard")
+    swatches = js(driver, """return [...document.querySelectorAll('#scoreboard .swatch')]
+        .map(e => getComputedStyle(e).backgroundColor)""")
+    want = [f"rgb({', '.join(str(round(v * 255)) for v in c)})" for c in SEAT_COLOURS]
+    assert swatches == want
+    page = js(driver, """return import('/static/render.js').then(m => m.PALETTE)""")
+    rgb = lambda hx: tuple(int(hx[k:k + 2], 16) / 255 for k in (1, 3, 5))  # noqa: E731
+    assert np.allclose([rgb(page[k]) for k in ("cloth_front", "cloth_back", "ball")],
+                       [CLOTH_FRONT, CLOTH_BACK, BALL_COLOUR])
