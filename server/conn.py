@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import ipaddress
 import logging
 import secrets
 import time
@@ -52,15 +53,47 @@ class TokenBucket:
         return False
 
 
+def client_address(peer: str, forwarded_for: str | None,
+                   trusted: tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]) -> str:
+    """The client's address: the socket's ``peer``, or, when the peer is a trusted proxy,
+    the nearest address in its ``X-Forwarded-For`` that is not itself a trusted proxy
+    (entries to the left of that one were written by the client and prove nothing)."""
+    if not trusted or forwarded_for is None or not _within(peer, trusted):
+        return peer
+    for entry in reversed(forwarded_for.split(",")):
+        entry = entry.strip()
+        try:
+            ip = ipaddress.ip_address(entry)
+        except ValueError:
+            return peer  # not an address: a proxy that does not say who its client is
+        if not _within(str(ip), trusted):
+            return str(ip)
+    return peer
+
+
+def _within(address: str, nets: tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]
+            ) -> bool:
+    try:
+        ip = ipaddress.ip_address(address)
+    except ValueError:
+        return False
+    return any(ip in n for n in nets)
+
+
 class Conn:
     """A websocket client of the server (lobby, player or spectator)."""
 
-    def __init__(self, ws: ServerConnection, limits: Limits = DEFAULT) -> None:
+    def __init__(self, ws: ServerConnection, limits: Limits = DEFAULT, *,
+                 address: str | None = None, house: bool = False) -> None:
+        """``address``: the client's, where a trusted proxy forwarded it (else the
+        socket's peer); ``house``: one of the server's own bots (no per-address slot)."""
         self.id = secrets.token_urlsafe(6)
         self.ws = ws
         self.limits = limits
         addr = ws.remote_address
-        self.address: str = str(addr[0]) if addr else "?"
+        self.address: str = address or (str(addr[0]) if addr else "?")
+        self.house = house
+        self.last_in = time.monotonic()  # when the client last sent a message
         self.role = "lobby"  # "lobby", "player", "spectator"
         self.room: Room | None = None
         self.seat: int | None = None

@@ -49,7 +49,7 @@ from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
 from ..game.wire.protocol import ProtocolError, check_text
-from .conn import Conn, TokenBucket
+from .conn import Conn, TokenBucket, client_address
 from .limits import Limits
 from .lobby import Lobby
 from .replays import ReplayStore
@@ -172,6 +172,8 @@ class HttpHost(Protocol):
     store: ReplayStore | None
     recording_error: str | None
     host_token: str
+    house_key: str  # in the URL of the server's own bots (?house=)
+    trusted_proxies: tuple[Any, ...]  # server.limits.parse_trusted_proxies
     web_dir: Path
     stats: dict[str, int]
 
@@ -225,7 +227,9 @@ class HttpSurface:
     async def process_request(self, connection: ServerConnection, request: Request
                                ) -> Response | None:
         addr = connection.remote_address
-        address = str(addr[0]) if addr else "?"
+        address = client_address(str(addr[0]) if addr else "?",
+                                 request.headers.get("X-Forwarded-For"),
+                                 self.srv.trusted_proxies)
         try:
             return await self._process(address, request, connection)
         except Exception:  # pragma: no cover - never take the server down on a request
@@ -278,7 +282,14 @@ class HttpSurface:
                 self.srv.stats["refused_connections"] += 1
                 return self._error(403, f"origin {origin[:100]!r} is not allowed here (the "
                                         "host can allow it with --origin)")
-            if len(self.srv.clients) >= self.srv.limits.max_clients:
+            # What the connection handler needs (server.ws): who the client is, and whether
+            # it is one of this server's own bots (bounded by rooms x seats, not counted).
+            house = hmac.compare_digest(
+                urllib.parse.parse_qs(query).get("house", [""])[0].encode(),
+                self.srv.house_key.encode())
+            connection.client_address = address  # type: ignore[attr-defined]
+            connection.house = house  # type: ignore[attr-defined]
+            if not house and len(self.srv.clients) >= self.srv.limits.max_clients:
                 self.srv.stats["refused_connections"] += 1
                 return self._error(503, f"server full ({self.srv.limits.max_clients} connections)")
             return None

@@ -8,6 +8,7 @@ restricts browser origins with ``--origin URL``; in Python, ``GameServer(limits=
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
 from dataclasses import dataclass, fields
 
@@ -54,6 +55,7 @@ class Limits:
     # client that stops reading is noticed within seconds and holds at most this much
     # kernel memory, instead of the megabytes TCP autotuning would give it.
     socket_send_buffer: int = 128 * 1024
+    lobby_idle_s: float = 60.0  # s a lobby connection may send nothing (else closed 1008)
     ping_interval: float = 20.0  # s between keep-alive pings
     ping_timeout: float = 20.0  # s without a pong: the client is gone (closed 1011)
 
@@ -97,6 +99,20 @@ def parse_origins(origins: list[str] | None) -> tuple[str, ...] | None:
     return tuple(out)
 
 
+def parse_trusted_proxies(values: list[str] | None
+                          ) -> tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]:
+    """The ``--trusted-proxy`` values (an address or a network such as 10.0.0.0/8): the
+    peers whose ``X-Forwarded-For`` names the client."""
+    out = []
+    for v in values or ():
+        try:
+            out.append(ipaddress.ip_network(v.strip(), strict=False))
+        except ValueError:
+            raise ValueError(f"--trusted-proxy {v!r}: expected an IP address or network, "
+                             "e.g. 127.0.0.1 or 10.0.0.0/8") from None
+    return tuple(out)
+
+
 DEFAULT = Limits()
 
-__all__ = ["DEFAULT", "Limits", "parse_origins"]
+__all__ = ["DEFAULT", "Limits", "parse_origins", "parse_trusted_proxies"]
