@@ -43,7 +43,8 @@ class GameServer:
                  default_room: bool = True, web_dir: Path | None = None,
                  bot_factory: Callable[..., Any] | None = None,
                  hello_timeout: float | None = None, limits: Limits | None = None,
-                 origins: tuple[str, ...] | None = None, host_token: str | None = None) -> None:
+                 origins: tuple[str, ...] | None = None, host_token: str | None = None,
+                 trusted_proxies: tuple[Any, ...] = ()) -> None:
         if scenes is None:
             scenes = {"classic": Scene.load("classic")}
         self.scenes = scenes
@@ -63,6 +64,10 @@ class GameServer:
         # The host's own credential (/api/stats?reset=1): written to DATA/host-token, which
         # only the host's account can read.
         self.host_token = host_token or secrets.token_urlsafe(24)
+        # Peers whose X-Forwarded-For names the client (limits.parse_trusted_proxies), and
+        # the key in the URL of the server's own bots (their connections take no slot).
+        self.trusted_proxies = trusted_proxies
+        self.house_key = secrets.token_urlsafe(16)
         # A data directory that cannot be written does not stop the game: matches go on
         # without recording, stored rounds are served if they can be read, every place
         # that would show replays says why, and recording resumes once it can.
@@ -114,6 +119,7 @@ class GameServer:
         self._spawn(self._housekeeping())
         self._spawn(self._push_room_lists())
         self._spawn(self._watch_storage())
+        self._spawn(self.ws.sweep_idle())
         return self.host, self.port
 
     @property
@@ -207,7 +213,7 @@ class GameServer:
             from ..game.bots import run_bot
 
             factory = run_bot
-        self._spawn(factory(self.ws_url, room.id, token, difficulty))
+        self._spawn(factory(f"{self.ws_url}?house={self.house_key}", room.id, token, difficulty))
 
     def room_stopped(self, room: Room, reason: str) -> None:
         """A room's simulation failed: it leaves the lobby; the other rooms run on."""

@@ -85,7 +85,10 @@ class WsEndpoint:
         }
 
     async def handler(self, ws: ServerConnection) -> None:
-        conn = Conn(ws, self.srv.limits)
+        # The client's address (forwarded by a trusted proxy) and whether it is one of the
+        # server's own bots: what server.http found at the upgrade.
+        conn = Conn(ws, self.srv.limits, address=getattr(ws, "client_address", None),
+                    house=getattr(ws, "house", False))
         self.srv.clients.add(conn)
         sock = ws.transport.get_extra_info("socket") if ws.transport is not None else None
         if sock is not None:
@@ -94,9 +97,12 @@ class WsEndpoint:
                                 self.srv.limits.socket_send_buffer)
             except OSError:  # pragma: no cover - not settable on this platform
                 pass
-        self.srv.per_address[conn.address] += 1
+        counted = not conn.house  # the server's own bots take no address's slots
+        if counted:
+            self.srv.per_address[conn.address] += 1
         try:
-            if self.srv.per_address[conn.address] > self.srv.limits.conns_per_address:
+            if counted and \
+                    self.srv.per_address[conn.address] > self.srv.limits.conns_per_address:
                 self.srv.stats["refused_connections"] += 1
                 await ws.close(1008, f"too many connections from {conn.address} (limit "
                                      f"{self.srv.limits.conns_per_address})")
@@ -118,6 +124,7 @@ class WsEndpoint:
             async for message in ws:
                 self.srv.stats["messages_in"] += 1
                 conn.received += 1
+                conn.last_in = time.monotonic()
                 if isinstance(message, bytes):
                     self._on_binary(conn, message)
                 else:
@@ -130,13 +137,26 @@ class WsEndpoint:
             if isinstance(ws, Connection):
                 ws.on_binary = None
             self.srv.clients.discard(conn)
-            self.srv.per_address[conn.address] -= 1
-            if self.srv.per_address[conn.address] <= 0:
-                del self.srv.per_address[conn.address]
+            if counted:
+                self.srv.per_address[conn.address] -= 1
+                if self.srv.per_address[conn.address] <= 0:
+                    del self.srv.per_address[conn.address]
             if conn.room is not None:
                 conn.room.disconnected(conn)
             self.srv.stats["messages_out"] += conn.sent
             await conn.finish()
+
+    async def sweep_idle(self) -> None:
+        """Closes lobby connections that have sent nothing for ``Limits.lobby_idle_s``
+        (1008, saying so), so that idle clients cannot hold the server's slots; players and
+        spectators are not idle in this sense (they watch). Runs until the server stops."""
+        while True:
+            limit = self.srv.limits.lobby_idle_s
+            await asyncio.sleep(min(5.0, limit / 4))
+            now = time.monotonic()
+            for c in list(self.srv.clients):
+                if c.role == "lobby" and c.hello_done and now - c.last_in > limit:
+                    c.drop(f"idle: nothing sent for {limit:g} s in the lobby")
 
     async def _hello(self, conn: Conn, first: str | bytes) -> bool:
         """The first message must be a hello. True when the connection may go on."""
@@ -201,6 +221,7 @@ class WsEndpoint:
             return
         self.srv.stats["messages_in"] += 1
         conn.received += 1
+        conn.last_in = time.monotonic()
         try:
             self._on_binary(conn, data)
         except Exception:  # pragma: no cover - a bug: like a failing handler, close 1011

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ...server.app import GameServer, default_data_dir
-from ...server.limits import Limits, parse_origins
+from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ..sim.scene import Scene, SceneError, available
 from .args import FIRST_TO, PORT
 
@@ -39,6 +39,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="also let browser pages from this origin connect (e.g. "
                              "https://example.org; * for any); repeatable; default: only "
                              "the server's own pages and non-browser clients")
+    parser.add_argument("--trusted-proxy", action="append", default=None, metavar="ADDR",
+                        help="a reverse proxy (address or network, e.g. 127.0.0.1) whose "
+                             "X-Forwarded-For names the client: its clients then get the "
+                             "per-address limits one by one; repeatable")
 
 
 async def serve(args: argparse.Namespace) -> int:
@@ -65,12 +69,13 @@ async def serve(args: argparse.Namespace) -> int:
         for text in args.limit:
             limits = limits.with_setting(text)
         origins = parse_origins(args.origin)
+        trusted = parse_trusted_proxies(args.trusted_proxy)
     except ValueError as e:
         print(f"clothball host: {e}")
         return 2
     server = GameServer(data, scenes=scenes, backend=args.backend, host=args.host,
                         port=args.port, bots=args.bots, room_settings=settings, limits=limits,
-                        origins=origins)
+                        origins=origins, trusted_proxies=trusted)
     try:
         await server.start()
     except OSError as e:
