@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import json
 import logging
 import math
 import os
 import secrets
 import time
+import urllib.parse
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -22,11 +24,13 @@ from websockets.asyncio.server import Server, serve
 
 from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
+from .directory import PUBLISH_S, Directory, HostEntry
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .replays import ReplayStore, Retention, Storage, StorageOff, access_key
 from .room import Room, RoomSettings
+from .sim import SimPool
 from .ws import Connection, WsEndpoint
 
 log = logging.getLogger("clothball.server")
@@ -44,7 +48,9 @@ class GameServer:
                  bot_factory: Callable[..., Any] | None = None,
                  hello_timeout: float | None = None, limits: Limits | None = None,
                  origins: tuple[str, ...] | None = None, host_token: str | None = None,
-                 trusted_proxies: tuple[Any, ...] = ()) -> None:
+                 trusted_proxies: tuple[Any, ...] = (),
+                 directory: Directory | None = None, shared_port: int | None = None,
+                 advertise: str | None = None, host_id: str | None = None) -> None:
         if scenes is None:
             scenes = {"classic": Scene.load("classic")}
         self.scenes = scenes
@@ -57,6 +63,14 @@ class GameServer:
         self.web_dir = web_dir or WEB_DIR
         self.data_dir = Path(data_dir)
         self.epoch = time.perf_counter()
+        # One of several processes or hosts of one service (`clothball host --workers`):
+        # the rooms' directory they share, the public port they all listen on (the kernel
+        # spreads new connections over them) and the address this one is reached at.
+        self.directory = directory
+        self.shared_port = shared_port
+        self.advertise = advertise
+        self.host_id = host_id or secrets.token_hex(6)
+        self._shared: Server | None = None
         self.limits = limits or DEFAULT
         if hello_timeout is not None:
             self.limits = self.limits.replace(hello_timeout=hello_timeout)
@@ -75,9 +89,11 @@ class GameServer:
         self.storage = Storage(self.data_dir, retention=Retention.from_limits(lim),
                                min_free_bytes=int(lim.storage_min_free_mib * 2**20))
         self.storage.check_now()
+        # Every room of a scene is a slot of that scene's worker: one call steps them all.
+        self.sims = SimPool(epoch=self.epoch)
         self._write_host_token()
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
-                           max_rooms=self.limits.max_rooms)
+                           max_rooms=self.limits.max_rooms, sims=self.sims)
         self.clients: set[Conn] = set()
         self.per_address: collections.Counter[str] = collections.Counter()
         self._server: Server | None = None
@@ -97,37 +113,126 @@ class GameServer:
         """Listen and open the main room. A failure to listen (``OSError``: port taken,
         address not here) closes the replay index it opened, so nothing is left open."""
         try:
-            self._server = await serve(
-                self.ws.handler, self.host, self.port, process_request=self.http.process_request,
-                max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
-                create_connection=Connection,
-                ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
-                close_timeout=2,
-                open_timeout=None,  # Connection bounds its own handshake (server.ws)
-            )
+            self._server = await self._listen(self.port)
+            if self.shared_port is not None:
+                self._shared = await self._listen(self.shared_port, reuse_port=True)
         except BaseException:
+            if self._server is not None:
+                self._server.close()
             self.storage.close()
             raise
         sock = next(iter(self._server.sockets))
         self.port = sock.getsockname()[1]
+        main_id = "main"
+        if self.directory is not None:
+            self.lobby.me = HostEntry(self.host_id, self.advertised_url)
+            await self._publish()
+            there = self.lobby.peers.locate("main") if self.lobby.peers else None
+            if there is not None and there.host_id != self.host_id:
+                main_id = f"main-{self.host_id[-4:]}"  # another host's show room is "main"
         if self.default_room:
             settings = self.room_settings or RoomSettings(autoplay=True)
             self.main_room = self.lobby.create("main", public=True, settings=settings,
-                                               permanent=True, room_id="main")
+                                               permanent=True, room_id=main_id)
             for _ in range(self.bots):
                 self.main_room.add_bot(None, settings.bot_difficulty)
+        if self.directory is not None:
+            await self._publish()  # the others know this process before anyone is sent here
+            self._spawn(self._publish_forever())
         self._spawn(self._housekeeping())
         self._spawn(self._push_room_lists())
         self._spawn(self._watch_storage())
         self._spawn(self.ws.sweep_idle())
         return self.host, self.port
 
-    @property
-    def ws_url(self) -> str:
+    async def _listen(self, port: int, **extra: Any) -> Server:
+        return await serve(
+            self.ws.handler, self.host, port, process_request=self.http.process_request,
+            max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
+            create_connection=Connection,
+            ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
+            close_timeout=2,
+            open_timeout=None,  # Connection bounds its own handshake (server.ws)
+            **extra,
+        )
+
+    async def _publish(self) -> None:
+        """This process's rooms and load to the directory; everyone's back."""
+        assert self.directory is not None and self.lobby.me is not None
+        me = self.lobby.me
+        me.rooms, me.clients = len(self.lobby.rooms), len(self.clients)
+        try:
+            await asyncio.to_thread(self.directory.publish, me, self.lobby.published())
+            self.lobby.peers = await asyncio.to_thread(self.directory.read)
+        except Exception as e:  # the store is away: keep the rooms running, say so
+            if self.lobby.directory_error is None:
+                log.warning("room directory unavailable (%s); listing this process's rooms "
+                            "only until it is back", e)
+            self.lobby.peers = None
+            self.lobby.directory_error = (f"the cluster's room directory is unavailable "
+                                          f"({type(e).__name__}); only this host's rooms "
+                                          "are listed")
+            return
+        if self.lobby.directory_error is not None:
+            log.info("room directory back: registered again")
+            self.lobby.directory_error = None
+
+    async def _publish_forever(self) -> None:
+        changes = None
+        next_at = asyncio.get_running_loop().time()
+        while True:
+            if changes is None and hasattr(self.directory, "changes"):
+                try:  # another host's rooms changed: read at once, not at the next tick
+                    changes = await asyncio.to_thread(self.directory.changes)
+                except Exception:
+                    changes = None
+            next_at += PUBLISH_S
+            wait = next_at - asyncio.get_running_loop().time()
+            if changes is not None and wait > 0:
+                try:
+                    msg = await asyncio.to_thread(changes.get_message, timeout=wait)
+                except Exception:
+                    changes, msg = None, None
+                if msg is not None and self.lobby.peers is not None:
+                    with contextlib.suppress(Exception):
+                        self.lobby.peers = await asyncio.to_thread(self.directory.read)
+                    continue
+            elif wait > 0:
+                await asyncio.sleep(wait)
+            if asyncio.get_running_loop().time() - next_at > PUBLISH_S:
+                next_at = asyncio.get_running_loop().time()  # fell behind: no burst
+            await self._publish()
+
+    def _url(self, port: int) -> str:
         host = self.host if self.host not in ("0.0.0.0", "::", "") else "127.0.0.1"
         if ":" in host:
             host = f"[{host}]"
-        return f"ws://{host}:{self.port}/ws"
+        return f"ws://{host}:{port}/ws"
+
+    @property
+    def ws_url(self) -> str:
+        """The address players are given: the shared port when there is one."""
+        return self._url(self.shared_port if self.shared_port is not None else self.port)
+
+    @property
+    def advertised_url(self) -> str:
+        """The address other processes and hosts give out for this one's rooms:
+        ``advertise`` (with this process's own port when several share one), else its own
+        listening address."""
+        if not self.advertise:
+            return self.own_url
+        if self.shared_port is None:
+            return self.advertise
+        parts = urllib.parse.urlsplit(self.advertise)
+        name = parts.hostname or "127.0.0.1"
+        name = f"[{name}]" if ":" in name else name
+        return urllib.parse.urlunsplit((parts.scheme, f"{name}:{self.port}",
+                                        parts.path or "/ws", "", ""))
+
+    @property
+    def own_url(self) -> str:
+        """This process's own address (the one the directory gives out for its rooms)."""
+        return self._url(self.port)
 
     @property
     def http_url(self) -> str:
@@ -135,14 +240,22 @@ class GameServer:
 
     async def stop(self) -> None:
         """Stop accepting, close every connection and room, finish the writes under way."""
-        if self._server is not None:
-            self._server.close(close_connections=True)
+        for srv in (self._shared, self._server):
+            if srv is not None:
+                srv.close(close_connections=True)
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        if self._server is not None:
-            await self._server.wait_closed()
+        for srv in (self._shared, self._server):
+            if srv is not None:
+                await srv.wait_closed()
+        if self.directory is not None:
+            try:
+                await asyncio.to_thread(self.directory.withdraw, self.host_id)
+            except Exception as e:
+                log.warning("could not leave the room directory: %s", e)
         await self.lobby.close()
+        await asyncio.to_thread(self.sims.close)
         if self._saves:
             await asyncio.gather(*self._saves, return_exceptions=True)
         self.http.close()
@@ -193,15 +306,14 @@ class GameServer:
         def key(rooms: list[dict[str, Any]]) -> str:
             return json.dumps([{**r, "frame": 0} for r in rooms], sort_keys=True)
 
-        last = key(self.lobby.listing())
+        last = key(self.lobby.rooms_message()["rooms"])
         while True:
             await asyncio.sleep(LOBBY_PUSH_S)
-            rooms = self.lobby.listing()
-            now = key(rooms)
+            msg = self.lobby.rooms_message()
+            now = key(msg["rooms"]) + str(msg.get("directory_error"))
             if now == last:
                 continue
             last = now
-            msg = {"type": "rooms", "rooms": rooms}
             for c in self.clients:
                 if c.role == "lobby" and c.hello_done:
                     c.send_json(msg)
@@ -213,7 +325,7 @@ class GameServer:
             from ..game.bots import run_bot
 
             factory = run_bot
-        self._spawn(factory(f"{self.ws_url}?house={self.house_key}", room.id, token, difficulty))
+        self._spawn(factory(f"{self.own_url}?house={self.house_key}", room.id, token, difficulty))
 
     def room_stopped(self, room: Room, reason: str) -> None:
         """A room's simulation failed: it leaves the lobby; the other rooms run on."""
@@ -266,8 +378,8 @@ class GameServer:
             st = room.sim.stats
             rooms[rid] = {
                 "frames": st.frames, "steps": st.steps, "skipped_frames": st.skipped_frames,
-                "meshes": st.meshes, "substeps": room.sim.cloth.substeps,
-                "backend": room.sim.cloth.backend, "n": room.scene.n,
+                "meshes": st.meshes, "substeps": room.sim.substeps,
+                "backend": room.sim.backend, "n": room.scene.n,
                 "lateness_ms": _percentiles(lat),
             }
         return {

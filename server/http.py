@@ -296,7 +296,9 @@ class HttpSurface:
         if path == "/healthz":  # on the loop: never behind files or index queries
             return self._response(200, b"ok\n", "text/plain; charset=utf-8")
         if path == "/api/rooms":  # live state: read on the loop that changes it
-            return self._json({"rooms": self.srv.lobby.listing()})
+            msg = self.srv.lobby.rooms_message()
+            del msg["type"]
+            return self._json(msg)
         if path == "/api/stats":
             if "reset" in urllib.parse.parse_qs(query, keep_blank_values=True):
                 if not self._is_host(request):

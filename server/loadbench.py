@@ -99,7 +99,7 @@ async def _serve(args: argparse.Namespace) -> None:
                          limits=limits)
         await srv.start()
         room = srv.main_room
-        probe = room.sim.cloth if room is not None else None
+        probe = room.sim if room is not None else None
         if probe is None:  # no room yet: a throw-away cloth says what a room will run
             from ..game.sim.cloth import Cloth
 

@@ -11,7 +11,9 @@ from typing import Any
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
+from .directory import HostEntry, Moved, Snapshot
 from .room import Room, RoomHost, RoomSettings
+from .sim import SimPool
 
 log = logging.getLogger("clothball.server")
 
@@ -22,7 +24,7 @@ IDLE_CLOSE_S = 60.0  # a client-created room with nobody in it closes after this
 class Lobby:
     def __init__(self, scenes: dict[str, Scene], host: RoomHost, backend: str = "auto",
                  max_rooms: int = MAX_ROOMS, room_factory: Callable[..., Room] = Room,
-                 epoch: float | None = None) -> None:
+                 epoch: float | None = None, sims: SimPool | None = None) -> None:
         if not scenes:
             raise ValueError("scenes: at least one scene is needed")
         self.scenes = scenes
@@ -34,6 +36,12 @@ class Lobby:
         self.addresses: dict[str, str] = {}  # room id -> the address that created it
         self._room_factory = room_factory
         self.epoch = epoch
+        self.sims = sims  # the simulation workers every room of this lobby runs on
+        # With a shared directory (several processes or hosts): this process's entry and
+        # the last snapshot of everyone's rooms (None: this lobby is the whole service).
+        self.me: HostEntry | None = None
+        self.peers: Snapshot | None = None
+        self.directory_error: str | None = None  # why the others' rooms are not listed
 
     def create(self, name: str, scene: str | None = None, *, public: bool = True,
                settings: RoomSettings | None = None, owner: str | None = None,
@@ -55,20 +63,43 @@ class Lobby:
             raise ValueError(f"room id {room_id!r} is taken")
         room = self._room_factory(room_id, name, self.scenes[scene_name], self.host,
                                   backend=self.backend, public=public, settings=settings,
-                                  owner=owner, epoch=self.epoch)
+                                  owner=owner, epoch=self.epoch, sims=self.sims)
         self.rooms[room_id] = room
         if address is not None:
             self.addresses[room_id] = address
         room.permanent = permanent
+        if self.me is not None:
+            self.me.rooms = len(self.rooms)  # placement sees this room before it is published
         room.start()
         log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
                  "public" if public else "private")
         return room
 
     def get(self, room_id: object) -> Room:
-        if not isinstance(room_id, str) or room_id not in self.rooms:
-            raise ProtocolError("unknown_room", f"no room {room_id!r}")
-        return self.rooms[room_id]
+        """A room of this process; ``Moved`` when another process or host has it."""
+        if isinstance(room_id, str) and room_id in self.rooms:
+            return self.rooms[room_id]
+        if isinstance(room_id, str) and self.peers is not None and self.me is not None:
+            there = self.peers.locate(room_id)
+            if there is not None and there.host_id != self.me.host_id:
+                raise Moved(there.address, f"room {room_id} lives at {there.address}")
+        raise ProtocolError("unknown_room", f"no room {room_id!r}")
+
+    def place(self, clients: int) -> None:
+        """Where a new room goes: here, or ``Moved`` to the least-loaded process or host
+        (rooms, then clients; this one's ``clients`` as of now) when that is not this
+        one."""
+        if self.peers is None or self.me is None:
+            return
+        self.me.rooms, self.me.clients = len(self.rooms), clients
+        hosts = dict(self.peers.hosts)
+        hosts[self.me.host_id] = self.me  # this process's own load as of now
+        best = min(hosts.values(), key=lambda h: (h.load, h.host_id != self.me.host_id))
+        if best.host_id != self.me.host_id and best.load < self.me.load:
+            # `placed`: the host it is sent to takes it, whatever its own (perhaps older)
+            # view of the loads says; else two views could send it to and fro.
+            raise Moved(best.address, f"new rooms go to {best.address} (least loaded)",
+                        {"placed": True})
 
     def rooms_of(self, address: str) -> int:
         """How many open rooms were created from ``address``."""
@@ -82,8 +113,30 @@ class Lobby:
             await room.close()
 
     def listing(self) -> list[dict[str, Any]]:
-        """The public rooms (private ones are joined by id and code)."""
-        return [r.info() for r in self.rooms.values() if r.public]
+        """The public rooms (private ones are joined by id and code): this process's as
+        they are now and, with a directory, every other process's as last published, each
+        marked with the address it lives at (``host``)."""
+        if self.me is None:
+            return [r.info() for r in self.rooms.values() if r.public]
+        mine = [{**r.info(), "host": self.me.address} for r in self.rooms.values() if r.public]
+        others = [] if self.peers is None else [
+            r for r in self.peers.listing()
+            if r["id"] not in self.rooms and r["host"] != self.me.address]
+        return sorted(mine + others, key=lambda r: r["id"])
+
+    def rooms_message(self) -> dict[str, Any]:
+        """The ``rooms`` reply: the listing and, while the shared directory cannot be
+        reached, ``directory_error`` saying so (only this process's rooms are listed)."""
+        msg: dict[str, Any] = {"type": "rooms", "rooms": self.listing()}
+        if self.directory_error is not None:
+            msg["directory_error"] = self.directory_error
+        return msg
+
+    def published(self) -> list[tuple[str, bool, dict[str, Any]]]:
+        """This process's rooms for the directory: (id, public, info); a private room's
+        info is only its id (its code never leaves this process)."""
+        return [(rid, r.public, r.info() if r.public else {"id": rid})
+                for rid, r in self.rooms.items()]
 
     async def close_idle(self, now: float) -> None:
         for rid, room in list(self.rooms.items()):

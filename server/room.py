@@ -23,7 +23,7 @@ from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from ..game.wire.replay import REPLAY_VERSION, new_round_id, recorded_length
-from .sim import FrameResult, RoomSim
+from .sim import FrameResult, RoomSim, SimPool
 
 log = logging.getLogger("clothball.server")
 
@@ -116,7 +116,7 @@ class Room:
                  settings: RoomSettings | None = None, owner: str | None = None,
                  mesh_hz: float = 30.0, track_hz: float = 100.0,
                  clock: Callable[[], float] = time.perf_counter, epoch: float | None = None,
-                 rng: np.random.Generator | None = None) -> None:
+                 rng: np.random.Generator | None = None, sims: SimPool | None = None) -> None:
         self.id = room_id
         self.name = name
         self.scene = scene
@@ -132,8 +132,10 @@ class Room:
         self.track_hz = track_hz
         self.rng = rng or np.random.default_rng()
         self.loop = asyncio.get_running_loop()
+        # `sims`: the server's pool (this room becomes a slot of its scene's worker).
         self.sim = RoomSim(scene, backend, deliver=self._on_frame, loop=self.loop,
-                           mesh_hz=mesh_hz, track_hz=track_hz, clock=clock, epoch=epoch)
+                           mesh_hz=mesh_hz, track_hz=track_hz, clock=clock, epoch=epoch,
+                           pool=sims)
         self.anchors = self.sim.anchors
         self.size = self.sim.size
         self.half_extent = np.full(3, REACH_FRACTION * self.size)

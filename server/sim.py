@@ -1,22 +1,28 @@
-"""A room's simulation thread: simulated time locked to wall time, in 1 ms frames.
+"""The rooms' simulation: simulated time locked to wall time, in 1 ms frames, every room of
+one scene stepped by one call.
 
-The thread owns the ``Cloth`` (which is not thread-safe) and keeps its pace whatever the
-event loop or the network does: it sleeps until the next frame is due, applies the latest
-hand positions (latest wins), steps every frame that is due (catching up at most
-``max_catchup`` frames after a hiccup; older time is dropped and counted), reads back the
-four corners and the ball, checks whether the ball has left the cloth, and hands the result
-to the event loop *coalesced*: at most one delivery is pending at a time and it carries the
-newest frame, so a busy loop never builds a queue. Every ``1/mesh_hz`` s it quantises the
-mesh into a MESH message (once for all spectators), and while a round is recorded it keeps
-the MESH messages and a TRACK message every ``1/track_hz`` s.
+A ``SimPool`` holds the server's sim workers, one per (scene, backend, precision). A worker
+owns a ``ClothBatch`` (each room is one slot) and one thread that keeps the pace whatever the
+event loop or the network does: it sleeps until the next frame is due, applies every room's
+latest hand positions (latest wins) in one call, steps every frame that is due for all its
+rooms in one call (catching up at most ``max_catchup`` frames after a hiccup; older time is
+dropped and counted), reads back all corners and balls in one call, checks each room's ball
+against its edges, and hands the results to the event loop *coalesced*: at most one delivery
+per room is pending at a time and it carries the newest frame, so a busy loop never builds a
+queue, and one loop wake-up carries every room's result. Every ``1/mesh_hz`` s a room's mesh
+is quantised into a MESH message (once for all its spectators, on the worker's encoder
+thread), and while a round is recorded the room keeps the MESH messages and a TRACK message
+every ``1/track_hz`` s.
 
-The event loop talks to the thread only through ``set_hip`` (an atomic slot per seat) and
-``command`` (a queue the thread drains between frames).
+The event loop talks to a room only through its ``RoomSim``: ``set_hip`` (an atomic slot
+per seat) and ``command`` (a queue the worker drains between frames). A room nobody is in
+sleeps (``set_awake(False)``): its slot keeps its state and is not stepped.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import queue
@@ -29,7 +35,8 @@ from typing import Any
 import numpy as np
 
 from ..game.rules import exit_edge_fast
-from ..game.sim.cloth import Cloth, SimulationError, corners_of, rest_positions
+from ..game.sim.batch import ClothBatch
+from ..game.sim.cloth import corners_of, resolve_backend, rest_positions
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 
@@ -38,6 +45,8 @@ log = logging.getLogger("clothball.server")
 # s: a sleep ends up to this late (Linux's default timer slack), so a frame may start this
 # much before its time instead.
 TIMER_SLACK = 50e-6
+# Rooms one worker's batch holds; a pool opens another worker of the same scene beyond it.
+WORKER_CAPACITY = 64
 
 
 @dataclass
@@ -51,6 +60,15 @@ class FrameResult:
     exit: tuple[int, int, list[float]] | None = None  # (edge, frame, ball position)
     sim_error: str | None = None
 
+    def merge_older(self, prev: FrameResult) -> None:
+        """Coalesce: keep this (newer) frame, but never lose a mesh, an exit or an error."""
+        if self.mesh is None:
+            self.mesh = prev.mesh
+        if self.exit is None:
+            self.exit = prev.exit
+        if self.sim_error is None:
+            self.sim_error = prev.sim_error
+
 
 @dataclass
 class SimStats:
@@ -62,7 +80,11 @@ class SimStats:
 
 
 class RoomSim:
-    """The simulation of one room, run on its own thread (see the module doc)."""
+    """One room's simulation: a slot of its scene's worker (see the module doc).
+
+    Made with a ``pool`` (the server's); without one it runs on a private pool of its own
+    (a lone room, as in tests and tools), which ``stop`` closes.
+    """
 
     LATENESS_SAMPLES = 200_000
 
@@ -71,13 +93,15 @@ class RoomSim:
                  loop: asyncio.AbstractEventLoop | None = None,
                  mesh_hz: float = 30.0, track_hz: float = 100.0, max_catchup: int = 50,
                  compress_mesh: bool = True, clock: Callable[[], float] = time.perf_counter,
-                 epoch: float | None = None, cpu_threads: int | None = 1) -> None:
+                 epoch: float | None = None, cpu_threads: int | None = 1,
+                 pool: SimPool | None = None) -> None:
+        self._own_pool = pool is None
+        if pool is None:
+            pool = SimPool(loop=loop, clock=clock, epoch=epoch, max_catchup=max_catchup,
+                           cpu_threads=cpu_threads, compress_mesh=compress_mesh)
+        self.pool = pool
         self.scene = scene
-        self.cpu_threads = cpu_threads
-        # One CPU thread by default: on a small machine a second OpenMP thread competes with
-        # the event loop for the cores, and its spinning barriers then cost whole slices.
-        self.cloth = Cloth(scene, backend=backend, threads=cpu_threads)
-        self.frame_dt = self.cloth.frame_dt
+        self.frame_dt = float(scene["sim"]["frame_dt"])
         rest = rest_positions(scene)
         self.anchors = corners_of(rest)
         self.size = float(scene["cloth"]["size"])
@@ -88,60 +112,64 @@ class RoomSim:
         self.stiffness = float(scene["coupling"]["stiffness"]) if coupled else 0.0
         self.mesh_every = max(1, round(1.0 / (mesh_hz * self.frame_dt)))
         self.track_every = max(1, round(1.0 / (track_hz * self.frame_dt)))
-        self.max_catchup = max_catchup
-        self.compress_mesh = compress_mesh
-        self.clock = clock
-        self.epoch = clock() if epoch is None else epoch  # server time zero
         self._deliver = deliver
-        self._loop = loop
         self._hip_slots: list[tuple[Any, int, float] | None] = [None] * 4
-        self._commands: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
-        self._stop = threading.Event()
-        # Cleared while nobody is there to see the room: the thread does not step (a room
-        # with no one in it costs no CPU), and on waking the slept time is not caught up.
-        self._awake = threading.Event()
-        self._awake.set()
-        self._thread: threading.Thread | None = None
-        self._encoder: threading.Thread | None = None
-        self._mesh_box: tuple[int, float, np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._mesh_ready = threading.Event()
-        self._pending_lock = threading.Lock()
-        self._pending: FrameResult | None = None
+        self._applied: list[tuple[int, float]] = [(0, math.nan)] * 4
+        self._awake = True
+        self._stopped = threading.Event()
+        self.stats = SimStats()
+        self.worker = pool.worker_for(scene, backend)
+        self.backend = self.worker.batch.backend
+        # Worker-thread state.
+        self.slot: int | None = None
         self._armed = False
         self._recordings: dict[str, list[tuple[int, bytes]]] = {}
-        self.stats = SimStats()
-        self._applied: list[tuple[int, float]] = [(0, math.nan)] * 4
+        self._done = 0  # frames stepped since the room last woke
+        self._next_mesh = 0
+        self._next_track = 0
+        self.error: str | None = None
 
     # --- event-loop side ------------------------------------------------------------------
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="clothball-room-sim", daemon=True)
-        self._thread.start()
-        self._encoder = threading.Thread(target=self._encode_meshes, name="clothball-room-mesh",
-                                         daemon=True)
-        self._encoder.start()
+        self.worker.post(self, "add", None)
 
     def stop(self) -> None:
-        self._stop.set()
-        self._mesh_ready.set()
-        for t in (self._thread, self._encoder):
-            if t is not None and t is not threading.current_thread():
-                t.join(timeout=5.0)
+        """Take the room off its worker (waits for the worker to let go of it)."""
+        if not self._stopped.is_set():
+            self.worker.post(self, "remove", None)
+            if not (self.worker.running and self._stopped.wait(timeout=5.0)):
+                self._stopped.set()
+            self.worker.members -= 1
+        if self._own_pool:
+            self.pool.close()
 
     def set_awake(self, awake: bool) -> None:
         """Step the room (True) or let it sleep (False): no stepping, no CPU, until woken;
         it then starts afresh from the state it slept in, at once."""
-        if awake:
-            self._awake.set()
-        else:
-            self._awake.clear()
+        self._awake = bool(awake)
+        self.worker.post(self, "awake", self._awake)
 
     @property
     def asleep(self) -> bool:
-        return not self._awake.is_set()
+        return not self._awake
+
+    @property
+    def alive(self) -> bool:
+        """The room is on a running worker and has not failed."""
+        return self.worker.running and self.error is None and not self._stopped.is_set()
+
+    @property
+    def substeps(self) -> int:
+        return self.worker.batch.substeps
+
+    @property
+    def frame(self) -> int:
+        """Frames simulated since the room started (or last failed and reset)."""
+        return self.stats.frames
 
     def now(self) -> float:
         """Server time: seconds since the server started."""
-        return self.clock() - self.epoch
+        return self.pool.now()
 
     def set_hip(self, seat: int, position: Any, seq: int = 0,
                 client_time: float = math.nan) -> None:
@@ -150,185 +178,378 @@ class RoomSim:
         self._hip_slots[seat] = None if position is None else (position, seq, client_time)
 
     def command(self, name: str, arg: Any = None) -> None:
-        """Queue a command for the thread: ``reset_ball`` ((pos, vel)), ``arm``, ``disarm``,
+        """Queue a command for the worker: ``reset_ball`` ((pos, vel)), ``arm``, ``disarm``,
         ``record_start`` (an id), ``record_event`` (bytes, to every recording in progress),
         ``record_stop`` ((id, callback): the callback gets that recording's records, on the
-        thread). Recordings may overlap (a round's tail and the next round's start)."""
-        self._commands.put((name, arg))
+        worker's thread). Recordings may overlap (a round's tail and the next round's
+        start)."""
+        self.worker.post(self, name, arg)
 
-    # --- thread side ----------------------------------------------------------------------
+    # --- worker side (called on the worker's thread only) ------------------------------------
+    def apply(self, name: str, arg: Any) -> None:
+        w = self.worker
+        if name == "reset_ball":
+            if self.has_ball and self.slot is not None:
+                w.batch.set_ball(self.slot, arg[0], arg[1])
+        elif name == "arm":
+            self._armed = True
+        elif name == "disarm":
+            self._armed = False
+        elif name == "record_start":
+            self._recordings[arg] = []
+        elif name == "record_mesh":
+            for rec in self._recordings.values():
+                rec.append((1, arg))
+        elif name == "record_event":
+            for rec in self._recordings.values():
+                rec.append((0, arg))
+        elif name == "record_stop":
+            rid, callback = arg
+            callback(self._recordings.pop(rid, []))
+
+    def fill_hips(self, out: np.ndarray) -> None:
+        """This frame's hands into ``out`` (4, 3): the newest HIP per seat, else the anchor."""
+        out[:] = self.anchors
+        for s, slot in enumerate(self._hip_slots):
+            if slot is not None:
+                out[s] = slot[0]
+                self._applied[s] = (slot[1], slot[2])
+
+    def woke(self) -> None:
+        """Pace from now, a mesh at once; the slept time is not replayed."""
+        self._done = self._next_mesh = self._next_track = 0
+
+    def after_step(self, frames: int, pos: np.ndarray, vel: np.ndarray, ball: np.ndarray,
+                   hips: np.ndarray, server_time: float, late: float) -> FrameResult:
+        stats = self.stats
+        self._done += frames
+        stats.frames += frames
+        stats.steps += 1
+        frame = stats.frames
+        lat = stats.lateness
+        lat.append(late)
+        if len(lat) > self.LATENESS_SAMPLES:
+            del lat[: len(lat) // 2]
+        force = -self.stiffness * (hips - pos)
+        bp, bv = ball[:3], ball[3:]
+        pl, bpl = pos.tolist(), bp.tolist()
+        corners = P.encode_corners(frame, server_time, pl, vel.tolist(), force.tolist(),
+                                   self.stiffness, bpl, bv.tolist(), self._applied)
+        result = FrameResult(frame, server_time, corners)
+        if self.has_ball:
+            if self._armed:
+                # Plain floats and a cheap exact pre-test: the full test (NumPy, ~30 us)
+                # runs only when the ball is near an edge or the floor.
+                edge = exit_edge_fast(bpl, pl, self.floor_y)
+                if edge is not None:
+                    self._armed = False
+                    result.exit = (edge, frame, bpl)
+            elif bp[1] < self.floor_y - 50.0 * self.size and self.slot is not None:
+                # Nobody is playing and the ball fell off: put it back, keep it bounded.
+                self.worker.batch.set_ball(self.slot, self.scene["ball"]["position"],
+                                           (0.0, 0.0, 0.0))
+        if self._done >= self._next_mesh:
+            self._next_mesh = self._done + self.mesh_every
+            self.worker.want_mesh(self, (frame, server_time, bp.copy(), hips.copy()))
+        if self._recordings and self._done >= self._next_track:
+            self._next_track = self._done + self.track_every
+            track = P.encode_track(frame, server_time, bp, bv, hips, pos)
+            for rec in self._recordings.values():
+                rec.append((1, track))
+        return result
+
+    def deliver(self, result: FrameResult) -> None:
+        if self._deliver is not None and not self._stopped.is_set():
+            self._deliver(result)
+
+
+class SimWorker:
+    """Every room of one (scene, backend, precision), up to its batch's capacity, stepped
+    by one thread (see the module doc)."""
+
+    def __init__(self, pool: SimPool, scene: Scene, backend: str, capacity: int) -> None:
+        self.pool = pool
+        self.scene = scene
+        self.batch = ClothBatch(scene, capacity, backend, on_failure="remove",
+                                threads=pool.cpu_threads)
+        self.frame_dt = self.batch.frame_dt
+        self._hips = np.zeros((capacity, 4, 3))
+        self._hips[:] = corners_of(rest_positions(scene))
+        self.rooms: list[RoomSim] = []  # on the batch (worker thread's list)
+        self.members = 0  # rooms assigned here and not yet removed (event-loop side)
+        # (room, command, argument, clock when posted)
+        self._inbox: queue.SimpleQueue[tuple[RoomSim, str, Any, float]] = queue.SimpleQueue()
+        self._resume_at: float | None = None  # when the first room of an idle spell woke
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._encoder: threading.Thread | None = None
+        self._mesh_lock = threading.Lock()
+        self._mesh_wanted: dict[RoomSim, tuple[Any, ...]] = {}
+        self._mesh_ready = threading.Event()
+        self._pending_lock = threading.Lock()
+        self._pending: dict[RoomSim, FrameResult] = {}
+        self._scheduled = False  # a hand-over is queued on the event loop
+        self.passes = 0  # step calls, all rooms at once
+        self.lateness: list[float] = []  # s, per pass (bounded)
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def full(self) -> bool:
+        return self.members >= self.batch.capacity
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="clothball-sim", daemon=True)
+        self._thread.start()
+        self._encoder = threading.Thread(target=self._encode_meshes, name="clothball-mesh",
+                                         daemon=True)
+        self._encoder.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._mesh_ready.set()
+        for t in (self._thread, self._encoder):
+            if t is not None and t is not threading.current_thread():
+                t.join(timeout=5.0)
+
+    def post(self, room: RoomSim, name: str, arg: Any) -> None:
+        self._inbox.put((room, name, arg, self.pool.clock()))
+        self._wake.set()
+
+    # --- the worker's thread --------------------------------------------------------------
     def _run(self) -> None:
         try:
             self._loop_body()
-        except Exception as e:  # pragma: no cover - a bug: the room stops, like a NaN
-            log.exception("room simulation thread failed")
-            self._publish(FrameResult(-1, self.now(), [], sim_error=f"internal error: {e}"))
+        except Exception as e:  # pragma: no cover - a bug: every room of the worker stops
+            log.exception("simulation worker failed")
+            for room in list(self.rooms):
+                room.error = f"internal error: {e}"
+                self._publish(room, FrameResult(-1, self.pool.now(), [], sim_error=room.error))
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                room, name, arg, posted = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            if name == "add" or (name == "awake" and arg):
+                # An idle worker paces from the moment a room arrived or woke.
+                if self._resume_at is None:
+                    self._resume_at = posted
+            if name == "add":
+                if room.slot is None and not room._stopped.is_set():
+                    room.slot = self.batch.add()
+                    self.rooms.append(room)
+                    self.batch.set_active(room.slot, room._awake)
+            elif name == "remove":
+                self._drop(room)
+                room._stopped.set()
+            elif name == "awake":
+                if room.slot is not None and arg != self.batch.active(room.slot):
+                    self.batch.set_active(room.slot, arg)
+                    if arg:
+                        room.woke()
+            else:
+                room.apply(name, arg)
+
+    def _drop(self, room: RoomSim) -> None:
+        if room in self.rooms:
+            self.rooms.remove(room)
+        if room.slot is not None:
+            self.batch.remove(room.slot)
+            room.slot = None
+        with self._mesh_lock:
+            self._mesh_wanted.pop(room, None)
 
     def _loop_body(self) -> None:
-        cloth, dt = self.cloth, self.frame_dt
-        t0 = self.clock()
+        batch, dt, clock = self.batch, self.frame_dt, self.pool.clock
+        max_catchup = self.pool.max_catchup
+        t0 = clock()
         done = 0  # frames simulated since t0
-        next_mesh = 0
-        next_track = 0
-        stats = self.stats
+        was_idle = True
         while not self._stop.is_set():
-            if not self._awake.is_set():
-                self._drain_commands()  # a recording's end still answers while asleep
-                if self._awake.wait(0.05):
-                    # Woken: pace from now, a mesh at once; the slept time is not replayed.
-                    t0, done, next_mesh, next_track = self.clock(), 0, 0, 0
+            self._drain()
+            live = [r for r in self.rooms if r.slot is not None and batch.active(r.slot)]
+            if not live:
+                # Nothing to step: wait for a room, a wake-up or a command, using no CPU.
+                was_idle = True
+                self._resume_at = None
+                self._wake.wait(0.05)
+                self._wake.clear()
                 continue
-            now = self.clock()
+            if was_idle:
+                # Pace afresh: the idle time is not replayed.
+                t0 = clock() if self._resume_at is None else self._resume_at
+                was_idle, done, self._resume_at = False, 0, None
+            now = clock()
             behind = int((now - t0 + TIMER_SLACK) / dt) - done
             if behind <= 0:
                 # Sleep the whole wait: spinning through the end of it would hold the GIL
                 # while the event loop has HIPs to read and corners to send.
                 time.sleep(t0 + (done + 1) * dt - TIMER_SLACK - now)
                 continue
-            if behind > self.max_catchup:
-                skip = behind - self.max_catchup
+            if behind > max_catchup:
+                skip = behind - max_catchup
                 t0 += skip * dt
-                stats.skipped_frames += skip
-                behind = self.max_catchup
+                for r in live:
+                    r.stats.skipped_frames += skip
+                behind = max_catchup
             # Behind, step a quarter of the frames due (at least one) per pass: each pass takes
             # the newest hand positions and publishes its corners, so a HIP waits for a part
             # of the backlog, not all of it, and a room far behind still catches up quickly.
             frames = min(behind, 1 + behind // 4)
-            self._drain_commands()
-            hips = self.anchors.copy()
-            for s, slot in enumerate(self._hip_slots):
-                if slot is not None:
-                    hips[s] = slot[0]
-                    self._applied[s] = (slot[1], slot[2])
-            cloth.set_hips(hips)
-            try:
-                cloth.step(frames)
-            except SimulationError as e:
-                # The room stops (the server tells its clients and closes it); resetting
-                # would hide a scene or engine fault behind a game that silently restarts.
-                log.error("room simulation stopped: %s", e)
-                self._stop.set()
-                self._mesh_ready.set()
-                self._publish(FrameResult(cloth.frame, self.now(), [], sim_error=str(e)))
-                return
+            hips = self._hips
+            for r in live:
+                r.fill_hips(hips[r.slot])
+            batch.set_hips_all(hips)
+            failed = batch.step(frames)
             done += frames
-            frame = cloth.frame
-            stats.frames += frames
-            stats.steps += 1
-            pos, vel = cloth.corners()
-            force = cloth.corner_forces()
-            if self.has_ball:
-                bp, bv = cloth.ball()
-            else:
-                bp, bv = np.zeros(3), np.zeros(3)
-            t_end = self.clock()
-            server_time = t_end - self.epoch
-            lat = stats.lateness
-            lat.append(t_end - (t0 + done * dt))
-            if len(lat) > self.LATENESS_SAMPLES:
-                del lat[: len(lat) // 2]
-            pl, bpl = pos.tolist(), bp.tolist()
-            corners = P.encode_corners(frame, server_time, pl, vel.tolist(), force.tolist(),
-                                       self.stiffness, bpl, bv.tolist(), self._applied)
-            result = FrameResult(frame, server_time, corners)
-            if self.has_ball:
-                if self._armed:
-                    # Plain floats and a cheap exact pre-test: the full test (NumPy, ~30 us)
-                    # runs only when the ball is near an edge or the floor.
-                    edge = exit_edge_fast(bpl, pl, self.floor_y)
-                    if edge is not None:
-                        self._armed = False
-                        result.exit = (edge, frame, bpl)
-                elif bp[1] < self.floor_y - 50.0 * self.size:
-                    # Nobody is playing and the ball fell off: put it back, keep it bounded.
-                    sp = self.scene["ball"]["position"]
-                    cloth.set_ball(sp, (0.0, 0.0, 0.0))
-            self._publish(result)
-            # The mesh and the track after the per-frame work. Quantising and compressing
-            # the mesh takes about a millisecond: the encoder thread does it, off the frame.
-            if done >= next_mesh:
-                next_mesh = done + self.mesh_every
-                self._mesh_box = (frame, server_time, cloth.positions(), bp, hips.copy())
-                self._mesh_ready.set()
-            if self._recordings and done >= next_track:
-                next_track = done + self.track_every
-                track = P.encode_track(frame, server_time, bp, bv, hips, pos)
-                for rec in self._recordings.values():
-                    rec.append((1, track))
+            self.passes += 1
+            pos, vel, balls = batch.corners_all()
+            t_end = clock()
+            server_time = t_end - self.pool.epoch
+            late = t_end - (t0 + done * dt)
+            self.lateness.append(late)
+            if len(self.lateness) > RoomSim.LATENESS_SAMPLES:
+                del self.lateness[: len(self.lateness) // 2]
+            for r in live:
+                if r.slot in failed:
+                    self._fail(r, frames)
+                    continue
+                s = r.slot
+                self._publish(r, r.after_step(frames, pos[s], vel[s], balls[s], hips[s],
+                                              server_time, late))
+            self._flush()
+
+    def _fail(self, room: RoomSim, frames: int) -> None:
+        # The batch freed the slot (on_failure="remove"): this room stops (the server tells
+        # its clients and closes it); resetting would hide a scene or engine fault behind a
+        # game that silently restarts. The worker's other rooms step on.
+        frame = room.stats.frames + frames
+        room.error = (f"simulation state became non-finite by frame {frame} (backend "
+                      f"{self.batch.backend}, {self.batch.precision}, "
+                      f"{self.batch.substeps} substeps)")
+        log.error("room simulation stopped: %s", room.error)
+        room.slot = None
+        if room in self.rooms:
+            self.rooms.remove(room)
+        self._publish(room, FrameResult(frame, self.pool.now(), [], sim_error=room.error))
+
+    def want_mesh(self, room: RoomSim, box: tuple[Any, ...]) -> None:
+        """A mesh of this room is due: read its nodes now (one copy) and let the encoder
+        thread quantise and compress it (about a millisecond), off the frame."""
+        assert room.slot is not None
+        with self._mesh_lock:
+            self._mesh_wanted[room] = (*box, self.batch.positions(room.slot))
+        self._mesh_ready.set()
 
     def _encode_meshes(self) -> None:
-        """The encoder thread: the newest mesh snapshot -> one MESH message."""
+        """The encoder thread: each room's newest mesh snapshot -> one MESH message."""
         while not self._stop.is_set():
             if not self._mesh_ready.wait(0.1):
                 continue
             self._mesh_ready.clear()
-            box, self._mesh_box = self._mesh_box, None
-            if box is None:
-                continue
-            frame, server_time, positions, bp, hips = box
-            mesh = P.encode_mesh(frame, server_time, positions, bp, self.ball_radius, hips,
-                                 compress=self.compress_mesh)
-            self.stats.meshes += 1
-            self._commands.put(("record_mesh", mesh))
-            self._publish_mesh(mesh)
+            with self._mesh_lock:
+                boxes, self._mesh_wanted = self._mesh_wanted, {}
+            for room, (frame, server_time, bp, hips, positions) in boxes.items():
+                mesh = P.encode_mesh(frame, server_time, positions, bp, room.ball_radius, hips,
+                                     compress=self.pool.compress_mesh)
+                room.stats.meshes += 1
+                self.post(room, "record_mesh", mesh)
+                self._publish(room, FrameResult(-1, 0.0, [], mesh=mesh), flush=True)
 
-    def _drain_commands(self) -> None:
-        while True:
-            try:
-                name, arg = self._commands.get_nowait()
-            except queue.Empty:
-                return
-            if name == "reset_ball" and self.has_ball:
-                self.cloth.set_ball(arg[0], arg[1])
-            elif name == "arm":
-                self._armed = True
-            elif name == "disarm":
-                self._armed = False
-            elif name == "record_start":
-                self._recordings[arg] = []
-            elif name == "record_mesh":
-                for rec in self._recordings.values():
-                    rec.append((1, arg))
-            elif name == "record_event":
-                for rec in self._recordings.values():
-                    rec.append((0, arg))
-            elif name == "record_stop":
-                rid, callback = arg
-                callback(self._recordings.pop(rid, []))
-
-    def _publish(self, result: FrameResult) -> None:
+    # --- hand-over to the event loop ------------------------------------------------------
+    def _publish(self, room: RoomSim, result: FrameResult, flush: bool = False) -> None:
         with self._pending_lock:
-            prev = self._pending
-            self._pending = result
+            prev = self._pending.get(room)
             if prev is not None:
-                # Coalesce: keep the newest frame, but never lose a mesh, an exit or an error.
-                if result.mesh is None:
-                    result.mesh = prev.mesh
-                if result.exit is None:
-                    result.exit = prev.exit
-                if result.sim_error is None:
-                    result.sim_error = prev.sim_error
-                return
-        self._schedule()
+                if result.frame < 0:  # a mesh alone rides on the pending frame
+                    prev.mesh = result.mesh
+                    return
+                result.merge_older(prev)
+            self._pending[room] = result
+        if flush:
+            self._flush()
 
-    def _publish_mesh(self, mesh: bytes) -> None:
-        with self._pending_lock:
-            if self._pending is not None:
-                self._pending.mesh = mesh
-                return
-            self._pending = FrameResult(-1, 0.0, [], mesh=mesh)
-        self._schedule()
-
-    def _schedule(self) -> None:
-        if self._loop is None or self._deliver is None:
+    def _flush(self) -> None:
+        loop = self.pool.loop
+        if loop is None:
+            with self._pending_lock:
+                self._pending.clear()
             return
+        with self._pending_lock:
+            if not self._pending or self._scheduled:
+                return
+            self._scheduled = True
         try:
-            self._loop.call_soon_threadsafe(self._hand_over)
+            loop.call_soon_threadsafe(self._hand_over)
         except RuntimeError:  # the loop is closed: the server is stopping
             self._stop.set()
 
     def _hand_over(self) -> None:
         with self._pending_lock:
-            result, self._pending = self._pending, None
-        if result is not None and self._deliver is not None:
-            self._deliver(result)
+            results, self._pending = self._pending, {}
+            self._scheduled = False
+        for room, result in results.items():
+            room.deliver(result)
+
+
+class SimPool:
+    """The server's sim workers: one per (scene, backend, precision), each stepping up to
+    ``capacity`` rooms in one call per frame (another opens when one is full)."""
+
+    def __init__(self, *, loop: asyncio.AbstractEventLoop | None = None,
+                 clock: Callable[[], float] = time.perf_counter, epoch: float | None = None,
+                 max_catchup: int = 50, cpu_threads: int | None = 1,
+                 compress_mesh: bool = True, capacity: int = WORKER_CAPACITY) -> None:
+        self.loop = loop
+        self.clock = clock
+        self.epoch = clock() if epoch is None else epoch  # server time zero
+        self.max_catchup = max_catchup
+        # One CPU thread per worker by default: on a small machine a second OpenMP thread
+        # competes with the event loop for the cores, and its spinning barriers then cost
+        # whole slices (`clothball host --workers` spreads rooms over processes instead).
+        self.cpu_threads = cpu_threads
+        self.compress_mesh = compress_mesh
+        self.capacity = capacity
+        self._workers: dict[tuple[str, str, str], list[SimWorker]] = {}
+        self._lock = threading.Lock()
+
+    def now(self) -> float:
+        return self.clock() - self.epoch
+
+    def worker_for(self, scene: Scene, backend: str) -> SimWorker:
+        """A worker with room for one more room of ``scene`` (started if new)."""
+        if self.loop is None:
+            try:  # results are handed to the loop the rooms are made on
+                self.loop = asyncio.get_running_loop()
+            except RuntimeError:
+                pass
+        resolved, precision, _ = resolve_backend(scene, backend, None)
+        key = (json.dumps(scene.to_dict(), sort_keys=True), resolved, precision)
+        with self._lock:
+            workers = self._workers.setdefault(key, [])
+            for w in workers:
+                if not w.full:
+                    break
+            else:
+                w = SimWorker(self, scene, resolved, self.capacity)
+                workers.append(w)
+                w.start()
+            w.members += 1
+            return w
+
+    @property
+    def workers(self) -> list[SimWorker]:
+        with self._lock:
+            return [w for ws in self._workers.values() for w in ws]
+
+    def close(self) -> None:
+        for w in self.workers:
+            w.stop()
+        with self._lock:
+            self._workers.clear()

@@ -14,6 +14,7 @@ import collections
 import logging
 import socket
 import time
+import urllib.parse
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -24,6 +25,7 @@ from ..game.net.fastpath import BinaryHook
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from .conn import Conn
+from .directory import Moved
 from .limits import Limits
 from .lobby import Lobby, parse_settings
 from .room import Room
@@ -258,6 +260,11 @@ class WsEndpoint:
             self.srv.stats["bad_messages"] += 1
             conn.error(e, re=re)
             return
+        except Moved as m:  # the room lives elsewhere: the client sends this request there
+            reply = {"type": "redirect", "url": self._as_seen_by(conn, m.url),
+                     "reason": m.reason}
+            if m.with_fields:
+                reply["with"] = m.with_fields
         if reply is None and re is not None:
             reply = {"type": "ok"}
         if reply is not None:
@@ -274,13 +281,17 @@ class WsEndpoint:
         return {"type": "pong", "t": t, "server_time": time.perf_counter() - self.srv.epoch}
 
     def _msg_list_rooms(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
-        return {"type": "rooms", "rooms": self.srv.lobby.listing()}
+        return self.srv.lobby.rooms_message()
 
     def _msg_create_room(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
         name = P.field_str(msg, "name", "room", max_len=48) or "room"
         scene = P.field_str(msg, "scene", None, max_len=64)
         public = P.field_bool(msg, "public", True)
         settings = parse_settings(msg)
+        # Moved: another process or host takes new rooms now (unless one sent it here). The
+        # asking client is not counted: it leaves with the request.
+        if not P.field_bool(msg, "placed", False):
+            self.srv.lobby.place(len(self.srv.clients) - 1)
         mine = self.srv.lobby.rooms_of(conn.address)
         if mine >= self.srv.limits.rooms_per_address:
             raise ProtocolError("too_many_rooms", f"{conn.address} already has {mine} open rooms "
@@ -324,6 +335,21 @@ class WsEndpoint:
                                     f"{len(room.spectators)} spectators (the limit)")
             return room.join_spectator(conn, code)
         raise ProtocolError("bad_message", f"role must be 'player' or 'spectator', got {role!r}")
+
+    def _as_seen_by(self, conn: Conn, url: str) -> str:
+        """A sibling process's address as this client can reach it: processes of one
+        machine publish the address they listen on (127.0.0.1 for a wildcard), so the
+        client gets the host name it used itself, with the sibling's port."""
+        mine = urllib.parse.urlsplit(getattr(self.srv, "own_url", "") or "")
+        there = urllib.parse.urlsplit(url)
+        req = getattr(conn.ws, "request", None)
+        host = req.headers.get("Host") if req is not None else None
+        if not host or there.hostname != mine.hostname or there.port is None:
+            return url
+        name = urllib.parse.urlsplit(f"//{host}").hostname or there.hostname
+        name = f"[{name}]" if ":" in name else name
+        return urllib.parse.urlunsplit((there.scheme, f"{name}:{there.port}", there.path, "",
+                                        ""))
 
     def _in_room(self, conn: Conn) -> Room:
         if conn.room is None:

@@ -153,6 +153,7 @@ async function joinRoom(id) {
   const conn = app.conn;
   if (!conn.open) return; // joined again on the next welcome
   const reply = await conn.request({ type: "join", role: "spectator", room: id, mesh: true });
+  if (reply.type === "redirect") return; // the room lives elsewhere: joined there on its welcome
   if (app.route?.view !== "room" || app.route.id !== id) {
     if (reply.type === "joined") conn.send({ type: "leave" });
     return;

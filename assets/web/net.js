@@ -4,6 +4,11 @@
 // out a backoff delay: `retryIn` seconds), "offline" (the browser says it has no network;
 // it retries when the network comes back). A server restart is survived: the delay goes
 // 0.5, 1, 2, 4, 8 s, then stays at 10 s (each +-20%), and resets after a welcome.
+//
+// A `redirect` reply (the room lives on another server process or host; docs/protocol.md)
+// moves the connection to the address it names: the request's promise resolves with the
+// redirect, and the new connection's welcome lets the page send it again there. A lost
+// connection retries at the page's own address (the process that had the room may be gone).
 
 import { decodeJson, hello } from "./protocol.js";
 
@@ -21,6 +26,7 @@ export class Connection {
    */
   constructor(url, handlers, name = "spectator") {
     this.url = url;
+    this.home = url;
     this.h = handlers;
     this.name = name;
     this.ws = null;
@@ -86,6 +92,7 @@ export class Connection {
         const { resolve } = this._pending.get(msg.re);
         this._pending.delete(msg.re);
         resolve(msg);
+        if (msg.type === "redirect") this.moveTo(msg.url);
         return;
       }
       if (this.h.onJson) this.h.onJson(msg);
@@ -101,7 +108,20 @@ export class Connection {
     ws.onerror = () => { /* onclose follows; the state shows it */ };
   }
 
+  /** Reconnect at `url` (a redirect): the old connection closes without a retry. */
+  moveTo(url) {
+    const old = this.ws;
+    this.ws = null;  // its close is not a loss: onclose sees it is no longer current
+    if (old) old.close(1000, "moved");
+    for (const { resolve } of this._pending.values()) resolve({ type: "error", code: "closed", message: "moved" });
+    this._pending.clear();
+    this.url = url;
+    this.attempt = 0;
+    this._connectNow();
+  }
+
   _scheduleRetry() {
+    this.url = this.home;
     this.attempt += 1;
     if (navigator.onLine === false) { this._setState("offline"); return; }
     const delay = backoffDelay(this.attempt);

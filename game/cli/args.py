@@ -27,6 +27,16 @@ def int_in(lo: int, hi: int, what: str = "a whole number") -> Callable[[str], in
 
 PORT = int_in(0, 65535, "a port number (0: any free port)")
 FIRST_TO = int_in(1, 99, "the points that win a match")
+WORKERS = int_in(1, 64, "a number of server processes")
+
+
+def redis_url(text: str) -> str:
+    """An argparse type: a Redis URL (redis://HOST:PORT/DB, rediss:// or unix://)."""
+    parts = urllib.parse.urlsplit(text)
+    if parts.scheme not in ("redis", "rediss", "unix") or not (parts.netloc or parts.path):
+        raise argparse.ArgumentTypeError(
+            f"must be a Redis URL such as redis://127.0.0.1:6379/0, got {text!r}")
+    return text
 
 
 def ws_url(text: str) -> str:

@@ -1,18 +1,32 @@
-"""``clothball host``: run a game server until Ctrl-C or SIGTERM."""
+"""``clothball host``: run a game server until Ctrl-C or SIGTERM.
+
+With ``--workers N`` (default: one per core) it runs N server processes on one port: the
+kernel spreads new connections over them (SO_REUSEPORT), each process steps its own rooms
+and answers a request for a room another one hosts with a redirect to that process's own
+port (docs/protocol.md, "Several processes"). They share the data directory, where a small
+SQLite file is their room directory. This process supervises them: it restarts one that
+dies and stops them all on Ctrl-C or SIGTERM."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import logging
+import os
 import signal
+import socket
+import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 from ...server.app import GameServer, default_data_dir
+from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ..sim.scene import Scene, SceneError, available
-from .args import FIRST_TO, PORT
+from .args import FIRST_TO, PORT, WORKERS, redis_url, ws_url
 
 log = logging.getLogger("clothball.server")
 
@@ -43,6 +57,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="a reverse proxy (address or network, e.g. 127.0.0.1) whose "
                              "X-Forwarded-For names the client: its clients then get the "
                              "per-address limits one by one; repeatable")
+    parser.add_argument("--workers", type=WORKERS, default=None, metavar="N",
+                        help="server processes sharing the port, each stepping its own rooms "
+                             f"(default: one per core, here {os.cpu_count() or 1})")
+    parser.add_argument("--cluster", type=redis_url, default=None, metavar="redis://HOST:PORT/DB",
+                        help="join the hosts sharing this Redis as one service: one lobby, "
+                             "rooms placed on the least-loaded host (docs/cluster.md)")
+    parser.add_argument("--advertise", type=ws_url, default=None, metavar="ws://HOST:PORT/ws",
+                        help="the address other hosts give out for this host's rooms "
+                             "(default: the listen address)")
+    # Set by the supervisor for each of its processes (not for users).
+    parser.add_argument("--worker-index", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--shared-port", type=int, default=None, help=argparse.SUPPRESS)
 
 
 async def serve(args: argparse.Namespace) -> int:
@@ -73,16 +99,38 @@ async def serve(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"clothball host: {e}")
         return 2
+    worker = args.worker_index
+    directory: Directory | None = None
+    if args.cluster:
+        directory = RedisDirectory(args.cluster)
+    elif worker is not None:
+        Path(data).mkdir(parents=True, exist_ok=True)
+        directory = SqliteDirectory(Path(data) / DIRECTORY_FILE)
     server = GameServer(data, scenes=scenes, backend=args.backend, host=args.host,
-                        port=args.port, bots=args.bots, room_settings=settings, limits=limits,
-                        origins=origins, trusted_proxies=trusted)
+                        port=0 if worker is not None else args.port,
+                        bots=args.bots, room_settings=settings, limits=limits,
+                        origins=origins, trusted_proxies=trusted,
+                        default_room=not worker, directory=directory,
+                        shared_port=args.shared_port, advertise=args.advertise,
+                        host_id=f"{socket.gethostname()}-{os.getpid()}")
     try:
         await server.start()
     except OSError as e:
         print(f"clothball host: cannot listen on {args.host}:{args.port}: {e.strerror}")
         return 1
+    if worker is not None:
+        # One line for the supervisor, then this process runs quietly until stopped.
+        print(json.dumps({"worker": worker, "url": server.own_url,
+                          "backend": server.main_room.sim.backend if server.main_room
+                          else args.backend,
+                          "recording": server.recording_error}), flush=True)
+        await _until_stopped()
+        await server.stop()
+        if directory is not None:
+            directory.close()
+        return 0
     room = server.main_room
-    backend = room.sim.cloth.backend if room is not None else args.backend
+    backend = room.sim.backend if room is not None else args.backend
     print(f"clothball server on {server.ws_url}  (scene {', '.join(scenes)}, backend {backend})")
     print(f"spectate in a browser: {server.http_url}")
     if server.recording_error is not None:
@@ -92,6 +140,18 @@ async def serve(args: argparse.Namespace) -> int:
         print(f"host token (resets /api/stats) in {Path(data).resolve() / 'host-token'}")
     if args.host in ("127.0.0.1", "localhost", "::1"):
         print("(only this machine can connect; --host 0.0.0.0 to let others in)")
+    if args.cluster:
+        print(f"in the cluster at {args.cluster} as {server.advertised_url}")
+    await _until_stopped()
+    print("stopping: finishing the writes in progress...")
+    await server.stop()
+    if directory is not None:
+        directory.close()
+    print("stopped")
+    return 0
+
+
+async def _until_stopped() -> None:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -100,11 +160,116 @@ async def serve(args: argparse.Namespace) -> int:
         except (NotImplementedError, RuntimeError):  # pragma: no cover - not on this platform
             pass
     await stop.wait()
-    print("stopping: finishing the writes in progress...")
-    await server.stop()
+
+
+DIRECTORY_FILE = "rooms.sqlite"  # the processes' room directory, in the data directory
+RESTART_S = 1.0  # a process that died is started again after this long
+
+
+def run(args: argparse.Namespace) -> int:
+    workers = args.workers or os.cpu_count() or 1
+    if args.worker_index is not None or workers == 1:
+        return asyncio.run(serve(args))
+    return supervise(args, workers)
+
+
+def _free_port(host: str) -> int:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+class _Worker:
+    """One server process of the supervisor: started, its ready line read, its later output
+    passed on."""
+
+    def __init__(self, index: int, cmd: list[str]) -> None:
+        self.index = index
+        self.cmd = cmd
+        self.proc: subprocess.Popen[str] | None = None
+        self.ready: dict[str, object] | None = None
+
+    def start(self, timeout: float = 120.0) -> None:
+        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None
+        lines: list[str] = []
+        reader = threading.Thread(target=lambda: lines.append(self.proc.stdout.readline()),
+                                  daemon=True)  # type: ignore[union-attr]
+        reader.start()
+        reader.join(timeout)
+        first = lines[0] if lines else ""
+        try:
+            self.ready = json.loads(first)
+        except json.JSONDecodeError:
+            self.ready = None
+            print(first, end="")
+        threading.Thread(target=self._pass_on, daemon=True).start()
+
+    def _pass_on(self) -> None:
+        assert self.proc is not None and self.proc.stdout is not None
+        for line in self.proc.stdout:
+            print(line, end="", flush=True)
+
+
+def supervise(args: argparse.Namespace, workers: int) -> int:
+    """Run ``workers`` server processes on one port until Ctrl-C or SIGTERM."""
+    try:
+        port = args.port or _free_port(args.host)
+    except OSError as e:
+        print(f"clothball host: cannot listen on {args.host}: {e.strerror}")
+        return 1
+    data = Path(args.data or default_data_dir())
+    base = [sys.executable, "-m", "clothball.game.cli", *args.argv]
+    procs = [_Worker(k, [*base, "--data", str(data), "--port", str(port), "--workers", "1",
+                         "--worker-index", str(k), "--shared-port", str(port)])
+             for k in range(workers)]
+    stopping = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stopping.set())
+    try:
+        for w in procs:
+            w.start()
+            if w.ready is None:
+                rc = w.proc.wait(timeout=30) if w.proc is not None else 1
+                print(f"clothball host: server process {w.index} did not start (exit {rc})")
+                return rc or 1
+        # Every process reads the directory every PUBLISH_S: by now each knows the others.
+        time.sleep(2 * PUBLISH_S)
+        first = procs[0].ready or {}
+        url = f"ws://{_shown(args.host)}:{port}/ws"
+        print(f"clothball server on {url}  ({workers} processes; scene "
+              f"{', '.join(args.scene or ['classic'])}, backend {first.get('backend')})")
+        print(f"spectate in a browser: http://{_shown(args.host)}:{port}/")
+        if first.get("recording"):
+            print(f"NOT recording rounds: {first['recording']}")
+        else:
+            print(f"recorded rounds in {data.resolve()}  (http://{_shown(args.host)}:{port}"
+                  "/api/replays)")
+        if args.host in ("127.0.0.1", "localhost", "::1"):
+            print("(only this machine can connect; --host 0.0.0.0 to let others in)")
+        while not stopping.wait(0.5):
+            for w in procs:
+                if w.proc is not None and w.proc.poll() is not None:
+                    print(f"server process {w.index} exited ({w.proc.returncode}); "
+                          "starting it again")
+                    time.sleep(RESTART_S)
+                    w.start()
+        print("stopping: finishing the writes in progress...")
+    finally:
+        for w in procs:
+            if w.proc is not None and w.proc.poll() is None:
+                w.proc.send_signal(signal.SIGTERM)
+        for w in procs:
+            if w.proc is not None:
+                try:
+                    w.proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    w.proc.kill()
     print("stopped")
     return 0
 
 
-def run(args: argparse.Namespace) -> int:
-    return asyncio.run(serve(args))
+def _shown(host: str) -> str:
+    host = host if host not in ("0.0.0.0", "::", "") else "127.0.0.1"
+    return f"[{host}]" if ":" in host else host

@@ -39,6 +39,7 @@ from ..wire import protocol as P
 from .fastpath import BinaryHook, try_send_binary
 
 HISTORY = 2000
+MAX_REDIRECTS = 3  # hops a request may be sent on (a room lives on one process or host)
 
 
 class _Connection(BinaryHook, ClientConnection):
@@ -103,6 +104,12 @@ def explain_connect_error(url: str, e: BaseException) -> tuple[str, bool]:
     return f"cannot connect to {url}: {e}", False
 
 
+async def _open(url: str, timeout: float) -> ClientConnection:
+    return await asyncio.wait_for(
+        connect(url, max_size=2**24, compression=None, open_timeout=timeout,
+                create_connection=_Connection), timeout)
+
+
 class NetClient:
     """A connected client. Create with ``await NetClient.connect(...)``."""
 
@@ -135,6 +142,8 @@ class NetClient:
         self._reader: asyncio.Task[None] | None = None
         self.close_code: int | None = None
         self.close_reason = ""
+        self.name = "player"
+        self.url = ""
 
     # --- connecting -----------------------------------------------------------------------
     @classmethod
@@ -143,14 +152,14 @@ class NetClient:
                       token: str | None = None, corner_rate: float | None = None,
                       mesh: bool | None = None, timeout: float = 10.0,
                       record_latency: bool = False, decode_mesh: bool = True,
-                      **extra: Any) -> NetClient:
-        """Open a connection, say hello and, for a player or spectator, join ``room``."""
-        ws = await asyncio.wait_for(
-            connect(url, max_size=2**24, compression=None, open_timeout=timeout,
-                    create_connection=_Connection), timeout
-        )
+                      _hops: int = 0, **extra: Any) -> NetClient:
+        """Open a connection, say hello and, for a player or spectator, join ``room``.
+        A join the server redirects (the room lives on another process or host) is made
+        there, on a new connection."""
+        ws = await _open(url, timeout)
         client = cls(ws, record_latency=record_latency)
         client.decode_mesh = decode_mesh
+        client.name, client.url = name, url
         client._reader = asyncio.create_task(client._read())
         hello: dict[str, Any] = {"type": "hello", "version": P.PROTOCOL_VERSION, "name": name,
                                  "role": role, "id": 0, **extra}
@@ -167,15 +176,43 @@ class NetClient:
                 raise ServerError(client.welcome)
             if role != "lobby" or token is not None:
                 reply = await client.wait_for(
-                    lambda m: m["type"] in ("joined", "error") and m.get("re") == 0, timeout,
-                    since=start)
+                    lambda m: m["type"] in ("joined", "error", "redirect") and m.get("re") == 0,
+                    timeout, since=start)
                 if reply["type"] == "error":
                     raise ServerError(reply)
+                if reply["type"] == "redirect":
+                    await client.close()
+                    if _hops >= MAX_REDIRECTS:
+                        raise ConnectionError(f"too many redirects (last: {reply['url']})")
+                    return await cls.connect(
+                        str(reply["url"]), name=name, role=role, room=room, seat=seat,
+                        code=code, token=token, corner_rate=corner_rate, mesh=mesh,
+                        timeout=timeout, record_latency=record_latency,
+                        decode_mesh=decode_mesh, _hops=_hops + 1, **extra)
                 client.joined = reply
         except BaseException:
             await client.close()
             raise
         return client
+
+    async def _move(self, url: str, timeout: float) -> None:
+        """Follow a redirect: this client, now connected to ``url`` (the process that
+        hosts the room), in its lobby; the old connection is closed."""
+        ws = await _open(url, timeout)
+        old, old_reader = self.ws, self._reader
+        self.ws, self.url = ws, url
+        self._reader = asyncio.create_task(self._read())
+        await old.close()
+        if old_reader is not None:
+            await asyncio.gather(old_reader, return_exceptions=True)
+        start = self.received_total
+        await self.send_json({"type": "hello", "version": P.PROTOCOL_VERSION,
+                              "name": self.name, "id": 0})
+        welcome = await self.wait_for(lambda m: m["type"] in ("welcome", "error"), timeout,
+                                      since=start)
+        if welcome["type"] == "error":
+            raise ServerError(welcome)
+        self.welcome = welcome
 
     # --- properties -----------------------------------------------------------------------
     @property
@@ -227,15 +264,24 @@ class NetClient:
         await self.ws.send(P.encode_json(msg))
 
     async def request(self, type_: str, timeout: float = 10.0, **fields: Any) -> dict[str, Any]:
-        """Send a control message and wait for its reply (``ServerError`` on an error)."""
-        rid = next(self._ids)
-        fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
-        self._pending[rid] = fut
-        try:
-            await self.send_json({"type": type_, "id": rid, **fields})
-            reply = await asyncio.wait_for(fut, timeout)
-        finally:
-            self._pending.pop(rid, None)
+        """Send a control message and wait for its reply (``ServerError`` on an error).
+        A ``redirect`` reply (the room lives on another process or host) moves this client
+        there and sends the request again."""
+        for _hop in range(MAX_REDIRECTS + 1):
+            rid = next(self._ids)
+            fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
+            self._pending[rid] = fut
+            try:
+                await self.send_json({"type": type_, "id": rid, **fields})
+                reply = await asyncio.wait_for(fut, timeout)
+            finally:
+                self._pending.pop(rid, None)
+            if reply["type"] != "redirect":
+                break
+            await self._move(str(reply["url"]), timeout)
+            fields = {**fields, **(reply.get("with") or {})}
+        else:
+            raise ConnectionError(f"too many redirects for {type_!r} (last: {reply['url']})")
         if reply["type"] == "error":
             raise ServerError(reply)
         if reply["type"] == "joined":
@@ -255,10 +301,11 @@ class NetClient:
 
     # --- receiving ------------------------------------------------------------------------
     async def _read(self) -> None:
-        if isinstance(self.ws, _Connection):
-            self.ws.on_binary = self._on_binary
+        ws = self.ws  # this reader's connection (a redirect gives the client a new one)
+        if isinstance(ws, _Connection):
+            ws.on_binary = self._on_binary
         try:
-            async for message in self.ws:
+            async for message in ws:
                 if isinstance(message, bytes):
                     self._on_binary(message)
                 else:
@@ -266,14 +313,15 @@ class NetClient:
         except ConnectionClosed:
             pass
         finally:
-            if isinstance(self.ws, _Connection):
-                self.ws.on_binary = None
-            self.close_code, self.close_reason = self.ws.close_code, self.ws.close_reason or ""
-            for fut in self._pending.values():
-                if not fut.done():
-                    fut.set_exception(ConnectionError("connection closed"))
-            async with self._changed:
-                self._changed.notify_all()
+            if isinstance(ws, _Connection):
+                ws.on_binary = None
+            if ws is self.ws:  # else moved on: the client lives on, on its new connection
+                self.close_code, self.close_reason = ws.close_code, ws.close_reason or ""
+                for fut in self._pending.values():
+                    if not fut.done():
+                        fut.set_exception(ConnectionError("connection closed"))
+                async with self._changed:
+                    self._changed.notify_all()
 
     def _on_binary(self, data: bytes) -> None:
         now = self.clock()

@@ -29,7 +29,7 @@ from .cloth import (
     wind_at,
 )
 from .scene import Scene
-from .stability import auto_substeps
+from .stability import auto_substeps, auto_substeps_all
 
 log = logging.getLogger("clothball.sim")
 
@@ -47,7 +47,8 @@ class ClothBatch:
 
     def __init__(self, scene: Scene, capacity: int, backend: str = "auto",
                  precision: str | None = None,
-                 on_failure: Literal["reset", "remove"] = "reset") -> None:
+                 on_failure: Literal["reset", "remove"] = "reset",
+                 threads: int | None = None) -> None:
         backend, precision, self.backend_note = resolve_backend(scene, backend, precision)
         if isinstance(capacity, bool) or not isinstance(capacity, int | np.integer) or not (
                 1 <= capacity <= MAX_CAPACITY):
@@ -64,8 +65,13 @@ class ClothBatch:
         if self._fixed_substeps is not None:
             check_fixed_dt(scene)
         self._frame_dt = float(scene["sim"]["frame_dt"])
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                    or threads < 1):
+            raise ValueError(f"threads: must be a whole number >= 1 or None, got {threads!r}")
+        # CPU: the slots are shared among `threads` threads (None: one per core); a slot
+        # is one thread's work.
         self._engine = _native.BatchEngine(backend, precision == "float64",
-                                           native_config(scene), self.capacity)
+                                           native_config(scene), self.capacity, threads or 0)
         self._coupled = "coupling" in scene.effects
         self._has_ball = "ball" in scene.effects
         self._k = float(scene["coupling"]["stiffness"]) if self._coupled else 0.0
@@ -74,6 +80,7 @@ class ClothBatch:
         self._hips = np.zeros((self.capacity, 4, 3))
         self._frames = np.zeros(self.capacity, dtype=np.int64)  # frames since each reset
         self._used = np.zeros(self.capacity, dtype=bool)
+        self._active = np.ones(self.capacity, dtype=bool)  # False: kept, not stepped
         self._slot_substeps = np.ones(self.capacity, dtype=np.int64)
         self._corners: np.ndarray | None = None  # (capacity, 4, 6), as of the last step
         self._balls: np.ndarray | None = None
@@ -88,6 +95,7 @@ class ClothBatch:
         slot = int(free[0])
         self._engine.open(slot)
         self._used[slot] = True
+        self._active[slot] = True
         self.reset(slot)
         return slot
 
@@ -97,6 +105,16 @@ class ClothBatch:
         self._engine.close(slot)
         self._used[slot] = False
         self._corners = self._balls = None
+
+    def set_active(self, slot: int, active: bool) -> None:
+        """Pause (False) or resume (True) a slot: a paused slot keeps its state and frame
+        count but is not stepped and costs no compute (a room nobody is in sleeps)."""
+        slot = self._check(slot)
+        self._engine.set_active(slot, bool(active))
+        self._active[slot] = bool(active)
+
+    def active(self, slot: int) -> bool:
+        return bool(self._active[self._check(slot)])
 
     def slots(self) -> list[int]:
         """The occupied slots, in order."""
@@ -135,10 +153,11 @@ class ClothBatch:
 
     @property
     def substeps(self) -> int:
-        """Substeps per frame for every slot: the largest any occupied slot needs."""
-        if not self._used.any():
+        """Substeps per frame for every slot: the largest any occupied, active slot needs."""
+        live = self._used & self._active
+        if not live.any():
             return int(self._fixed_substeps or 1)
-        return int(self._slot_substeps[self._used].max())
+        return int(self._slot_substeps[live].max())
 
     @property
     def dt(self) -> float:
@@ -149,11 +168,12 @@ class ClothBatch:
         return self._frame_dt
 
     def step(self, frames: int = 1) -> list[int]:
-        """Advance every occupied slot ``frames`` frames. Returns the slots whose state
-        turned non-finite (reset or removed, as ``on_failure`` says); the others step on."""
+        """Advance every occupied, active slot ``frames`` frames. Returns the slots whose
+        state turned non-finite (reset or removed, as ``on_failure`` says); the others step
+        on."""
         remaining = check_frames(frames)
         failed: list[int] = []
-        while remaining and self._used.any():
+        while remaining and (self._used & self._active).any():
             substeps = self.substeps
             # As Cloth (the same chunks, so a slot is bit for bit a lone cloth).
             chunk = frame_chunk(remaining, substeps, self._fixed_substeps is not None,
@@ -162,15 +182,17 @@ class ClothBatch:
                 t = self._frames * self._frame_dt
                 self._engine.set_wind_all(np.stack([wind_at(self.scene, x) for x in t]))
             finite = self._engine.step(chunk, substeps, self._frame_dt / substeps)
-            self._frames[self._used] += chunk
+            self._frames[self._used & self._active] += chunk
             remaining -= chunk
             for slot in np.flatnonzero(self._used & ~finite):
                 failed.append(int(slot))
                 self._fail(int(slot), substeps)
-            if self._fixed_substeps is None:
-                for slot in np.flatnonzero(self._used):
-                    self._refresh_substeps(int(slot))
-        self._corners = self._balls = None
+            self._corners = self._balls = None
+            live = self._used & self._active
+            if self._fixed_substeps is None and self._has_ball and live.any():
+                # Every slot's need from one read of all balls (not a call per slot).
+                speeds = np.linalg.norm(self._outputs()[1][live, 3:], axis=1)
+                self._slot_substeps[live] = auto_substeps_all(self.scene, speeds)
         return failed
 
     def _fail(self, slot: int, substeps: int) -> None:

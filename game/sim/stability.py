@@ -21,6 +21,8 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 if TYPE_CHECKING:
     from .scene import Scene
 
@@ -71,6 +73,12 @@ def max_ball_contacts(scene: Scene) -> float:
 def stable_dt(scene: Scene, ball_speed: float = 0.0) -> float:
     """Largest substep dt, inside the stability bound of the scene's integrator with the
     SAFETY margin."""
+    return float(stable_dts(scene, np.array([float(ball_speed)]))[0])
+
+
+def stable_dts(scene: Scene, ball_speeds: np.ndarray) -> np.ndarray:
+    """``stable_dt`` for many ball speeds at once (a batch's slots): element for element
+    the same numbers."""
     integrator = scene["sim"]["integrator"]
     explicit_damping = integrator == "semi_implicit_euler"
     m = scene.node_mass
@@ -85,21 +93,29 @@ def stable_dt(scene: Scene, ball_speed: float = 0.0) -> float:
     dt = euler_dt_bound(node_stiffness(scene) / m, gamma)
     if integrator == "implicit_euler":
         dt = math.inf  # no stability limit on the step; tunnelling still bounds it below
+    dts = np.full(len(ball_speeds), dt)
     if "ball" in scene.effects:
         ball = scene["ball"]
         if integrator != "implicit_euler":
             kb = 2.0 * max_ball_contacts(scene) * ball["stiffness"]
             gb = ball["damping"] / ball["mass"] if explicit_damping else 0.0
-            dt = min(dt, euler_dt_bound(kb / ball["mass"], gb))
+            dts = np.minimum(dts, euler_dt_bound(kb / ball["mass"], gb))
         frame = scene["sim"]["frame_dt"]
         g = math.hypot(*scene["sim"]["gravity"]) if "gravity" in scene.effects else 0.0
-        speed = ball_speed + g * frame
-        if speed > 0.0:
-            dt = min(dt, BALL_TRAVEL * ball["radius"] / speed / SAFETY)
-    return SAFETY * dt
+        speed = np.asarray(ball_speeds, dtype=np.float64) + g * frame
+        with np.errstate(divide="ignore"):
+            travel = BALL_TRAVEL * ball["radius"] / speed / SAFETY
+        dts = np.where(speed > 0.0, np.minimum(dts, travel), dts)
+    return SAFETY * dts
 
 
 def auto_substeps(scene: Scene, ball_speed: float = 0.0) -> int:
     """Smallest substep count per frame whose dt lies within the stability bound."""
+    return int(auto_substeps_all(scene, np.array([float(ball_speed)]))[0])
+
+
+def auto_substeps_all(scene: Scene, ball_speeds: np.ndarray) -> np.ndarray:
+    """``auto_substeps`` for many ball speeds at once."""
     frame = scene["sim"]["frame_dt"]
-    return max(1, math.ceil(frame / stable_dt(scene, ball_speed) - 1e-9))
+    return np.maximum(1, np.ceil(frame / stable_dts(scene, ball_speeds) - 1e-9)).astype(
+        np.int64)

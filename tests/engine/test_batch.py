@@ -159,6 +159,32 @@ def test_adding_and_removing_slots_leaves_the_others_alone(backend: str) -> None
         batch.positions(3)
 
 
+def test_a_paused_slot_keeps_its_state_and_resumes_as_if_never_paused(backend: str) -> None:
+    scene = batch_scene()
+    batch = ClothBatch(scene, capacity=3, backend=backend, precision="float32")
+    a, b = batch.add(), batch.add()
+    for k in (a, b):
+        hips, bp, bv = slot_inputs(k, batch.hips(k))
+        batch.set_hips(k, hips)
+        batch.set_ball(k, bp, bv)
+    batch.step(10)
+    batch.set_active(b, False)
+    held = batch.positions(b), batch.velocities(b), batch.ball(b)
+    batch.step(15)  # a steps, b does not
+    assert not batch.active(b) and batch.frame(a) == 25 and batch.frame(b) == 10
+    np.testing.assert_array_equal(batch.positions(b), held[0])
+    np.testing.assert_array_equal(batch.velocities(b), held[1])
+    np.testing.assert_array_equal(batch.ball(b)[0], held[2][0])
+    batch.set_active(b, True)
+    batch.step(5)
+    # Each slot is its cloth stepped alone for the frames it was active.
+    assert_same(batch, a, alone(scene, backend, "float32", a, 30), backend == "cpu")
+    assert_same(batch, b, alone(scene, backend, "float32", b, 15), backend == "cpu")
+    batch.set_active(a, False)
+    batch.set_active(b, False)
+    assert batch.step(7) == [] and (batch.frame(a), batch.frame(b)) == (30, 15)
+
+
 def test_a_failing_slot_is_reset_alone_and_the_others_step_on(backend: str) -> None:
     scene = batch_scene()
     batch = ClothBatch(scene, capacity=3, backend=backend, precision="float32")

@@ -105,7 +105,7 @@ def test_a_client_that_vanishes_without_a_close(tmp_path) -> None:
         assert took < 5
         s.close()
         wait(lambda: ls.call(lambda: len(ls.srv.clients)) == 0, 5, "no clients left")
-        assert room.sim._thread.is_alive() and ls.errors.texts() == []
+        assert room.sim.alive and ls.errors.texts() == []
 
 
 def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_path) -> None:
@@ -136,7 +136,7 @@ def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_
         # and the room kept its pace: 1 kHz of frames the whole time, none skipped
         assert room.sim.stats.skipped_frames == skipped0
         assert frames >= 0.9 * 1000 * (dropped_after - 0.2), (frames, dropped_after)
-        assert room.sim._thread.is_alive() and ls.errors.texts() == []
+        assert room.sim.alive and ls.errors.texts() == []
 
 
 # --- SIGKILL mid-round --------------------------------------------------------------------------
@@ -362,7 +362,7 @@ def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_pa
             # the other room never noticed
             f0 = main_room.sim.stats.frames
             await asyncio.sleep(0.3)
-            assert main_room.sim.stats.frames > f0 + 200 and main_room.sim._thread.is_alive()
+            assert main_room.sim.stats.frames > f0 + 200 and main_room.sim.alive
             assert watcher._reader is not None and not watcher._reader.done()
             stats = await http_json(srv, "/api/stats")
             assert rid not in stats["rooms"] and "main" in stats["rooms"]

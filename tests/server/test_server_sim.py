@@ -49,7 +49,7 @@ def test_a_backlog_is_stepped_a_quarter_at_a_time_and_the_excess_skipped() -> No
         time.sleep(0.05)  # nothing more is due: the thread sleeps
         # 50 frames in steps of 13, 10, 7, 6, 4, 3, 2, 2, 1, 1, 1.
         assert (st.frames, st.steps, st.skipped_frames) == (60, 17, 150)
-        assert sim.cloth.frame == 60
+        assert sim.frame == 60
     finally:
         sim.stop()
 

@@ -1,0 +1,268 @@
+"""Where every room of one service lives: the room directory the server processes share.
+
+Each process (``clothball host --workers N`` runs N of them) publishes, every
+``PUBLISH_S``, its own address, its load (rooms, clients) and its rooms' public info, and
+reads back everyone's. A process that stops publishing for ``ttl`` seconds (it died) drops
+out with its rooms. Listing, joining and placing a room use the last snapshot read, so a
+websocket handler never waits on the store. A private room is listed for routing only
+(its id and where it lives); its join code never leaves its process.
+
+``SqliteDirectory`` keeps it in one SQLite file in the data directory: the processes of
+one machine share it with no server to run.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+log = logging.getLogger("clothball.server")
+
+PUBLISH_S = 0.5  # s between a process's publications (and reads of the others')
+DEFAULT_TTL = 5.0  # s without a publication after which a process counts as gone
+
+
+class Moved(Exception):
+    """A request for a room (or a new room) that another process or host serves: the
+    client is answered ``redirect`` {``url``} and sends the request there."""
+
+    def __init__(self, url: str, reason: str, with_fields: dict[str, Any] | None = None) -> None:
+        super().__init__(reason)
+        self.url = url
+        self.reason = reason
+        self.with_fields = with_fields or {}  # to add to the request when sent there
+
+
+@dataclass
+class HostEntry:
+    """One server process as the directory knows it."""
+
+    host_id: str
+    address: str  # its own websocket URL (ws://host:port/ws)
+    rooms: int = 0
+    clients: int = 0
+
+    @property
+    def load(self) -> tuple[int, int]:
+        return (self.rooms, self.clients)
+
+
+@dataclass
+class Snapshot:
+    hosts: dict[str, HostEntry] = field(default_factory=dict)
+    # room id -> (host id, public, info); info is the room's lobby entry
+    rooms: dict[str, tuple[str, bool, dict[str, Any]]] = field(default_factory=dict)
+
+    def locate(self, room_id: str) -> HostEntry | None:
+        entry = self.rooms.get(room_id)
+        return None if entry is None else self.hosts.get(entry[0])
+
+    def listing(self) -> list[dict[str, Any]]:
+        """Every live process's public rooms, each marked with the address it lives at."""
+        out = []
+        for _rid, (host_id, public, info) in sorted(self.rooms.items()):
+            host = self.hosts.get(host_id)
+            if public and host is not None:
+                out.append({**info, "host": host.address})
+        return out
+
+    def least_loaded(self) -> HostEntry | None:
+        if not self.hosts:
+            return None
+        return min(self.hosts.values(), key=lambda h: (h.load, h.host_id))
+
+
+class Directory(Protocol):
+    """What a server process needs from the shared room directory."""
+
+    ttl: float
+
+    def publish(self, host: HostEntry, rooms: list[tuple[str, bool, dict[str, Any]]]) -> None:
+        """Replace this process's entry and rooms (room id, public, info)."""
+
+    def read(self) -> Snapshot:
+        """The live processes and their rooms."""
+
+    def withdraw(self, host_id: str) -> None:
+        """This process leaves (a clean stop)."""
+
+    def close(self) -> None: ...
+
+
+class SqliteDirectory:
+    """The directory in one SQLite file shared by the processes of one machine."""
+
+    def __init__(self, path: Path, ttl: float = DEFAULT_TTL) -> None:
+        self.path = Path(path)
+        self.ttl = ttl
+        self._lock = threading.Lock()  # one connection, used from worker threads in turn
+        self._db = sqlite3.connect(self.path, timeout=5.0, isolation_level=None,
+                                   check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA busy_timeout=5000")
+        self._db.executescript("""
+            CREATE TABLE IF NOT EXISTS hosts (host_id TEXT PRIMARY KEY, address TEXT NOT NULL,
+                rooms INTEGER NOT NULL, clients INTEGER NOT NULL, seen REAL NOT NULL);
+            CREATE TABLE IF NOT EXISTS rooms (room_id TEXT PRIMARY KEY, host_id TEXT NOT NULL,
+                public INTEGER NOT NULL, info TEXT NOT NULL);
+            CREATE INDEX IF NOT EXISTS rooms_host ON rooms (host_id);
+        """)
+
+    def publish(self, host: HostEntry, rooms: list[tuple[str, bool, dict[str, Any]]]) -> None:
+        now = time.time()
+        with self._lock:
+            db = self._db
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                db.execute("INSERT OR REPLACE INTO hosts VALUES (?, ?, ?, ?, ?)",
+                           (host.host_id, host.address, host.rooms, host.clients, now))
+                db.execute("DELETE FROM rooms WHERE host_id = ?", (host.host_id,))
+                # Processes gone (silent for the TTL): their rooms died with them.
+                gone = now - self.ttl
+                db.execute("DELETE FROM rooms WHERE host_id IN "
+                           "(SELECT host_id FROM hosts WHERE seen < ?)", (gone,))
+                db.execute("DELETE FROM hosts WHERE seen < ?", (gone,))
+                # A room id another live process holds stays its own (never taken over).
+                db.executemany(
+                    "INSERT OR IGNORE INTO rooms VALUES (?, ?, ?, ?)",
+                    [(rid, host.host_id, int(public), json.dumps(info))
+                     for rid, public, info in rooms])
+                db.execute("COMMIT")
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+
+    def read(self) -> Snapshot:
+        live_after = time.time() - self.ttl
+        with self._lock:
+            hosts = self._db.execute(
+                "SELECT host_id, address, rooms, clients FROM hosts WHERE seen >= ?",
+                (live_after,)).fetchall()
+            rows = self._db.execute("SELECT room_id, host_id, public, info FROM rooms").fetchall()
+        snap = Snapshot({h[0]: HostEntry(*h) for h in hosts})
+        for rid, host_id, public, info in rows:
+            if host_id in snap.hosts:
+                snap.rooms[rid] = (host_id, bool(public), json.loads(info))
+        return snap
+
+    def withdraw(self, host_id: str) -> None:
+        with self._lock:
+            self._db.execute("DELETE FROM rooms WHERE host_id = ?", (host_id,))
+            self._db.execute("DELETE FROM hosts WHERE host_id = ?", (host_id,))
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+
+class RedisDirectory:
+    """The directory of a cluster of hosts in Redis (``clothball host --cluster
+    redis://HOST:PORT/DB``). Keys, all under ``prefix``:
+
+    - ``host:<id>``: the host's address and load (JSON), expiring after the TTL: a host
+      that dies leaves the directory by itself;
+    - ``rooms:<id>``: its rooms (a hash: room id -> JSON {public, info}), same expiry;
+    - ``room:<room id>``: which host holds that id, claimed with SET NX (a host never takes
+      an id another live host holds), same expiry;
+    - channel ``lobby``: a message whenever a host's rooms change, so the others re-read at
+      once instead of at their next publication.
+    """
+
+    def __init__(self, url: str, ttl: float = DEFAULT_TTL, prefix: str = "clothball:") -> None:
+        import redis  # the cluster's store: needed only with --cluster
+
+        self.url = url
+        self.ttl = ttl
+        self.prefix = prefix
+        self._redis = redis.Redis.from_url(url, socket_timeout=2.0, socket_connect_timeout=2.0)
+        self._last_rooms: dict[str, str] = {}
+        self.conflicts: list[str] = []  # room ids this host found held by another
+
+    def _ms(self) -> int:
+        return max(1, int(self.ttl * 1000))
+
+    def publish(self, host: HostEntry, rooms: list[tuple[str, bool, dict[str, Any]]]) -> None:
+        p = self.prefix
+        r = self._redis
+        ttl = self._ms()
+        # Claim (or keep) every room id; one that another host holds is not listed here.
+        pipe = r.pipeline(transaction=False)
+        for rid, _public, _info in rooms:
+            pipe.set(f"{p}room:{rid}", host.host_id, nx=True, px=ttl)
+            pipe.get(f"{p}room:{rid}")
+        claimed = pipe.execute()
+        mine: dict[str, str] = {}
+        for k, (rid, public, info) in enumerate(rooms):
+            owner = claimed[2 * k + 1]
+            if owner is not None and owner.decode() != host.host_id:
+                if rid not in self.conflicts:
+                    self.conflicts.append(rid)
+                    log.error("room id %s is held by host %s: not listed from this host", rid,
+                              owner.decode())
+                continue
+            mine[rid] = json.dumps({"public": public, "info": info})
+        pipe = r.pipeline(transaction=True)
+        pipe.set(f"{p}host:{host.host_id}", json.dumps(
+            {"address": host.address, "rooms": host.rooms, "clients": host.clients}), px=ttl)
+        pipe.delete(f"{p}rooms:{host.host_id}")
+        if mine:
+            pipe.hset(f"{p}rooms:{host.host_id}", mapping=mine)
+            pipe.pexpire(f"{p}rooms:{host.host_id}", ttl)
+            for rid in mine:
+                pipe.pexpire(f"{p}room:{rid}", ttl)
+        for rid in set(self._last_rooms) - set(mine):
+            pipe.delete(f"{p}room:{rid}")  # closed here: the id is free again
+        pipe.execute()
+        if mine != self._last_rooms:
+            r.publish(f"{p}lobby", host.host_id)
+        self._last_rooms = mine
+
+    def read(self) -> Snapshot:
+        p = self.prefix
+        r = self._redis
+        keys = sorted(r.scan_iter(match=f"{p}host:*", count=500))
+        snap = Snapshot()
+        if not keys:
+            return snap
+        values = r.mget(keys)
+        pipe = r.pipeline(transaction=False)
+        ids = []
+        for key, raw in zip(keys, values, strict=True):
+            if raw is None:
+                continue  # expired between the scan and the read
+            host_id = key.decode()[len(f"{p}host:"):]
+            d = json.loads(raw)
+            snap.hosts[host_id] = HostEntry(host_id, d["address"], int(d["rooms"]),
+                                            int(d["clients"]))
+            ids.append(host_id)
+            pipe.hgetall(f"{p}rooms:{host_id}")
+        for host_id, rooms in zip(ids, pipe.execute(), strict=True):
+            for rid, raw in rooms.items():
+                d = json.loads(raw)
+                snap.rooms[rid.decode()] = (host_id, bool(d["public"]), d["info"])
+        return snap
+
+    def withdraw(self, host_id: str) -> None:
+        p = self.prefix
+        pipe = self._redis.pipeline(transaction=True)
+        for rid in self._last_rooms:
+            pipe.delete(f"{p}room:{rid}")
+        pipe.delete(f"{p}host:{host_id}", f"{p}rooms:{host_id}")
+        pipe.publish(f"{p}lobby", host_id)
+        pipe.execute()
+        self._last_rooms = {}
+
+    def changes(self) -> Any:
+        """A pub/sub subscription to lobby changes (``get_message`` polls it)."""
+        sub = self._redis.pubsub(ignore_subscribe_messages=True)
+        sub.subscribe(f"{self.prefix}lobby")
+        return sub
+
+    def close(self) -> None:
+        self._redis.close()
