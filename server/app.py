@@ -280,8 +280,9 @@ class GameServer:
 
     async def _housekeeping(self) -> None:
         while True:
-            await asyncio.sleep(10.0)
-            await self.lobby.close_idle(asyncio.get_running_loop().time())
+            await asyncio.sleep(1.0)
+            await self.lobby.close_idle(asyncio.get_running_loop().time(),
+                                        self.limits.room_idle_close_s)
 
     @property
     def store(self) -> ReplayStore | None:

@@ -33,6 +33,9 @@ class Limits:
     max_rooms: int = 32  # rooms in all (more: server_busy)
     rooms_per_address: int = 4  # rooms created from one IP address and still open
     spectators_per_room: int = 64  # (more: room_full)
+    # A room nobody is in (no human player, no spectator) sleeps at once and closes after
+    # this long (its creator's seat and a reconnect have this long to come back).
+    room_idle_close_s: float = 15.0
     # --- the replay index over HTTP (/api/replays...), per IP address -----------------------
     index_rate: float = 50.0  # queries a second (token bucket; more: HTTP 429)
     index_burst: float = 100.0

@@ -18,7 +18,6 @@ from .sim import SimPool
 log = logging.getLogger("clothball.server")
 
 MAX_ROOMS = 32  # the default of Limits.max_rooms
-IDLE_CLOSE_S = 60.0  # a client-created room with nobody in it closes after this long
 
 
 class Lobby:
@@ -138,11 +137,12 @@ class Lobby:
         return [(rid, r.public, r.info() if r.public else {"id": rid})
                 for rid, r in self.rooms.items()]
 
-    async def close_idle(self, now: float) -> None:
+    async def close_idle(self, now: float, after: float) -> None:
+        """Close the rooms nobody has been in for ``after`` s (not the host's own)."""
         for rid, room in list(self.rooms.items()):
             if room.permanent:
                 continue
-            if room.is_empty() and now - room.last_active > IDLE_CLOSE_S:
+            if room.is_empty() and now - room.last_active > after:
                 if any(s.kind == "bot" for s in room.seats) and room.spectators:
                     continue
                 log.info("closing idle room %s", rid)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 
 from clothball.game.net.client import NetClient
+from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 
 from tests.server.conftest import run, server, until
@@ -38,6 +39,29 @@ def test_an_empty_room_sleeps_and_wakes_for_a_spectator(tmp_path) -> None:
             assert not room.sim.asleep and player.seat is not None
             assert not main_room.sim.asleep
             for c in (owner, spec, player):
+                await c.close()
+
+    run(main())
+
+
+def test_an_abandoned_room_closes_after_the_idle_delay_and_a_watched_one_stays(tmp_path) -> None:
+    async def main() -> None:
+        limits = Limits().replace(room_idle_close_s=1.0)
+        async with server(tmp_path, limits=limits) as srv:
+            owner = await NetClient.connect(srv.ws_url)
+            gone = (await owner.request("create_room", name="abandoned"))["room"]
+            kept = (await owner.request("create_room", name="watched"))["room"]
+            spec = await NetClient.connect(srv.ws_url, role="spectator", room=kept)
+            t0 = asyncio.get_running_loop().time()
+            await until(lambda: gone not in srv.lobby.rooms, 10, "the abandoned room closed")
+            # Not before its delay (checked each second), and the watched room stays open.
+            assert asyncio.get_running_loop().time() - t0 >= 1.0
+            await asyncio.sleep(2.5)
+            assert kept in srv.lobby.rooms and srv.main_room is not None
+            # The room list says so: the closed room is no longer offered.
+            ids = [r["id"] for r in (await owner.request("list_rooms"))["rooms"]]
+            assert gone not in ids and kept in ids
+            for c in (owner, spec):
                 await c.close()
 
     run(main())
