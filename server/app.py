@@ -240,6 +240,7 @@ class GameServer:
 
     async def stop(self) -> None:
         """Stop accepting, close every connection and room, finish the writes under way."""
+        self.http.abort_downloads()
         for srv in (self._shared, self._server):
             if srv is not None:
                 srv.close(close_connections=True)

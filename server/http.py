@@ -192,9 +192,18 @@ class HttpSurface:
         self._files = ThreadPoolExecutor(FILE_THREADS, thread_name_prefix="replay-files")
         self._waiting = 0
         self.downloads = 0  # under way now
+        self._streams: set[asyncio.Transport] = set()  # their connections
+        self._stopping = False
         self.download_bytes_held = 0  # read from files, not yet taken by a socket
         self.download_bytes_held_max = 0
         self._buckets: collections.OrderedDict[str, TokenBucket] = collections.OrderedDict()
+
+    def abort_downloads(self) -> None:
+        """The server is stopping: cut the downloads under way (a stalled one would hold
+        the stop up for ``download_stall_s``) and start no more."""
+        self._stopping = True
+        for t in list(self._streams):
+            t.abort()
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -381,6 +390,8 @@ class HttpSurface:
         """Writes the file (or the ``Range`` asked for) to the connection in chunks, then
         closes it; the returned response is then never sent (the connection is closed)."""
         lim = self.srv.limits
+        if self._stopping:
+            return self._error(503, "the server is stopping")
         if self.downloads >= lim.max_downloads:
             return self._error(503, f"{lim.max_downloads} downloads are under way (the "
                                     "limit); try again shortly")
@@ -417,6 +428,15 @@ class HttpSurface:
     async def _send_file(self, connection: ServerConnection, status: http.HTTPStatus,
                          head: list[tuple[str, str]], fd: int, start: int, end: int) -> None:
         transport = connection.transport
+        self._streams.add(transport)
+        try:
+            await self._write_file(connection, transport, status, head, fd, start, end)
+        finally:
+            self._streams.discard(transport)
+
+    async def _write_file(self, connection: ServerConnection, transport: asyncio.Transport,
+                          status: http.HTTPStatus, head: list[tuple[str, str]], fd: int,
+                          start: int, end: int) -> None:
         stall = self.srv.limits.download_stall_s
         if isinstance(connection, Streaming):
             connection.no_handshake_deadline()  # a long file may take longer than a handshake
