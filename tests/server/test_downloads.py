@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 from clothball.game.wire.replay import new_round_id
+from clothball.server.app import GameServer
 from clothball.server.http import DOWNLOAD_CHUNK, RangeError, parse_range
 from clothball.server.limits import Limits
 from clothball.server.replays import ReplayStore
@@ -200,6 +201,30 @@ def test_a_client_that_stops_reading_is_cut_after_the_stall_limit(tmp_path: Path
             with s:
                 await asyncio.to_thread(read_head, s)
                 await until(lambda: srv.http.downloads == 0, 30, "the stalled download cut")
+
+    run(main())
+
+
+def test_stopping_the_server_cuts_a_stalled_download(tmp_path: Path) -> None:
+    """A download whose client has stopped reading does not hold the server's stop up for
+    its stall time (here ten minutes: the stop would time out)."""
+    rid, whole = save_round(tmp_path, os.urandom(8_000_000), 32)
+
+    async def main() -> None:
+        srv = GameServer(tmp_path, port=0, default_room=False,
+                         limits=Limits(download_stall_s=600))
+        await srv.start()
+        s = await asyncio.to_thread(request, srv.port, rid)
+        with s:
+            _, _, body = await asyncio.to_thread(read_head, s)
+            await until(lambda: srv.http.downloads == 1, 20, "the download under way")
+            await srv.stop()
+            assert srv.http.downloads == 0
+            try:
+                got = await asyncio.to_thread(read_all, s, body)
+            except ConnectionResetError:
+                got = b""
+            assert len(got) < len(whole)  # cut, not finished
 
     run(main())
 
