@@ -36,16 +36,19 @@ def _positive(text: str) -> float:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, default=None,
-                        help=f"the server's data directory (default: {default_data_dir()})")
+    data_help = f"the server's data directory (default: {default_data_dir()})"
+    parser.add_argument("--data", type=Path, default=None, help=data_help)
+    # --data after the action too (`clothball replays list --data DIR`)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--data", type=Path, default=argparse.SUPPRESS, help=data_help)
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    ls = sub.add_parser("list", help="the recorded rounds, newest first")
+    ls = sub.add_parser("list", help="the recorded rounds, newest first", parents=[common])
     ls.add_argument("--limit", type=int, default=50, help="at most N rounds (default 50)")
     ls.add_argument("--room", default=None, help="only this room's rounds (its id)")
     ls.add_argument("--player", default=None, help="only rounds where a seat had this name")
     ls.add_argument("--json", action="store_true", help="one JSON object per line")
     pr = sub.add_parser("prune", help="remove the rounds retention would not keep, oldest "
-                                      "first (each file with its index row)")
+                                      "first (each file with its index row)", parents=[common])
     pr.add_argument("--max-mib", type=_positive, default=DEFAULT.replays_max_mib,
                     help="keep at most this many MiB of rounds (default %(default)g, the "
                          "server's replays_max_mib)")
@@ -53,7 +56,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                     help="keep no round older than this (default %(default)g, the server's "
                          "replays_max_days)")
     pr.add_argument("--dry-run", action="store_true", help="list what would go, remove nothing")
-    ex = sub.add_parser("export", help="copy rounds' files (.cbr, for `clothball replay`)")
+    ex = sub.add_parser("export", help="copy rounds' files (.cbr, for `clothball replay`)",
+                        parents=[common])
     ex.add_argument("ids", nargs="+", metavar="ID", help="round ids (from `replays list`)")
     ex.add_argument("--to", type=Path, required=True, metavar="PATH",
                     help="a directory (each round as ID.cbr in it) or, for one round, a file")
@@ -79,7 +83,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"no replay index in {data} (no {index.name}); name the server's data "
                      "directory with --data")
     try:
-        store = ReplayStore(data, recover=False)
+        # Listing and exporting write nothing: they work on a read-only or full disk too.
+        store = ReplayStore(data, recover=False) if args.action == "prune" else \
+            ReplayStore(data, read_only=True)
     except (OSError, sqlite3.Error) as e:
         return _fail(f"cannot open the replay index in {data}: {e}")
     try:
