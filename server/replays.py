@@ -825,7 +825,7 @@ class Storage:
             self.store = None
 
 
-_KIND_WORDS = {"full": "is full", "read-only": "cannot be written", "missing": "is missing",
+_KIND_WORDS = {"full": "is full", "read-only": "is read-only", "missing": "is missing",
                "locked": "is locked", "unusable": "cannot be used"}
 _ERRNO_KINDS = {
     errno.ENOSPC: "full", errno.EDQUOT: "full", errno.EFBIG: "full",
