@@ -287,12 +287,12 @@ def test_tiny_study_end_to_end(tmp_path) -> None:
         assert r.reference_substeps == 16 * 2 * [x for x in study.rows
                                                  if x.integrator == r.integrator][0].substeps
         assert 0 < r.short_window_s <= 0.08
-        for q in ("peak_force_err", "settled_force_err", "ball_rest_err_m", "spectrum_err"):
+        for q in ("peak_force_err", "late_force_err", "ball_late_err_m", "spectrum_err"):
             assert math.isfinite(getattr(r, q)) and getattr(r, q) >= 0, (q, r)
     assert study.rows[1].substeps == 2 * study.rows[0].substeps
     assert [c["n"] for c in study.sag_convergence] == [5, 6]
     lr = study.long_reference[6]
-    assert lr["integrator"] == "velocity_verlet" and lr["peak_force_n"] > lr["settled_force_n"] > 0
+    assert lr["integrator"] == "velocity_verlet" and lr["peak_force_n"] > lr["late_force_n"] > 0
     text = table(study)
     assert "semi_implicit_euler" in text and "fitted short-horizon order" in text
     assert "long reference n=6" in text and "spatial against temporal" in text
