@@ -108,7 +108,7 @@ class BadRequestLog:
         self.more.clear()
 
 
-_RANGE_RE = re.compile(r"(\d*)-(\d*)")
+_RANGE_RE = re.compile(r"(\d{0,18})-(\d{0,18})")  # more digits than any file could need
 
 
 class RangeError(ValueError):
@@ -396,12 +396,16 @@ class HttpSurface:
             return self._error(503, f"{lim.max_downloads} downloads are under way (the "
                                     "limit); try again shortly")
         loop = asyncio.get_running_loop()
+        self.downloads += 1  # counted before the first wait: the limit holds
         try:
             # Open now: a round pruned while it is being sent stays readable to the end.
             fd = await loop.run_in_executor(self._files, os.open, dl.path, os.O_RDONLY)
         except FileNotFoundError:
+            self.downloads -= 1
             return self._error(404, f"no replay {dl.rid!r}")
-        self.downloads += 1
+        except BaseException:
+            self.downloads -= 1
+            raise
         try:
             size = os.fstat(fd).st_size
             try:
