@@ -28,6 +28,7 @@ from .directory import PUBLISH_S, Directory, HostEntry
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
+from .recorder import Recording, spool_dir_for
 from .replays import ReplayStore, Retention, Storage, StorageOff, access_key
 from .room import Room, RoomSettings
 from .sim import SimPool
@@ -90,7 +91,7 @@ class GameServer:
                                min_free_bytes=int(lim.storage_min_free_mib * 2**20))
         self.storage.check_now()
         # Every room of a scene is a slot of that scene's worker: one call steps them all.
-        self.sims = SimPool(epoch=self.epoch)
+        self.sims = SimPool(epoch=self.epoch, spool_dir=spool_dir_for(self.data_dir))
         self._write_host_token()
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
                            max_rooms=self.limits.max_rooms, sims=self.sims)
@@ -336,7 +337,7 @@ class GameServer:
         if self.lobby.rooms.get(room.id) is room:
             self._spawn(self.lobby.remove(room.id))
 
-    def save_round(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> None:
+    def save_round(self, header: dict[str, Any], records: Recording) -> None:
         room = self.lobby.rooms.get(header["room_id"])
         if room is not None and room.code is not None:
             # A private room's rounds are listed and served only to holders of its code.
@@ -351,7 +352,7 @@ class GameServer:
 
         async def save() -> None:
             try:
-                row = await self.storage.save(header, records)
+                row = await self.storage.save(header, records)  # type: ignore[arg-type]
             except StorageOff as e:
                 # Disk full, read-only, gone, locked: this round is lost (or, locked, kept
                 # as a file to be indexed), the match goes on.
@@ -367,7 +368,18 @@ class GameServer:
             if r is not None:
                 r.event("replay_saved", id=row["id"], round=row["round"], bytes=row["bytes"])
 
-        t = asyncio.create_task(save())
+        async def save_and_clean() -> None:
+            try:
+                if records.error is not None and self.recording_error is None:
+                    # The disk refused the round as it was made (else storage says why).
+                    log.warning("round %s not recorded: %s", header.get("id"), records.error)
+                    failed(f"could not write the replay: {records.error}")
+                    return
+                await save()
+            finally:
+                records.discard()  # the spool, saved into the replay file or not
+
+        t = asyncio.create_task(save_and_clean())
         self._saves.add(t)
         t.add_done_callback(self._saves.discard)
 

@@ -4,7 +4,8 @@ in them exist.
 For each N: a server in a process of its own (``clothball host --bots 4 --workers 1``, the
 show room played by four bots), N rooms created over the websocket by a client that then
 leaves them; one spectator of the show room counts its MESH messages (30 Hz is the target)
-and the server's own counters give its frame lateness and skipped frames. Nothing is timed in-process with the server.
+and the server's own counters give its frame lateness and skipped frames. Nothing is
+timed in-process with the server.
 """
 
 from __future__ import annotations

@@ -168,4 +168,5 @@ def parse_settings(msg: dict[str, Any]) -> RoomSettings:
         grace=P.field_float(msg, "grace", d.grace, 0.5, 60.0),  # type: ignore[arg-type]
         autoplay=P.field_bool(msg, "autoplay", d.autoplay),
         restart_delay=P.field_float(msg, "restart_delay", d.restart_delay, 0.0, 60.0),  # type: ignore[arg-type]
+        record_cap_s=P.field_float(msg, "record_cap_s", d.record_cap_s, 1.0, 3600.0),  # type: ignore[arg-type]
     )

@@ -22,7 +22,8 @@ from ..game.rules import EDGE_NAMES, SEATS, IllegalMove, Match, edge_of_seat
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
-from ..game.wire.replay import REPLAY_VERSION, new_round_id, recorded_length
+from ..game.wire.replay import REPLAY_VERSION, new_round_id
+from .recorder import Recording
 from .sim import FrameResult, RoomSim, SimPool
 
 log = logging.getLogger("clothball.server")
@@ -53,7 +54,7 @@ class RoomHost(Protocol):
 
     def spawn_bot(self, room: Room, seat: int, token: str, difficulty: float) -> None: ...
 
-    def save_round(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> None: ...
+    def save_round(self, header: dict[str, Any], records: Recording) -> None: ...
 
     def room_stopped(self, room: Room, reason: str) -> None: ...
 
@@ -72,6 +73,8 @@ class RoomSettings:
     grace: float = 15.0  # s a disconnected player's seat is held
     autoplay: bool = False  # start (and restart) matches when only bots are seated
     restart_delay: float = 5.0  # s after a match before an autoplay room starts the next
+    # s of a round recorded at most: a longer round's replay stops there, marked "cut".
+    record_cap_s: float = 600.0
 
 
 @dataclass
@@ -513,7 +516,7 @@ class Room:
             id=new_round_id(), round=rnd, started_at=time.time(),
             players=[s.info() for s in self.seats],
         )
-        self.sim.command("record_start", self._recording.id)
+        self.sim.command("record_start", (self._recording.id, self.settings.record_cap_s))
         self.event("round_start", round=rnd, ball=pos.tolist(), ball_velocity=vel.tolist())
         self.sim.command("arm")
         self.broadcast_state()
@@ -537,7 +540,7 @@ class Room:
             self._task.cancel()
             self._task = None
         if self._recording is not None:
-            self.sim.command("record_stop", (self._recording.id, lambda records: None))
+            self.sim.command("record_stop", (self._recording.id, _discard))
             self._recording = None
         self.event("match_abort", reason=why)
         self.broadcast_state()
@@ -659,24 +662,37 @@ class Room:
 
     async def _finish_recording(self, header: dict[str, Any]) -> None:
         await asyncio.sleep(RECORD_TAIL)
-        fut: asyncio.Future[list[tuple[int, bytes]]] = self.loop.create_future()
+        fut: asyncio.Future[Recording | None] = self.loop.create_future()
 
-        def got(records: list[tuple[int, bytes]]) -> None:
+        def got(rec: Recording | None) -> None:
             def settle() -> None:
                 if not fut.done():
-                    fut.set_result(records)
+                    fut.set_result(rec)
+                elif rec is not None:
+                    rec.discard()
 
             try:
                 self.loop.call_soon_threadsafe(settle)
             except RuntimeError:  # loop closed
-                pass
+                _discard(rec)
 
         self.sim.command("record_stop", (header["id"], got))
         try:
-            records = await asyncio.wait_for(fut, timeout=5.0)
+            rec = await asyncio.wait_for(fut, timeout=5.0)
         except TimeoutError:
             log.warning("room %s: round %s not saved (simulation stopped)", self.id, header["id"])
             return
+        if rec is None:
+            return
+        await asyncio.to_thread(rec.finish)  # every record on disk
         # The round's length as a player shows it: its recorded frames, the tail included.
-        header["duration_s"] = recorded_length(header["geometry"]["frame_dt"], records)
-        self.host.save_round(header, records)
+        header["duration_s"] = rec.duration_s
+        if rec.cut is not None:
+            header["cut"] = rec.cut  # recorded up to where it stopped, and says why
+        self.host.save_round(header, rec)
+
+
+def _discard(rec: Recording | None) -> None:
+    """A recording nobody will save (an aborted match): its spool goes."""
+    if rec is not None:
+        rec.discard()

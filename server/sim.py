@@ -26,10 +26,12 @@ import json
 import logging
 import math
 import queue
+import tempfile
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,6 +41,7 @@ from ..game.sim.batch import ClothBatch
 from ..game.sim.cloth import corners_of, resolve_backend, rest_positions
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
+from .recorder import Recording
 
 log = logging.getLogger("clothball.server")
 
@@ -123,7 +126,7 @@ class RoomSim:
         # Worker-thread state.
         self.slot: int | None = None
         self._armed = False
-        self._recordings: dict[str, list[tuple[int, bytes]]] = {}
+        self._recordings: dict[str, Recording] = {}
         self._done = 0  # frames stepped since the room last woke
         self._next_mesh = 0
         self._next_track = 0
@@ -179,10 +182,10 @@ class RoomSim:
 
     def command(self, name: str, arg: Any = None) -> None:
         """Queue a command for the worker: ``reset_ball`` ((pos, vel)), ``arm``, ``disarm``,
-        ``record_start`` (an id), ``record_event`` (bytes, to every recording in progress),
-        ``record_stop`` ((id, callback): the callback gets that recording's records, on the
-        worker's thread). Recordings may overlap (a round's tail and the next round's
-        start)."""
+        ``record_start`` ((id, cap in s)), ``record_event`` (bytes, to every recording in
+        progress), ``record_stop`` ((id, callback): the callback gets that ``Recording``,
+        or None, on the worker's thread). Recordings may overlap (a round's tail and the
+        next round's start). A recording spools to disk as it goes (``server.recorder``)."""
         self.worker.post(self, name, arg)
 
     # --- worker side (called on the worker's thread only) ------------------------------------
@@ -196,16 +199,23 @@ class RoomSim:
         elif name == "disarm":
             self._armed = False
         elif name == "record_start":
-            self._recordings[arg] = []
+            rid, cap_s = arg
+            self._recordings[rid] = Recording(rid, self.pool.spool_dir, cap_s, self.frame_dt)
         elif name == "record_mesh":
             for rec in self._recordings.values():
-                rec.append((1, arg))
+                rec.append(1, arg)
         elif name == "record_event":
             for rec in self._recordings.values():
-                rec.append((0, arg))
+                rec.append(0, arg)
         elif name == "record_stop":
             rid, callback = arg
-            callback(self._recordings.pop(rid, []))
+            callback(self._recordings.pop(rid, None))
+
+    def drop_recordings(self) -> None:
+        """The room is gone: recordings in progress are discarded."""
+        for rec in self._recordings.values():
+            rec.discard()
+        self._recordings.clear()
 
     def fill_hips(self, out: np.ndarray) -> None:
         """This frame's hands into ``out`` (4, 3): the newest HIP per seat, else the anchor."""
@@ -255,7 +265,7 @@ class RoomSim:
             self._next_track = self._done + self.track_every
             track = P.encode_track(frame, server_time, bp, bv, hips, pos)
             for rec in self._recordings.values():
-                rec.append((1, track))
+                rec.append(1, track)
         return result
 
     def deliver(self, result: FrameResult) -> None:
@@ -347,6 +357,7 @@ class SimWorker:
                     self.batch.set_active(room.slot, room._awake)
             elif name == "remove":
                 self._drop(room)
+                room.drop_recordings()
                 room._stopped.set()
             elif name == "awake":
                 if room.slot is not None and arg != self.batch.active(room.slot):
@@ -505,7 +516,8 @@ class SimPool:
     def __init__(self, *, loop: asyncio.AbstractEventLoop | None = None,
                  clock: Callable[[], float] = time.perf_counter, epoch: float | None = None,
                  max_catchup: int = 50, cpu_threads: int | None = 1,
-                 compress_mesh: bool = True, capacity: int = WORKER_CAPACITY) -> None:
+                 compress_mesh: bool = True, capacity: int = WORKER_CAPACITY,
+                 spool_dir: Path | None = None) -> None:
         self.loop = loop
         self.clock = clock
         self.epoch = clock() if epoch is None else epoch  # server time zero
@@ -516,6 +528,8 @@ class SimPool:
         self.cpu_threads = cpu_threads
         self.compress_mesh = compress_mesh
         self.capacity = capacity
+        # Where recordings spool while a round lasts (the data directory's, for a server).
+        self.spool_dir = spool_dir or Path(tempfile.gettempdir()) / "clothball-spool"
         self._workers: dict[tuple[str, str, str], list[SimWorker]] = {}
         self._lock = threading.Lock()
 
