@@ -306,3 +306,21 @@ def test_a_locked_index_keeps_the_round_as_a_file_and_indexes_it_when_free(
                 assert await listed(srv) == ["disk00004-x"]
 
     run(main())
+
+
+def test_a_query_on_an_index_closed_under_it_gets_a_503_not_a_500(tmp_path: Path) -> None:
+    """The moment the server swaps the index (a problem found, or gone), a query that had
+    taken the old one is told to try again."""
+    stored(tmp_path, 1)
+
+    async def main() -> None:
+        async with server(tmp_path, default_room=False) as srv:
+            assert srv.store is not None
+            srv.store.close()  # as Storage does when it switches to read-only
+            status, body, _ = await http_get(srv, "/api/replays")
+            assert status == 503 and b"try again" in body
+            srv.storage.store = None
+            await srv.storage.check()  # reopened, as the next look would
+            assert len(await listed(srv)) == 1
+
+    run(main())
