@@ -38,6 +38,7 @@ import mimetypes
 import os
 import re
 import socket
+import sqlite3
 import time
 import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
@@ -357,8 +358,19 @@ class HttpSurface:
         return self._error(404, f"no such path {path[:200]!r}")
 
     def _replays(self, path: str, query: dict[str, list[str]]) -> Response | _Download:
-        if self.srv.store is None:
+        store = self.srv.store
+        if store is None:
             return self._error(503, f"recording is off: {self.srv.recording_error}")
+        try:
+            return self._replays_of(store, path, query)
+        except sqlite3.Error as e:
+            # The index was closed under this query (the data directory's problem is being
+            # acted on: server.replays.Storage) or the disk failed a read.
+            return self._error(503, f"the replay index cannot be read now ({e}); try again "
+                                    "shortly")
+
+    def _replays_of(self, store: ReplayStore, path: str, query: dict[str, list[str]]
+                    ) -> Response | _Download:
 
         def one(key: str, max_len: int = 64) -> str | None:
             v = query.get(key, [None])[0]
@@ -374,13 +386,13 @@ class HttpSurface:
             return self._error(400, "limit and offset must be whole numbers")
         if path == "/api/replays":
             return self._json({
-                "replays": self.srv.store.list(limit, offset, room, player=player, code=code),
-                "total": self.srv.store.count(room, player=player, code=code),
+                "replays": store.list(limit, offset, room, player=player, code=code),
+                "total": store.count(room, player=player, code=code),
             })
         rid = path[len("/api/replays/"):]
         if rid.endswith(".cbr"):
             rid = rid[:-4]
-        p = self.srv.store.path_of(rid, code=code)
+        p = store.path_of(rid, code=code)
         if p is None:
             return self._error(404, f"no replay {rid[:100]!r}")
         return _Download(p, rid)
