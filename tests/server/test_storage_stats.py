@@ -65,3 +65,27 @@ def test_a_given_host_token_is_used_and_written(tmp_path: Path) -> None:
             assert status == 200
 
     run(main())
+
+
+def test_the_servers_of_one_data_directory_share_the_token(tmp_path: Path) -> None:
+    """The processes of `clothball host --workers N` share a data directory: whichever of
+    them answers, the one token in DATA/host-token resets the statistics; a restart keeps
+    it, and deleting the file makes a new one."""
+    async def main() -> None:
+        async with server(tmp_path, default_room=False) as a, \
+                server(tmp_path, default_room=False) as b:
+            token = (tmp_path / "host-token").read_text().strip()
+            assert a.host_token == b.host_token == token
+            for srv in (a, b):
+                status, _ = await asyncio.to_thread(get, srv.http_url + "api/stats?reset=1",
+                                                    f"Bearer {token}")
+                assert status == 200
+        async with server(tmp_path, default_room=False) as again:
+            assert again.host_token == token
+        (tmp_path / "host-token").unlink()
+        async with server(tmp_path, default_room=False) as fresh:
+            assert fresh.host_token != token
+            assert (tmp_path / "host-token").read_text().strip() == fresh.host_token
+            assert not list(tmp_path.glob(".host-token-*"))
+
+    run(main())
