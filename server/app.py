@@ -76,9 +76,10 @@ class GameServer:
         if hello_timeout is not None:
             self.limits = self.limits.replace(hello_timeout=hello_timeout)
         self.origins = origins  # websocket Origin allow-list (None: any)
-        # The host's own credential (/api/stats?reset=1): written to DATA/host-token, which
-        # only the host's account can read.
+        # The host's own credential (/api/stats?reset=1), kept in DATA/host-token, which
+        # only the host's account can read (see _share_host_token).
         self.host_token = host_token or secrets.token_urlsafe(24)
+        self._token_given = host_token is not None
         # Peers whose X-Forwarded-For names the client (limits.parse_trusted_proxies), and
         # the key in the URL of the server's own bots (their connections take no slot).
         self.trusted_proxies = trusted_proxies
@@ -92,7 +93,7 @@ class GameServer:
         self.storage.check_now()
         # Every room of a scene is a slot of that scene's worker: one call steps them all.
         self.sims = SimPool(epoch=self.epoch, spool_dir=spool_dir_for(self.data_dir))
-        self._write_host_token()
+        self._share_host_token()
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
                            max_rooms=self.limits.max_rooms, sims=self.sims)
         self.clients: set[Conn] = set()
@@ -263,16 +264,41 @@ class GameServer:
         self.http.close()
         self.storage.close()
 
-    def _write_host_token(self) -> None:
+    def _share_host_token(self) -> None:
+        """DATA/host-token holds the token: made by the first server of the data directory
+        and read by the others (the processes of ``--workers``, later restarts), so one
+        token works whichever process answers; a token given to this server replaces it.
+        Delete the file for a new token at the next start."""
         path = self.data_dir / "host-token"
+        if not self._token_given:
+            with contextlib.suppress(OSError, UnicodeError):
+                found = path.read_text().strip()
+                if len(found) >= 32:
+                    self.host_token = found
+                    return
+        tmp = path.with_name(f".host-token-{os.getpid()}")
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
             with os.fdopen(fd, "w") as f:
                 os.fchmod(f.fileno(), 0o600)
                 f.write(self.host_token + "\n")
-        except OSError as e:
-            log.warning("the host token could not be written to %s (%s): statistics can be "
-                        "reset only by a GameServer given host_token", path, e.strerror or e)
+            if self._token_given:
+                os.replace(tmp, path)
+            else:
+                try:
+                    os.link(tmp, path)  # only if no other process made it meanwhile
+                except FileExistsError:
+                    found = path.read_text().strip()
+                    if len(found) >= 32:
+                        self.host_token = found
+                    else:  # damaged: ours replaces it
+                        os.replace(tmp, path)
+        except (OSError, UnicodeError) as e:
+            log.warning("the host token could not be kept in %s (%s): statistics can be "
+                        "reset only by a GameServer given host_token", path,
+                        getattr(e, "strerror", None) or e)
+        finally:
+            tmp.unlink(missing_ok=True)
 
     def _spawn(self, coro: Any) -> asyncio.Task[Any]:
         t = asyncio.create_task(coro)
