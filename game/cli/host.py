@@ -246,6 +246,7 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         else:
             print(f"recorded rounds in {data.resolve()}  (http://{_shown(args.host)}:{port}"
                   "/api/replays)")
+            print(f"host token (resets /api/stats) in {data.resolve() / 'host-token'}")
         if args.host in ("127.0.0.1", "localhost", "::1"):
             print("(only this machine can connect; --host 0.0.0.0 to let others in)")
         while not stopping.wait(0.5):
