@@ -298,7 +298,8 @@ class GameServer:
                         "reset only by a GameServer given host_token", path,
                         getattr(e, "strerror", None) or e)
         finally:
-            tmp.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # never made, on a directory that is not
+                tmp.unlink(missing_ok=True)
 
     def _spawn(self, coro: Any) -> asyncio.Task[Any]:
         t = asyncio.create_task(coro)
