@@ -414,9 +414,10 @@ class CudaCloth final : public Backend {
 
 // Every slot of a batch (cb::Batch) of CudaCloths of one configuration in one graph a
 // frame: one launch copies all slots' hands and wind in from one mapped array, each
-// substep is one launch over all slots (blockIdx.x slot-major; a slot's blocks are its
-// lone cloth's grid-stride grid, running the same se_substep_body), and one launch writes
-// every slot's corners, ball and non-finite flag to one mapped read-back array; one
+// substep is one launch over a group of slots (capture), running se_substep_body as the
+// lone cloth does (blockIdx.x slot-major; a slot's blocks loop over its nodes, see
+// slot_blocks, so each node's arithmetic is its lone cloth's), and one launch writes every
+// slot's corners, ball and non-finite flag to one mapped read-back array; one
 // synchronisation a frame for all. A slot's own calls keep working: its mapped inputs and
 // read-back are its rows of those arrays (CudaCloth::bind_io). The table of slots, and so
 // the graphs, are rebuilt only when the stepped set changes (slots added, removed,
@@ -428,7 +429,8 @@ class CudaBatch final : public BatchStepper {
       : p_(first.p_),
         N_(first.N_),
         effects_(first.effects_),
-        blocks_(std::min((first.N_ + kBlock - 1) / kBlock, first.resident_blocks_)),
+        resident_blocks_(first.resident_blocks_),
+        group_(group_size(first)),
         overlap_(first.overlap_launches_),
         kernels_(batch_kernel_table<R>()[first.effects_ & (kNumEffectSets - 1)]),
         cloths_(size_t(capacity), nullptr) {
@@ -515,6 +517,10 @@ class CudaBatch final : public BatchStepper {
   }
 
   // One frame for every slot of the table, each starting from its table buffer b0.
+  // The substeps go group by group of slots (group_), each group through all of them
+  // before the next: a group's two state buffers fit in L2, so its substeps after the
+  // first read what the one before wrote from L2 rather than DRAM (all slots' states do
+  // not fit: 173 KB a classic n = 60 slot in float32, 50 MB of L2 on an H100).
   cudaGraphExec_t capture(int substeps, R dt, int b0) {
     const int m = int(built_.size());
     const SlotDev<R>* t = table_;
@@ -522,12 +528,18 @@ class CudaBatch final : public BatchStepper {
     CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
     launch_kernel(stream_, false, kernels_.load, unsigned((m + kBlock - 1) / kBlock),
                   unsigned(kBlock), t, m);
-    int b = b0;
-    for (int k = 0; k < substeps; ++k) {
-      launch_kernel(stream_, overlap_, kernels_.substep, unsigned(m) * unsigned(blocks_),
-                    unsigned(kBlock), p_, t, blocks_, k, b, dt);
-      b = 1 - b;
+    const int group = group_ > 0 ? group_ : m;
+    for (int g0 = 0; g0 < m; g0 += group) {
+      const int mg = std::min(group, m - g0);
+      int b = b0;
+      for (int k = 0; k < substeps; ++k) {
+        const int blocks = slot_blocks(mg);
+        launch_kernel(stream_, overlap_, kernels_.substep, unsigned(mg) * unsigned(blocks),
+                      unsigned(kBlock), p_, t + g0, blocks, k, b, dt);
+        b = 1 - b;
+      }
     }
+    const int b = substeps % 2 ? 1 - b0 : b0;
     launch_kernel(stream_, overlap_, kernels_.finish, unsigned(m), 32u, p_, t, substeps, b, dt);
     CB_CUDA(cudaStreamEndCapture(stream_, &graph));
     cudaGraphExec_t exec;
@@ -542,10 +554,37 @@ class CudaBatch final : public BatchStepper {
     graphs_.clear();
   }
 
+  // Slots whose two state buffers take half the L2 (the rest holds what else the substep
+  // reads); CLOTHBALL_CUDA_BATCH_GROUP=k takes k (0: every slot in each launch), to measure.
+  // A slot's blocks in a substep launch of `m` slots: a node a thread (the lone cloth's
+  // grid) while the launch does not fill the device, else fewer blocks, down to about 5
+  // nodes a thread (a grid-stride loop within the slot), which pays each thread's ball
+  // update and table reads over several nodes. Measured on an H100
+  // (tools/lab/batch_bench.cu, classic n = 60, frame p50): 1024 slots, three runs each:
+  // 15 blocks a slot (a node a thread) 866-898 us, 8 blocks 773-851 us, 3 blocks 761-769
+  // us; one slot: 3 blocks 61.5 us, 15 (this rule) 29.6 us, its own graph alone 27.8 us.
+  int slot_blocks(int m) const {
+    constexpr int kNodesPerThread = 5;
+    const int node_blocks = (N_ + kBlock - 1) / kBlock;
+    const int fewest = (N_ + kNodesPerThread * kBlock - 1) / (kNodesPerThread * kBlock);
+    const int fill = (resident_blocks_ + m - 1) / m;  // blocks a slot for one full wave
+    return std::max(1, std::min(std::min(node_blocks, resident_blocks_), std::max(fewest, fill)));
+  }
+
+  static int group_size(const CudaCloth<R>& c) {
+    const char* env = std::getenv("CLOTHBALL_CUDA_BATCH_GROUP");
+    if (env) return std::max(0, std::atoi(env));
+    int l2 = 0;
+    CB_CUDA(cudaDeviceGetAttribute(&l2, cudaDevAttrL2CacheSize, 0));
+    const size_t slot_bytes = sizeof(R) * 12 * size_t(c.N_);
+    return int(std::max<size_t>(1, size_t(l2) / 2 / slot_bytes));
+  }
+
   const Params<R> p_;
   const int N_;
   const unsigned effects_;
-  const int blocks_;  // a slot's blocks in a substep launch: its lone cloth's grid
+  const int resident_blocks_;  // substep blocks the device holds at once (CudaCloth's)
+  const int group_;   // slots stepped through a frame's substeps together (0: all)
   const bool overlap_;
   const BatchKernels<R> kernels_;
   std::vector<CudaCloth<R>*> cloths_;  // by slot; null: not attached

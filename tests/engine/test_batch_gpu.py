@@ -84,9 +84,14 @@ def test_slots_through_pauses_and_odd_substeps_are_their_cloths_alone(
         assert_same(batch, k, alone(scene, precision, k, frames), exact=False)
 
 
-def test_a_large_batch_steps_each_slot_as_alone(cuda: str) -> None:
-    """Many slots in one launch (blocks of different slots side by side): the first, a
-    middle and the last slot each equal their cloth alone."""
+@pytest.mark.parametrize("group", [None, "7"])
+def test_a_large_batch_steps_each_slot_as_alone(cuda: str, group: str | None,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Many slots in one launch (blocks of different slots side by side), or in groups of 7
+    that each go through the frame's substeps in turn (as slots too many for the L2 do):
+    the first, a middle and the last slot each equal their cloth alone."""
+    if group is not None:
+        monkeypatch.setenv("CLOTHBALL_CUDA_BATCH_GROUP", group)
     scene = case_scene("ball")
     batch = ClothBatch(scene, capacity=300, backend=cuda, precision="float32")
     for _ in range(300):

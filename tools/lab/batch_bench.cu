@@ -100,7 +100,8 @@ static std::pair<double, double> time_frames(Batch& batch, int K, const Case& k,
   for (int s = 0; s < K; ++s) batch.at(s).get_corners(&corners[24 * size_t(s)]);
   for (int s = 0; s < K; ++s)
     for (int c = 0; c < 4; ++c)
-      for (int d = 0; d < 3; ++d) hips[12 * size_t(s) + 3 * c + d] = corners[24 * size_t(s) + 6 * c + d];
+      for (int d = 0; d < 3; ++d)
+        hips[12 * size_t(s) + 3 * c + d] = corners[24 * size_t(s) + 6 * c + d];
   const double dt = k.frame_dt / k.substeps;
   std::vector<double> t;
   for (int f = -20; f < frames; ++f) {
@@ -108,8 +109,8 @@ static std::pair<double, double> time_frames(Batch& batch, int K, const Case& k,
     batch.set_hips_all(hips.data());
     batch.step(1, k.substeps, dt, finite.data());
     batch.get_corners_all(corners.data(), balls.data());
-    const double us = 1e6 * std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    if (f >= 0) t.push_back(us);
+    const std::chrono::duration<double> d = std::chrono::steady_clock::now() - t0;
+    if (f >= 0) t.push_back(1e6 * d.count());
   }
   std::sort(t.begin(), t.end());
   return {t[t.size() / 2], t[size_t(0.99 * double(t.size() - 1))]};
