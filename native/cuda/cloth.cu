@@ -576,6 +576,7 @@ class CudaBatch final : public BatchStepper {
     if (env) return std::max(0, std::atoi(env));
     int l2 = 0;
     CB_CUDA(cudaDeviceGetAttribute(&l2, cudaDevAttrL2CacheSize, 0));
+    if (l2 <= 0) return 0;  // no L2 reported: nothing to keep a group in
     const size_t slot_bytes = sizeof(R) * 12 * size_t(c.N_);
     return int(std::max<size_t>(1, size_t(l2) / 2 / slot_bytes));
   }
