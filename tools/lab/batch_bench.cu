@@ -5,8 +5,10 @@
 // (CB_LAB_EFFECT_SET), so it builds in seconds.
 // Build (the flags of the package's CUDA units, native/CMakeLists.txt):
 //   nvcc -O3 -std=c++17 --expt-relaxed-constexpr -arch=sm_90 -prec-div=false \
-//     -prec-sqrt=false -Inative tools/lab/batch_bench.cu -o batch_bench
-// Run:   python tools/lab/classic_configs.py > classic.cfg; ./batch_bench classic.cfg 60 [K...]
+//     -prec-sqrt=false -Inative -Xcompiler -fopenmp tools/lab/batch_bench.cu -lgomp \
+//     -o batch_bench
+// Run:   python tools/lab/classic_configs.py 16 60 > classic.cfg
+//        ./batch_bench classic.cfg 60 [K...]
 // Prints per K: the frame's median and p99 (us) over 500 frames, each frame hands in for
 // every slot, one step, corners and balls out (as the rooms bench), and the same per-slot
 // (CLOTHBALL_CUDA_BATCH=0's path: every slot's own graph) for K <= 64.

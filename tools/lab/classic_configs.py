@@ -1,7 +1,8 @@
 """Write the native engine's configuration of the ``classic`` scene at each bench size, one
 line per size, for tools/lab/substep_bench.cu (which times the CUDA backend with no Python).
 
-Usage: python tools/lab/classic_configs.py > /tmp/classic.cfg
+Usage: python tools/lab/classic_configs.py [n ...] > /tmp/classic.cfg (default: SIZES;
+tools/lab/batch_bench.cu takes the room sizes, e.g. 16 60)
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ FIELDS = (
 
 def main() -> None:
     classic = Scene.load("classic")
-    for n in SIZES:
+    for n in [int(a) for a in sys.argv[1:]] or SIZES:
         scene = classic.with_changes({"cloth": {"n": n}})
         c = native_config(scene)
         cloth = Cloth(scene, backend="cpu", precision="float32") if n <= 256 else None
