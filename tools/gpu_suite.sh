@@ -38,6 +38,12 @@ lab_nvcc=(nvcc -O3 -std=c++17 --expt-relaxed-constexpr -arch=sm_90 -Inative)
 python3 tools/lab/classic_configs.py > "$OUT/classic.cfg" \
   && "${lab_nvcc[@]}" -prec-div=false -prec-sqrt=false tools/lab/substep_bench.cu \
     -o /tmp/substep_bench && /tmp/substep_bench "$OUT/classic.cfg" | tee "$OUT/substep_bench.txt"
+# ClothBatch's CUDA engine with no Python: the rooms bench's frame at n = 60, split from
+# Python's part.
+python3 tools/lab/classic_configs.py 16 60 > "$OUT/rooms.cfg" \
+  && "${lab_nvcc[@]}" -prec-div=false -prec-sqrt=false -Xcompiler -fopenmp \
+    tools/lab/batch_bench.cu -lgomp -o /tmp/batch_bench \
+  && /tmp/batch_bench "$OUT/rooms.cfg" 60 | tee "$OUT/batch_bench.txt"
 # The CPU backend's effect costs on two quiet cores of this machine (the development
 # machine is shared, and small CPU rows scatter there).
 OMP_NUM_THREADS=2 taskset -c 0,1 python3 -m clothball.game.cli bench --effects --backends cpu \
