@@ -51,6 +51,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="extra n for the Newton sag convergence (default 9,17,33)")
     p.add_argument("--no-energy", action="store_true", help="skip the undamped energy runs")
     p.add_argument("--no-sag", action="store_true", help="skip the steady-state sag runs")
+    p.add_argument("--threads", type=int, default=None,
+                   help="the CPU backend's threads (default: all cores; --quick: 1, its grid "
+                        "is too small for threads to pay and a busy machine stalls them)")
     p.add_argument("--quick", action="store_true",
                    help=f"a short run through the impact: n = {QUICK_SIZES[0]}, "
                         f"{QUICK_DURATION_S:g} s, 3 step sizes")
@@ -86,6 +89,9 @@ def make_plan(args: argparse.Namespace) -> Plan:
         QUICK_DURATION_S if args.quick else 1.0)
     if not 0.0 < duration <= 60.0:
         raise ValueError("--duration: must be in (0, 60] seconds")
+    threads = args.threads if args.threads is not None else (1 if args.quick else None)
+    if threads is not None and not 1 <= threads <= 1024:
+        raise ValueError("--threads: must be in 1..1024")
     sag_sizes = _ints(args.sag_sizes, "sag-sizes") if args.sag_sizes else (
         [] if args.quick else [9, 17, 33])
     return Plan(
@@ -93,7 +99,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
         integrators=csv_list(args.integrators, "integrators", INTEGRATORS),
         precisions=csv_list(args.precisions, "precisions", PRECISIONS),
         levels=levels, duration_s=duration, backend=backend, sag_sizes=sag_sizes,
-        energy=not args.no_energy, sag=not args.no_sag, decorrelation=True)
+        energy=not args.no_energy, sag=not args.no_sag, decorrelation=True, threads=threads)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -118,13 +118,14 @@ def native_integrators() -> tuple[str, ...]:
 
 def make_sim(
     scene: Scene, integrator: str, precision: str, substeps: int, backend: str,
-    reference: bool = False,
+    reference: bool = False, threads: int | None = None,
 ) -> tuple[Any, str]:
     """A simulation of ``scene`` with fixed substeps, and the engine that runs it.
 
     The native engine where it implements the integrator; else the NumPy reference
     (float64 only, and far slower: its timings are not the engine's). ``reference``: the
-    study's reference run (implicit Euler then solves CG tightly)."""
+    study's reference run (implicit Euler then solves CG tightly). ``threads``: the CPU
+    backend's threads (None: all cores)."""
     changes: dict[str, Any] = {"substeps": int(substeps)}
     if integrator != "semi_implicit_euler":
         changes["integrator"] = integrator
@@ -132,7 +133,8 @@ def make_sim(
         changes["cg_tolerance"] = REFERENCE_CG_TOLERANCE
         changes["cg_max_iterations"] = REFERENCE_CG_ITERATIONS
     if integrator in native_integrators():
-        sim = Cloth(scene.with_changes({"sim": changes}), backend=backend, precision=precision)
+        sim = Cloth(scene.with_changes({"sim": changes}), backend=backend, precision=precision,
+                    threads=threads)
         return sim, f"native-{sim.backend}"
     if precision != "float64":
         raise ValueError(f"{integrator} in {precision}: the native engine lacks it and the "
@@ -419,11 +421,13 @@ class Decorrelation:
 def decorrelation_time(
     scene: Scene, integrator: str, precision: str, substeps: int, backend: str = "cpu",
     perturb_m: float = 1e-10, threshold_m: float = 1e-4, horizon_s: float = 1.0,
+    threads: int | None = None,
 ) -> Decorrelation:
     """The Lyapunov-style horizon past which trajectories of this scene cannot be compared:
     every node of one run is moved ``perturb_m`` along x and both are stepped together."""
     start = fig4_start(scene)
-    sims = [make_sim(scene, integrator, precision, substeps, backend)[0] for _ in range(2)]
+    sims = [make_sim(scene, integrator, precision, substeps, backend, threads=threads)[0]
+            for _ in range(2)]
     shifted = start.pos.copy()
     shifted[..., 0] += perturb_m
     for sim, pos in zip(sims, (start.pos, shifted), strict=True):
@@ -521,6 +525,7 @@ class Plan:
     hold_s: float = 1.0
     decorrelation: bool = False  # also measure the decorrelation time (needs the ball)
     short_after_s: float = 0.02  # the short window ends this long after the first contact
+    threads: int | None = None  # the CPU backend's threads (None: all cores)
 
     def cases(self) -> int:
         per_n = len(self.integrators) * (len(self.precisions) * self.levels + 1)
@@ -550,7 +555,7 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
         scene = sized(plan.scene, plan.sizes[0])
         sub = start_substeps(scene, integ, impact_speed(scene, fig4_start(scene)))
         d = decorrelation_time(scene, integ, prec, sub, plan.backend,
-                               horizon_s=max(plan.duration_s, 1.0))
+                               horizon_s=max(plan.duration_s, 1.0), threads=plan.threads)
         dec = {**asdict(d), "integrator": integ, "precision": prec, "n": plan.sizes[0],
                "substeps": sub}
         tick(f"n={plan.sizes[0]} decorrelation time")
@@ -569,7 +574,8 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
         refs: dict[str, tuple[Trajectory, int]] = {}
         for integ in plan.integrators:
             s_ref = first[integ] * 2 ** (plan.levels - 1) * REFERENCE_FACTOR
-            ref_sim, _ = make_sim(scene, integ, "float64", s_ref, plan.backend, reference=True)
+            ref_sim, _ = make_sim(scene, integ, "float64", s_ref, plan.backend, reference=True,
+                                  threads=plan.threads)
             refs[integ] = (run_trajectory(ref_sim, scene, start, plan.duration_s,
                                           sample_frames), s_ref)
             del ref_sim
@@ -592,7 +598,8 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
                     s = s0 * 2**level
                     label = f"n={n} {integ} {prec} {s} substeps/frame"
                     try:
-                        sim, engine = make_sim(scene, integ, prec, s, plan.backend)
+                        sim, engine = make_sim(scene, integ, prec, s, plan.backend,
+                                               threads=plan.threads)
                     except ValueError as e:
                         rows.append(Row(integ, prec, n, s, frame_dt / s * 1e6, level, math.nan,
                                         math.nan, math.nan, math.nan, math.nan, math.nan, "-",
@@ -607,7 +614,8 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
                     del sim
                     drift = math.nan
                     if plan.energy:
-                        esim, _ = make_sim(undamped(scene), integ, prec, s, plan.backend)
+                        esim, _ = make_sim(undamped(scene), integ, prec, s, plan.backend,
+                                           threads=plan.threads)
                         erun = run_trajectory(esim, undamped(scene), start, plan.duration_s,
                                               sample_frames, energy=True)
                         drift = energy_drift(erun, e_scale)
@@ -615,7 +623,8 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
                     sag_err = math.nan
                     note = run.failed
                     if plan.sag and level == 0:
-                        ssim, _ = make_sim(quiet, integ, prec, s, plan.backend)
+                        ssim, _ = make_sim(quiet, integ, prec, s, plan.backend,
+                                           threads=plan.threads)
                         try:
                             sag = steady_sag(ssim, quiet, eq_quiet, plan.hold_s)
                             sag_err = abs(sag - centre_sag(quiet, eq_quiet))
@@ -654,6 +663,7 @@ def run_study(plan: Plan, progress: Callable[[str], None] | None = None) -> Stud
         "levels": plan.levels,
         "reference_factor": REFERENCE_FACTOR,
         "hold_s": plan.hold_s,
+        "threads": plan.threads,
     }
     meta["late_fraction"] = LATE_FRACTION
     meta["short_after_s"] = plan.short_after_s
@@ -923,7 +933,6 @@ def plot_error_vs_cost(study: Study, path: str) -> None:
                 ax.set_xscale("log")
                 ax.set_yscale("log")
                 ax.xaxis.set_minor_formatter(NullFormatter())  # they overlap
-                ax.yaxis.set_minor_formatter(NullFormatter())
             else:
                 ax.text(0.5, 0.5, "not measured", ha="center", va="center",
                         transform=ax.transAxes)
