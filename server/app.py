@@ -24,7 +24,8 @@ from websockets.asyncio.server import Server, serve
 
 from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
-from .directory import PUBLISH_S, Directory, HostEntry
+from .directory import PUBLISH_S, Directory, HostEntry, Snapshot
+from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
@@ -96,6 +97,11 @@ class GameServer:
         self._share_host_token()
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
                            max_rooms=self.limits.max_rooms, sims=self.sims)
+        # Admission control: the server's own measure of what more it can run.
+        self.headroom = Headroom(self.sims, self.limits.admit_lateness_ms)
+        self.lobby.busy = lambda: self.headroom.busy
+        self.lobby.read_directory = self._read_directory_now
+        self.lobby.publish_now = self._publish_now
         self.clients: set[Conn] = set()
         self.per_address: collections.Counter[str] = collections.Counter()
         self._server: Server | None = None
@@ -144,6 +150,7 @@ class GameServer:
         self._spawn(self._housekeeping())
         self._spawn(self._push_room_lists())
         self._spawn(self._watch_storage())
+        self._spawn(self._watch_headroom())
         self._spawn(self.ws.sweep_idle())
         return self.host, self.port
 
@@ -178,6 +185,24 @@ class GameServer:
         if self.lobby.directory_error is not None:
             log.info("room directory back: registered again")
             self.lobby.directory_error = None
+
+    def _publish_now(self) -> None:
+        """This process's rooms to the directory at once (a millisecond or two: a new room
+        is there before its id is given out); skipped while the directory is away."""
+        me = self.lobby.me
+        if self.directory is None or me is None or self.lobby.directory_error is not None:
+            return
+        me.rooms, me.clients = len(self.lobby.rooms), len(self.clients)
+        try:
+            self.directory.publish(me, self.lobby.published())
+        except Exception:
+            pass  # the periodic publication reports it and retries
+
+    def _read_directory_now(self) -> Snapshot | None:
+        try:
+            return self.directory.read() if self.directory is not None else None
+        except Exception:
+            return None  # unreachable: the periodic publication reports it
 
     async def _publish_forever(self) -> None:
         changes = None
@@ -323,6 +348,13 @@ class GameServer:
         """Why rounds are not being recorded now (one line), or None."""
         return self.storage.problem
 
+    async def _watch_headroom(self) -> None:
+        while True:
+            await asyncio.sleep(WINDOW_S)
+            self.headroom.sample()
+            if self.lobby.me is not None:
+                self.lobby.me.busy = self.headroom.busy is not None
+
     async def _watch_storage(self) -> None:
         """The data directory looked at again and again: problems named as they come,
         recording resumed as they go (``server.replays.Storage``)."""
@@ -430,6 +462,7 @@ class GameServer:
             "storage": self.storage_snapshot(),
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),
+            "headroom": {**vars(self.headroom.last), "busy": self.headroom.busy},
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             "rooms": rooms,

@@ -47,10 +47,11 @@ class HostEntry:
     address: str  # its own websocket URL (ws://host:port/ws)
     rooms: int = 0
     clients: int = 0
+    busy: bool = False  # at capacity by its own measure (server.headroom): takes no rooms
 
     @property
-    def load(self) -> tuple[int, int]:
-        return (self.rooms, self.clients)
+    def load(self) -> tuple[bool, int, int]:
+        return (self.busy, self.rooms, self.clients)
 
 
 @dataclass
@@ -107,8 +108,9 @@ class SqliteDirectory:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA busy_timeout=5000")
         self._db.executescript("""
-            CREATE TABLE IF NOT EXISTS hosts (host_id TEXT PRIMARY KEY, address TEXT NOT NULL,
-                rooms INTEGER NOT NULL, clients INTEGER NOT NULL, seen REAL NOT NULL);
+            CREATE TABLE IF NOT EXISTS hosts2 (host_id TEXT PRIMARY KEY, address TEXT NOT NULL,
+                rooms INTEGER NOT NULL, clients INTEGER NOT NULL, busy INTEGER NOT NULL,
+                seen REAL NOT NULL);
             CREATE TABLE IF NOT EXISTS rooms (room_id TEXT PRIMARY KEY, host_id TEXT NOT NULL,
                 public INTEGER NOT NULL, info TEXT NOT NULL);
             CREATE INDEX IF NOT EXISTS rooms_host ON rooms (host_id);
@@ -120,14 +122,15 @@ class SqliteDirectory:
             db = self._db
             db.execute("BEGIN IMMEDIATE")
             try:
-                db.execute("INSERT OR REPLACE INTO hosts VALUES (?, ?, ?, ?, ?)",
-                           (host.host_id, host.address, host.rooms, host.clients, now))
+                db.execute("INSERT OR REPLACE INTO hosts2 VALUES (?, ?, ?, ?, ?, ?)",
+                           (host.host_id, host.address, host.rooms, host.clients,
+                            int(host.busy), now))
                 db.execute("DELETE FROM rooms WHERE host_id = ?", (host.host_id,))
                 # Processes gone (silent for the TTL): their rooms died with them.
                 gone = now - self.ttl
                 db.execute("DELETE FROM rooms WHERE host_id IN "
-                           "(SELECT host_id FROM hosts WHERE seen < ?)", (gone,))
-                db.execute("DELETE FROM hosts WHERE seen < ?", (gone,))
+                           "(SELECT host_id FROM hosts2 WHERE seen < ?)", (gone,))
+                db.execute("DELETE FROM hosts2 WHERE seen < ?", (gone,))
                 # A room id another live process holds stays its own (never taken over).
                 db.executemany(
                     "INSERT OR IGNORE INTO rooms VALUES (?, ?, ?, ?)",
@@ -142,10 +145,10 @@ class SqliteDirectory:
         live_after = time.time() - self.ttl
         with self._lock:
             hosts = self._db.execute(
-                "SELECT host_id, address, rooms, clients FROM hosts WHERE seen >= ?",
+                "SELECT host_id, address, rooms, clients, busy FROM hosts2 WHERE seen >= ?",
                 (live_after,)).fetchall()
             rows = self._db.execute("SELECT room_id, host_id, public, info FROM rooms").fetchall()
-        snap = Snapshot({h[0]: HostEntry(*h) for h in hosts})
+        snap = Snapshot({h[0]: HostEntry(h[0], h[1], h[2], h[3], bool(h[4])) for h in hosts})
         for rid, host_id, public, info in rows:
             if host_id in snap.hosts:
                 snap.rooms[rid] = (host_id, bool(public), json.loads(info))
@@ -154,7 +157,7 @@ class SqliteDirectory:
     def withdraw(self, host_id: str) -> None:
         with self._lock:
             self._db.execute("DELETE FROM rooms WHERE host_id = ?", (host_id,))
-            self._db.execute("DELETE FROM hosts WHERE host_id = ?", (host_id,))
+            self._db.execute("DELETE FROM hosts2 WHERE host_id = ?", (host_id,))
 
     def close(self) -> None:
         with self._lock:
@@ -209,7 +212,8 @@ class RedisDirectory:
             mine[rid] = json.dumps({"public": public, "info": info})
         pipe = r.pipeline(transaction=True)
         pipe.set(f"{p}host:{host.host_id}", json.dumps(
-            {"address": host.address, "rooms": host.rooms, "clients": host.clients}), px=ttl)
+            {"address": host.address, "rooms": host.rooms, "clients": host.clients,
+             "busy": host.busy}), px=ttl)
         pipe.delete(f"{p}rooms:{host.host_id}")
         if mine:
             pipe.hset(f"{p}rooms:{host.host_id}", mapping=mine)
@@ -239,7 +243,7 @@ class RedisDirectory:
             host_id = key.decode()[len(f"{p}host:"):]
             d = json.loads(raw)
             snap.hosts[host_id] = HostEntry(host_id, d["address"], int(d["rooms"]),
-                                            int(d["clients"]))
+                                            int(d["clients"]), bool(d.get("busy")))
             ids.append(host_id)
             pipe.hgetall(f"{p}rooms:{host_id}")
         for host_id, rooms in zip(ids, pipe.execute(), strict=True):

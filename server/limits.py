@@ -36,6 +36,10 @@ class Limits:
     # A room nobody is in (no human player, no spectator) sleeps at once and closes after
     # this long (its creator's seat and a reconnect have this long to come back).
     room_idle_close_s: float = 15.0
+    # Admission: while the frame lateness p99 passes this (or frames are skipped) three
+    # seconds running, new rooms and wake-ups of sleeping rooms are refused (server_busy);
+    # 0: no admission control.
+    admit_lateness_ms: float = 5.0
     # --- the replay index over HTTP (/api/replays...), per IP address -----------------------
     index_rate: float = 50.0  # queries a second (token bucket; more: HTTP 429)
     index_burst: float = 100.0
@@ -67,7 +71,8 @@ class Limits:
 
     def with_setting(self, text: str) -> Limits:
         """``NAME=VALUE`` (as on the command line) applied; ``ValueError`` naming what is
-        wrong otherwise. Every limit is a finite positive number."""
+        wrong otherwise. Every limit is a finite positive number (those in ``MAY_BE_OFF``
+        may also be 0: off)."""
         name, sep, value = text.partition("=")
         name = name.strip().replace("-", "_")
         known = {f.name: f for f in fields(self)}
@@ -79,9 +84,15 @@ class Limits:
             v: float | int = int(value) if kind in (int, "int") else float(value)
         except ValueError:
             raise ValueError(f"--limit {name}: {value!r} is not a number") from None
+        if name in MAY_BE_OFF and v == 0:
+            return self.replace(**{name: v})
         if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"--limit {name}: must be a finite number > 0, got {value!r}")
+            off = " (or 0: off)" if name in MAY_BE_OFF else ""
+            raise ValueError(f"--limit {name}: must be a finite number > 0{off}, got {value!r}")
         return self.replace(**{name: v})
+
+
+MAY_BE_OFF = frozenset({"admit_lateness_ms"})  # limits that 0 turns off
 
 
 def parse_origins(origins: list[str] | None) -> tuple[str, ...] | None:

@@ -41,6 +41,14 @@ class Lobby:
         self.me: HostEntry | None = None
         self.peers: Snapshot | None = None
         self.directory_error: str | None = None  # why the others' rooms are not listed
+        # Reads the directory now (a room made elsewhere since the last read): used only
+        # when a room asked for is not known here.
+        self.read_directory: Callable[[], Snapshot | None] = lambda: None
+        # Publishes this process's rooms now: a new room is in the directory before anyone
+        # is told its id (else another process could answer a join with unknown_room).
+        self.publish_now: Callable[[], None] = lambda: None
+        # Why no room more fits on this server now (server.headroom); None: room to spare.
+        self.busy: Callable[[], str | None] = lambda: None
 
     def create(self, name: str, scene: str | None = None, *, public: bool = True,
                settings: RoomSettings | None = None, owner: str | None = None,
@@ -56,6 +64,9 @@ class Lobby:
             )
         if len(self.rooms) >= self.max_rooms:
             raise ProtocolError("server_busy", f"this server already runs {self.max_rooms} rooms")
+        why = None if permanent else self.busy()
+        if why is not None:
+            raise ProtocolError("server_busy", why)
         if room_id is None:
             room_id = secrets.token_urlsafe(6)
         elif room_id in self.rooms:
@@ -70,6 +81,7 @@ class Lobby:
         if self.me is not None:
             self.me.rooms = len(self.rooms)  # placement sees this room before it is published
         room.start()
+        self.publish_now()
         log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
                  "public" if public else "private")
         return room
@@ -80,6 +92,11 @@ class Lobby:
             return self.rooms[room_id]
         if isinstance(room_id, str) and self.peers is not None and self.me is not None:
             there = self.peers.locate(room_id)
+            if there is None:  # perhaps made on another process since the last read
+                fresh = self.read_directory()
+                if fresh is not None:
+                    self.peers = fresh
+                    there = fresh.locate(room_id)
             if there is not None and there.host_id != self.me.host_id:
                 raise Moved(there.address, f"room {room_id} lives at {there.address}")
         raise ProtocolError("unknown_room", f"no room {room_id!r}")
@@ -91,10 +108,11 @@ class Lobby:
         if self.peers is None or self.me is None:
             return
         self.me.rooms, self.me.clients = len(self.rooms), clients
+        self.me.busy = self.busy() is not None
         hosts = dict(self.peers.hosts)
         hosts[self.me.host_id] = self.me  # this process's own load as of now
         best = min(hosts.values(), key=lambda h: (h.load, h.host_id != self.me.host_id))
-        if best.host_id != self.me.host_id and best.load < self.me.load:
+        if best.host_id != self.me.host_id and best.load < self.me.load and not best.busy:
             # `placed`: the host it is sent to takes it, whatever its own (perhaps older)
             # view of the loads says; else two views could send it to and fro.
             raise Moved(best.address, f"new rooms go to {best.address} (least loaded)",

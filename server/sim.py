@@ -301,6 +301,7 @@ class SimWorker:
         self._pending: dict[RoomSim, FrameResult] = {}
         self._scheduled = False  # a hand-over is queued on the event loop
         self.passes = 0  # step calls, all rooms at once
+        self.skipped_frames = 0  # frames dropped for being too far behind (all rooms)
         self.lateness: list[float] = []  # s, per pass (bounded)
 
     @property
@@ -406,6 +407,7 @@ class SimWorker:
             if behind > max_catchup:
                 skip = behind - max_catchup
                 t0 += skip * dt
+                self.skipped_frames += skip
                 for r in live:
                     r.stats.skipped_frames += skip
                 behind = max_catchup

@@ -325,6 +325,10 @@ class WsEndpoint:
             raise ProtocolError("bad_token", "reconnect token unknown or expired")
         room = self.srv.lobby.get(room_id)
         code = P.field_str(msg, "code", None, max_len=64)
+        if room.sim.asleep:  # waking a room costs what a new one does
+            why = self.srv.lobby.busy()
+            if why is not None:
+                raise ProtocolError("server_busy", why)
         if role == "player":
             seat = P.field_int(msg, "seat", None, -(2**31), 2**31)  # the room names bad seats
             return room.join_player(conn, seat, conn.name, code)

@@ -18,6 +18,7 @@ from typing import Any, TypeVar
 
 from clothball.game.sim.scene import Scene
 from clothball.server.app import GameServer
+from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 from clothball.server.thread import ServerThread
 
@@ -41,6 +42,7 @@ def run(coro: Awaitable[T], timeout: float = 90.0) -> T:
 @contextlib.asynccontextmanager
 async def server(data: Path, *, bots: int = 0, settings: RoomSettings | None = None,
                  **kw: Any) -> AsyncIterator[GameServer]:
+    kw["limits"] = no_admission(kw.get("limits"))
     srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", host="127.0.0.1", port=0,
                      bots=bots, room_settings=settings or RoomSettings(), **kw)
     await srv.start()
@@ -84,7 +86,14 @@ def local_server(data: Path, *, bots: int = 0, **settings: Any) -> ServerThread:
     ``clothball play --local`` runs. ``settings``: the main room's ``RoomSettings``."""
     settings.setdefault("autoplay", True)
     return ServerThread(data, scenes={TINY.name: TINY}, backend="cpu", bots=bots,
-                        room_settings=RoomSettings(**settings))
+                        room_settings=RoomSettings(**settings), limits=no_admission(None))
+
+
+def no_admission(limits: Limits | None) -> Limits:
+    """The limits with admission control off: a test of something else must not depend on
+    how much spare capacity a loaded test machine has (tests/server/test_admission.py tests
+    admission, with the default)."""
+    return (limits or Limits()).replace(admit_lateness_ms=0.0)
 
 
 # --- a server on a thread, for blocking test code, with the errors it logs ---------------
@@ -138,6 +147,7 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
     for lg in loggers:
         lg.addHandler(errors)
     kw.setdefault("room_settings", RoomSettings(bots_allowed=False, unguarded=True))
+    kw["limits"] = no_admission(kw.get("limits"))
     st = ServerThread(data, scenes={"tiny": TINY}, backend="cpu", **kw)
     try:
         st.start(30)

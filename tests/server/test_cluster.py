@@ -95,7 +95,7 @@ def cluster_host(tmp: Path, name: str, redis: Redis, *args: str) -> Iterator[Hos
     proc = subprocess.Popen(
         [sys.executable, "-m", "clothball.game.cli", "host", "--workers", "1", "--port", "0",
          "--cluster", redis.url, "--scene", str(tiny_scene(tmp)), "--backend", "cpu",
-         "--data", str(tmp / f"data-{name}"), *args],
+         "--data", str(tmp / f"data-{name}"), "--limit", "admit_lateness_ms=0", *args],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.stdout is not None

@@ -29,7 +29,8 @@ def host(tmp_path: Path, *args: str) -> Iterator[str]:
     scene.write_text(re.sub(r"(?m)^n = \d+", "n = 16", text, count=1))
     proc = subprocess.Popen(
         [sys.executable, "-m", "clothball.game.cli", "host", "--workers", "2", "--port", "0",
-         "--scene", str(scene), "--backend", "cpu", "--data", str(tmp_path / "data"), *args],
+         "--scene", str(scene), "--backend", "cpu", "--data", str(tmp_path / "data"),
+         "--limit", "admit_lateness_ms=0", *args],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.stdout is not None
