@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 from ...server.app import GameServer, default_data_dir
 from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
@@ -80,25 +81,12 @@ async def serve(args: argparse.Namespace) -> int:
     if not args.verbose:
         logging.getLogger("websockets").setLevel(logging.WARNING)
 
-    scenes: dict[str, Scene] = {}
-    for s in args.scene or ["classic"]:
-        try:
-            scene = Scene.load(s)
-        except SceneError as e:
-            print(f"clothball host: {e}; shipped scenes: {', '.join(available())}")
-            return 2
-        scenes[scene.name] = scene
+    checked = _check(args)
+    if checked is None:
+        return 2
+    scenes, limits, origins, trusted = checked
     data = args.data or default_data_dir()
     settings = RoomSettings(first_to=args.first_to, autoplay=True)
-    try:
-        limits = Limits()
-        for text in args.limit:
-            limits = limits.with_setting(text)
-        origins = parse_origins(args.origin)
-        trusted = parse_trusted_proxies(args.trusted_proxy)
-    except ValueError as e:
-        print(f"clothball host: {e}")
-        return 2
     worker = args.worker_index
     directory: Directory | None = None
     if args.cluster:
@@ -149,6 +137,28 @@ async def serve(args: argparse.Namespace) -> int:
         directory.close()
     print("stopped")
     return 0
+
+
+def _check(args: argparse.Namespace) -> tuple[dict[str, Scene], Limits, Any, Any] | None:
+    """The scenes, limits, origins and trusted proxies asked for; None (said why) when one
+    is wrong. The supervisor checks them too, before starting any process."""
+    scenes: dict[str, Scene] = {}
+    for s in args.scene or ["classic"]:
+        try:
+            scene = Scene.load(s)
+        except SceneError as e:
+            print(f"clothball host: {e}; shipped scenes: {', '.join(available())}")
+            return None
+        scenes[scene.name] = scene
+    try:
+        limits = Limits()
+        for text in args.limit:
+            limits = limits.with_setting(text)
+        return scenes, limits, parse_origins(args.origin), \
+            parse_trusted_proxies(args.trusted_proxy)
+    except ValueError as e:
+        print(f"clothball host: {e}")
+        return None
 
 
 async def _until_stopped() -> None:
@@ -214,6 +224,8 @@ class _Worker:
 
 def supervise(args: argparse.Namespace, workers: int) -> int:
     """Run ``workers`` server processes on one port until Ctrl-C or SIGTERM."""
+    if _check(args) is None:
+        return 2
     try:
         port = args.port or _free_port(args.host)
     except OSError as e:
