@@ -4,6 +4,7 @@ the playhead; fetch by file, id and URL from a real server."""
 from __future__ import annotations
 
 import asyncio
+import time
 
 import numpy as np
 import pytest
@@ -57,12 +58,15 @@ def synthetic_records() -> list[tuple[int, bytes]]:
     return recs
 
 
+STARTED = float(int(time.time()) - 60)
 HEADER = {
     "format": "clothball-replay", "replay_version": 1, "id": "test-round-0001",
     "room_id": "r1", "room_name": "main", "scene": "tiny", "round": 3,
     "players": [{"seat": i, "kind": "bot", "name": f"bot-{i}"} for i in range(4)],
     "conceded_edge": 1, "conceded_by": 1, "scorers": [0, 2], "scores": [3, 0, 3, 1],
-    "started_at": 1.7e9, "ended_at": 1.7e9 + 2, "duration_s": 2.0,
+    # Recorded a minute ago: the server keeps rounds for 30 days (replays_max_days) and prunes
+    # older ones when it starts.
+    "started_at": STARTED, "ended_at": STARTED + 2, "duration_s": 2.0,
 }
 
 
