@@ -13,8 +13,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import re
-import subprocess
 import sys
 import tempfile
 import urllib.request
@@ -22,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ..game.net.client import NetClient, ServerError
+from .hostproc import start_host, stop_host
 
 
 def configure_admit_flags(parser: argparse.ArgumentParser) -> None:
@@ -69,28 +68,17 @@ async def _admit(url: str, args: argparse.Namespace) -> dict[str, Any]:
 def run_admit(args: argparse.Namespace) -> int:
     scene = args.scene or "classic"
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "clothball.game.cli", "host", "--workers", "1",
-               "--port", "0", "--data", str(Path(tmp) / "data"), "--backend", "cpu",
-               "--scene", scene, "--limit", f"rooms_per_address={args.admit_max + 1}",
-               "--limit", f"max_rooms={args.admit_max + 1}"]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                text=True)
-        assert proc.stdout is not None
-        url = None
-        for line in proc.stdout:
-            m = re.match(r"clothball server on (ws://\S+)", line)
-            if m:
-                url = m.group(1)
-                break
+        proc, url = start_host(Path(tmp) / "data", "--scene", scene,
+                               "--limit", f"rooms_per_address={args.admit_max + 1}",
+                               "--limit", f"max_rooms={args.admit_max + 1}")
         if url is None:
-            print(f"clothball bench: the server did not start (exit {proc.wait()})",
+            print(f"clothball bench: the server did not start (exit {proc.returncode})",
                   file=sys.stderr)
             return 1
         try:
             result = asyncio.run(_admit(url, args))
         finally:
-            proc.terminate()
-            proc.wait(timeout=60)
+            stop_host(proc)
     result["scene"] = scene
     print(f"admitted {result['admitted']} rooms of {scene}; then: "
           f"{result['refused'] or 'never refused'}", file=sys.stderr)

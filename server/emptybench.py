@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import re
 import subprocess
 import sys
 import tempfile
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from ..game.net.client import NetClient
+from .hostproc import start_host, stop_host
 
 MESH_TARGET_HZ = 30.0
 
@@ -38,19 +38,12 @@ def configure_empty_flags(parser: argparse.ArgumentParser) -> None:
 def _start_host(data: Path, rooms: int) -> tuple[subprocess.Popen[str], str]:
     # Enough rooms for one address (the per-address limit is not what is measured), and
     # rooms that stay open while measured.
-    limits = [f"max_rooms={rooms + 4}", f"rooms_per_address={rooms + 1}",
-              "room_idle_close_s=3600"]
-    cmd = [sys.executable, "-m", "clothball.game.cli", "host", "--bots", "4", "--workers",
-           "1", "--port", "0", "--data", str(data), "--backend", "cpu"]
-    for lim in limits:
-        cmd += ["--limit", lim]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        m = re.match(r"clothball server on (ws://\S+)", line)
-        if m:
-            return proc, m.group(1)
-    raise RuntimeError(f"the server did not start (exit {proc.wait()})")
+    proc, url = start_host(data, "--bots", "4", "--limit", f"max_rooms={rooms + 4}",
+                           "--limit", f"rooms_per_address={rooms + 1}",
+                           "--limit", "room_idle_close_s=3600")
+    if url is None:
+        raise RuntimeError(f"the server did not start (exit {proc.returncode})")
+    return proc, url
 
 
 def _stats(url: str) -> dict[str, Any]:
@@ -104,8 +97,7 @@ def run_empty(args: argparse.Namespace) -> int:
                 asyncio.run(_make_rooms(url, n))
                 got = asyncio.run(_measure(url, args.empty_seconds))
             finally:
-                proc.terminate()
-                proc.wait(timeout=30)
+                stop_host(proc)
         row = {"empty_rooms": n, **got, "held": got["mesh_hz"] >= MESH_TARGET_HZ - 1.0}
         rows.append(row)
         print(f"{n:>11}  {got['mesh_hz']:>12.1f}  {got['lateness_p99_ms']:>15.2f}  "

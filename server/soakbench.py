@@ -16,7 +16,6 @@ import argparse
 import asyncio
 import json
 import os
-import re
 import subprocess
 import sys
 import tempfile
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..game.net.client import NetClient
+from .hostproc import start_host, stop_host
 
 
 def configure_soak_flags(parser: argparse.ArgumentParser) -> None:
@@ -149,27 +149,16 @@ async def _soak(url: str, proc: subprocess.Popen[str], data: Path,
 def run_soak(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "data"
-        cmd = [sys.executable, "-m", "clothball.game.cli", "host", "--bots", "4", "--workers",
-               "1", "--port", "0", "--data", str(data), "--backend", "cpu",
-               "--limit", f"replays_max_mib={args.soak_retention_mib}"]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                text=True)
-        assert proc.stdout is not None
-        url = None
-        for line in proc.stdout:
-            m = re.match(r"clothball server on (ws://\S+)", line)
-            if m:
-                url = m.group(1)
-                break
+        proc, url = start_host(data, "--bots", "4", "--limit",
+                               f"replays_max_mib={args.soak_retention_mib}")
         if url is None:
-            print(f"clothball bench: the server did not start (exit {proc.wait()})",
+            print(f"clothball bench: the server did not start (exit {proc.returncode})",
                   file=sys.stderr)
             return 1
         try:
             result = asyncio.run(_soak(url, proc, data, args))
         finally:
-            proc.terminate()
-            proc.wait(timeout=60)
+            stop_host(proc)
     print(f"soak {args.soak_seconds:g} s: RSS max {result['rss_mib_max']:.1f} MiB, slope "
           f"{result['rss_mib_per_min_second_half']:+.3f} MiB/min (second half); disk max "
           f"{result['disk_mib_max']:.1f} MiB (retention {args.soak_retention_mib:g} MiB), "

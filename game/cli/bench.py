@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ... import _native  # type: ignore[attr-defined]
-from ...server import indexbench, loadbench
+from ...server import admitbench, emptybench, indexbench, loadbench, soakbench
 from ..sim.scene import Scene, SceneError
 from ..study import rooms
 from ..study.bench import (
@@ -60,9 +60,18 @@ def configure(p: argparse.ArgumentParser) -> None:
     )
     loadbench.configure_server_flags(p)
     indexbench.configure_index_flags(p)
+    emptybench.configure_empty_flags(p)
+    soakbench.configure_soak_flags(p)
+    admitbench.configure_admit_flags(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.empty_rooms is not None:
+        return emptybench.run_empty(args)
+    if args.soak:
+        return soakbench.run_soak(args)
+    if args.admit:
+        return admitbench.run_admit(args)
     if args.index:
         return indexbench.run(args)
     if args.server or args.load:
