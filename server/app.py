@@ -447,7 +447,7 @@ class GameServer:
         for rid, room in self.lobby.rooms.items():
             if not room.public:  # public endpoint: private rooms are nobody else's business
                 continue
-            lat = np.array(room.sim.stats.lateness[-100_000:]) * 1e3
+            lat = room.sim.stats.lateness.newest() * 1e3
             st = room.sim.stats
             rooms[rid] = {
                 "frames": st.frames, "steps": st.steps, "skipped_frames": st.skipped_frames,

@@ -42,16 +42,13 @@ class Headroom:
 
     def sample(self) -> Sample:
         """Look at the window since the last call (the server calls it every WINDOW_S)."""
-        late: list[float] = []
+        late: list[np.ndarray] = []
         skipped = 0
         seen: dict[int, tuple[int, int]] = {}
         for w in self.sims.workers:
             n0, s0 = self._seen.get(id(w), (0, 0))
-            lat = w.lateness
-            n = len(lat)
-            if n < n0:  # the list was halved meanwhile: take its newest part
-                n0 = max(0, n - 1000)
-            late.extend(lat[n0:n])
+            n = w.lateness.count
+            late.append(w.lateness.since(n0))
             s = w.skipped_frames
             skipped += s - s0
             seen[id(w)] = (n, s)
@@ -59,7 +56,8 @@ class Headroom:
         cpu, wall = time.process_time(), time.perf_counter()
         cores = (cpu - self._cpu) / max(wall - self._wall, 1e-9)
         self._cpu, self._wall = cpu, wall
-        p99 = float(np.percentile(np.array(late), 99)) * 1e3 if late else 0.0
+        window = np.concatenate(late) if late else np.zeros(0)
+        p99 = float(np.percentile(window, 99)) * 1e3 if window.size else 0.0
         self.last = Sample(p99, skipped, cores)
         self.recent = [*self.recent, self.last][-SUSTAINED:]
         return self.last

@@ -73,12 +73,44 @@ class FrameResult:
             self.sim_error = prev.sim_error
 
 
+class Samples:
+    """The newest ``capacity`` float samples in a ring of fixed size: the memory is taken
+    once, whatever the number of samples (a list grew and shrank with them)."""
+
+    def __init__(self, capacity: int) -> None:
+        self._a = np.zeros(capacity)
+        self.count = 0  # samples appended since the last clear
+
+    def append(self, value: float) -> None:
+        self._a[self.count % len(self._a)] = value
+        self.count += 1
+
+    def __len__(self) -> int:
+        return min(self.count, len(self._a))
+
+    def since(self, count: int) -> np.ndarray:
+        """The samples appended after the first ``count`` (the newest ones kept), in order."""
+        n = min(self.count - count, len(self)) if count <= self.count else len(self)
+        return self.newest(n)
+
+    def newest(self, n: int | None = None) -> np.ndarray:
+        k = len(self) if n is None else max(0, min(n, len(self)))
+        idx = np.arange(self.count - k, self.count) % len(self._a)
+        return self._a[idx]
+
+    def clear(self) -> None:
+        self.count = 0
+
+
+LATENESS_SAMPLES = 100_000  # per room and per worker: 0.8 MB each, taken once
+
+
 @dataclass
 class SimStats:
     frames: int = 0
     steps: int = 0  # step calls (one frame each, more when catching up)
     skipped_frames: int = 0  # frames dropped because the loop fell further behind than allowed
-    lateness: list[float] = field(default_factory=list)  # s, newest samples (bounded)
+    lateness: Samples = field(default_factory=lambda: Samples(LATENESS_SAMPLES))  # s
     meshes: int = 0
 
 
@@ -88,8 +120,6 @@ class RoomSim:
     Made with a ``pool`` (the server's); without one it runs on a private pool of its own
     (a lone room, as in tests and tools), which ``stop`` closes.
     """
-
-    LATENESS_SAMPLES = 200_000
 
     def __init__(self, scene: Scene, backend: str = "auto", *,
                  deliver: Callable[[FrameResult], None] | None = None,
@@ -236,10 +266,7 @@ class RoomSim:
         stats.frames += frames
         stats.steps += 1
         frame = stats.frames
-        lat = stats.lateness
-        lat.append(late)
-        if len(lat) > self.LATENESS_SAMPLES:
-            del lat[: len(lat) // 2]
+        stats.lateness.append(late)
         force = -self.stiffness * (hips - pos)
         bp, bv = ball[:3], ball[3:]
         pl, bpl = pos.tolist(), bp.tolist()
@@ -302,7 +329,7 @@ class SimWorker:
         self._scheduled = False  # a hand-over is queued on the event loop
         self.passes = 0  # step calls, all rooms at once
         self.skipped_frames = 0  # frames dropped for being too far behind (all rooms)
-        self.lateness: list[float] = []  # s, per pass (bounded)
+        self.lateness = Samples(LATENESS_SAMPLES)  # s, per pass
 
     @property
     def running(self) -> bool:
@@ -427,8 +454,6 @@ class SimWorker:
             server_time = t_end - self.pool.epoch
             late = t_end - (t0 + done * dt)
             self.lateness.append(late)
-            if len(self.lateness) > RoomSim.LATENESS_SAMPLES:
-                del self.lateness[: len(self.lateness) // 2]
             for r in live:
                 if r.slot in failed:
                     self._fail(r, frames)

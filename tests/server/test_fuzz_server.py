@@ -281,8 +281,8 @@ def test_memory_stays_bounded_under_garbage_connections(live: LiveServer) -> Non
                 finish(ws)
             live.http(b"GET /api/replays?player=%00&limit=x HTTP/1.1\r\nHost: h\r\n\r\n")
 
-    # The rooms' lateness samples grow at 1 kHz up to their own bound
-    # (RoomSim.LATENESS_SAMPLES) whatever the clients do: not what is measured here.
+    # The rooms' lateness samples take their fixed ring (sim.LATENESS_SAMPLES) whatever the
+    # clients do: not what is measured here.
     not_samples = [tracemalloc.Filter(False, "*/server/sim.py")]
 
     def held() -> int:

@@ -76,3 +76,21 @@ def test_every_spectator_gets_the_mesh_when_the_fan_out_takes_several_passes(tmp
         assert len(set.intersection(*frames)) >= 5
 
     run(main())
+
+
+def test_lateness_samples_keep_the_newest_in_a_fixed_ring() -> None:
+    from clothball.server.sim import Samples
+
+    ring = Samples(5)
+    ref: list[float] = []
+    for k in range(13):
+        ring.append(float(k))
+        ref.append(float(k))
+        assert len(ring) == min(len(ref), 5)
+        assert ring.newest().tolist() == ref[-5:]
+        assert ring.newest(2).tolist() == ref[-2:]
+        # what came after the first j samples, as far as the ring still holds it
+        for j in range(len(ref) + 1):
+            assert ring.since(j).tolist() == ref[j:][-5:]
+    ring.clear()
+    assert len(ring) == 0 and ring.newest().tolist() == [] and ring.since(3).tolist() == []
