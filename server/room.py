@@ -150,6 +150,7 @@ class Room:
         # even with no one in it, for show.
         self.permanent = False
         self._task: asyncio.Task[None] | None = None  # the countdown / restart in progress
+        self._finishing: set[asyncio.Task[None]] = set()  # rounds' recordings being ended
         self._recording: RoundRecord | None = None
         self._closed = False
         self.frame = 0
@@ -170,6 +171,12 @@ class Room:
         self._closed = True
         if self._task is not None:
             self._task.cancel()
+        if self._finishing:
+            # A round that just ended is still recording its tail: let it be saved (the
+            # simulation answers until it stops below), then nothing is left pending.
+            _, late = await asyncio.wait(set(self._finishing), timeout=RECORD_TAIL + 6.0)
+            for t in late:
+                t.cancel()
         for s in self.seats:
             if s.grace_timer is not None:
                 s.grace_timer.cancel()
@@ -625,7 +632,9 @@ class Room:
         if rec is not None:
             header = self._round_header(rec, edge, result.conceded_by, list(result.scores),
                                         list(result.scorers))
-            asyncio.create_task(self._finish_recording(header))
+            t = asyncio.create_task(self._finish_recording(header))
+            self._finishing.add(t)
+            t.add_done_callback(self._finishing.discard)
         self.broadcast_state()
         if result.match_over:
             self._task = None
