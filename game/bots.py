@@ -1,12 +1,13 @@
 """Bots: a ``Device`` that plays one corner, and a player that runs it over the protocol.
 
-The bot guards its edge (seat ``s`` guards corner ``s`` -> ``s+1``, see ``game.rules``):
-it predicts where the ball will be a moment ahead and, the closer that is to its edge,
-the more it lifts its corner and pulls it outward (a raised, taut edge rolls the ball back
-in). Now and then, when the ball is safely away, it flicks its corner up to send the ball
-towards the far corner, where other players guard. ``difficulty`` (0..1) sets how fast it
-reacts (reaction delay 250 -> 50 ms), how strongly it answers, and how much its hand
-wanders.
+The bot guards its edge (seat ``s`` guards corner ``s`` -> ``s+1``, see ``game.rules``)
+and, by ``help_neighbour``, the previous seat's edge, which its corner also holds up: it
+predicts where the ball will be a moment ahead and, the closer that is to those edges near
+its corner, the more it lifts its corner and pulls it outward (a raised, taut edge rolls
+the ball back in). Now and then, when the ball is safely away, it flicks its corner up to
+send the ball towards the far corner, where other players guard. ``difficulty`` (0..1)
+sets how fast it reacts (reaction delay 250 -> 50 ms), how strongly it answers, and how
+much its hand wanders.
 
 ``BotPlayer`` connects to a server like any human client (``game.net.client``), takes a
 seat (by reconnect token when the server assigned it) and sends its hand position at
@@ -32,6 +33,12 @@ class BotDevice:
     """A simulated hand for one corner. Implements ``game.devices.base.Device``."""
 
     name = "bot"
+    # How the bots play (the game's feel: `clothball bench --rounds` measures the rounds
+    # they make; docs/benchmarks/rounds.md).
+    look_ahead = 0.3  # s: where the ball will be, as the bot judges the threat
+    flick_lift = 1.0  # a flick raises the corner this fraction of its reach (up)
+    flick_every = (2.0, 6.0)  # s between flicks (times 1.5 - 0.5 difficulty)
+    help_neighbour = 0.8  # how much it also guards the previous seat's edge (0..1)
 
     def __init__(self, seat: int, anchors: np.ndarray, difficulty: float = 0.6,
                  rng: np.random.Generator | None = None) -> None:
@@ -51,20 +58,41 @@ class BotDevice:
         self._wander = np.zeros(3)
         self._flick_until = -1.0
         self._next_flick = self.rng.uniform(1.0, 4.0)
-        a, b = self.anchors[seat], self.anchors[(seat + 1) % 4]
         centre = self.anchors.mean(axis=0)
-        d = (b - a)[[0, 2]]
-        self._edge_a = a[[0, 2]]
-        self._edge_dir = d / max(1e-12, float(np.hypot(*d)))
-        normal = np.array([d[1], -d[0]]) / max(1e-12, float(np.hypot(*d)))
-        if float(np.dot(normal, a[[0, 2]] - centre[[0, 2]])) < 0:
-            normal = -normal
-        self._normal = normal
-        self._edge_len = float(np.hypot(*d))
-        out = a - centre
+        # The two edges this corner holds up: our own (corner s -> s+1, ours at its start)
+        # and the previous seat's (corner s-1 -> s, ours at its end).
+        self._edges = [self._edge(seat, (seat + 1) % 4, centre),
+                       self._edge((seat - 1) % 4, seat, centre)]
+        self._edge_len = self._edges[0][3]
+        out = self.anchors[seat] - centre
         out[1] = 0.0
         self._outward = out / max(1e-12, float(np.linalg.norm(out)))
         self.size = self._edge_len
+
+    def _edge(self, i: int, j: int, centre: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Edge from corner i to corner j (plan view): start, unit direction, outward
+        normal, length."""
+        a, b = self.anchors[i][[0, 2]], self.anchors[j][[0, 2]]
+        d = b - a
+        length = max(1e-12, float(np.hypot(*d)))
+        normal = np.array([d[1], -d[0]]) / length
+        if float(np.dot(normal, a - centre[[0, 2]])) < 0:
+            normal = -normal
+        return a, d / length, normal, length
+
+    def _threat(self, pred: np.ndarray) -> float:
+        """0 (the ball safely inside) .. 1 (about to leave) for the edges at this corner,
+        weighted towards our corner's end of each and towards our own edge."""
+        worst = 0.0
+        for k, (a, direction, normal, length) in enumerate(self._edges):
+            outside = float(np.dot(pred - a, normal))  # > 0: beyond that edge
+            along = float(np.clip(np.dot(pred - a, direction) / length, 0.0, 1.0))
+            near_us = 1.0 - 0.5 * (along if k == 0 else 1.0 - along)
+            weight = 1.0 if k == 0 else self.help_neighbour
+            threat = float(np.clip(1.0 + outside / (0.35 * self.size), 0.0, 1.0))
+            worst = max(worst, weight * threat * near_us)
+        return worst
 
     # --- Device ---------------------------------------------------------------------------
     def start(self, reach: Reach) -> None:
@@ -107,21 +135,18 @@ class BotDevice:
         if seen is None:
             return reach.clamp(h)
         p, v = seen
-        look = 0.3
-        pred = p[[0, 2]] + v[[0, 2]] * look
-        outside = float(np.dot(pred - self._edge_a, self._normal))  # > 0: beyond our edge
-        along = float(np.dot(pred - self._edge_a, self._edge_dir)) / self._edge_len
-        threat = float(np.clip(1.0 + outside / (0.35 * self.size), 0.0, 1.0))
-        near_ours = 1.0 - 0.5 * float(np.clip(along, 0.0, 1.0))
+        pred = p[[0, 2]] + v[[0, 2]] * self.look_ahead
+        threat = self._threat(pred)
         gain = 0.5 + 0.5 * skill
-        h[1] += ext[1] * gain * threat * near_ours
+        h[1] += ext[1] * gain * threat
         h += self._outward * ext * 0.5 * gain * threat
-        # Attack: a quick flick up while the ball is away from our edge.
+        # Attack: a quick flick up while the ball is away from our edges.
         if self.time >= self._next_flick and threat < 0.3:
             self._flick_until = self.time + 0.15
-            self._next_flick = self.time + self.rng.uniform(2.0, 6.0) * (1.5 - 0.5 * skill)
+            lo, hi = self.flick_every
+            self._next_flick = self.time + self.rng.uniform(lo, hi) * (1.5 - 0.5 * skill)
         if self.time < self._flick_until:
-            h[1] = reach.centre[1] + ext[1]
+            h[1] = max(h[1], reach.centre[1] + self.flick_lift * ext[1])
         return reach.clamp(h)
 
 

@@ -11,8 +11,11 @@ from pathlib import Path
 
 from ... import _native  # type: ignore[attr-defined]
 from ...server import admitbench, emptybench, indexbench, loadbench, soakbench
+from ...server.room import RoomSettings
+from ...server.thread import ServerThread
+from ..rules import EDGE_NAMES
 from ..sim.scene import Scene, SceneError
-from ..study import rooms
+from ..study import rooms, rounds
 from ..study.bench import (
     csv_list,
     gpu_target_verdicts,
@@ -24,11 +27,14 @@ from ..study.bench import (
     select_backends,
 )
 
+GAME_SCENE = "default"  # the shipped game's scene (classic is the paper's set-up)
+
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="a short run: few sizes, few repeats")
     p.add_argument("--json", metavar="FILE", help="also write the rows as JSON")
-    p.add_argument("--scene", default="classic", help="scene name or path (default classic)")
+    p.add_argument("--scene", default=None,
+                   help=f"scene name or path (default classic; --rounds: {GAME_SCENE})")
     p.add_argument("--sizes", help="comma-separated n values (default: the paper's sizes)")
     p.add_argument("--backends", default="auto", help="cpu,cuda or auto (every one present)")
     p.add_argument("--precisions", default="float32,float64", help="float32,float64")
@@ -48,6 +54,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-rooms", type=int, default=4096, metavar="K",
                    help="--rooms: stop growing at K rooms (default %(default)s)")
     p.add_argument(
+        "--rounds", type=int, default=None, metavar="N",
+        help="time N rounds of four bots in a real room (a server on loopback); prints "
+             "their lengths, median and distribution (--json: every round)",
+    )
+    p.add_argument(
         "--server", action="store_true", help="benchmark the game server instead (see --help)"
     )
     p.add_argument(
@@ -66,6 +77,10 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.rounds is not None:
+        return run_rounds_cmd(args)
+    if args.scene is None:
+        args.scene = "classic"
     if args.empty_rooms is not None:
         return emptybench.run_empty(args)
     if args.soak:
@@ -141,5 +156,56 @@ def run_rooms_cmd(args: argparse.Namespace) -> int:
     rooms.print_rooms(rows)
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def run_rounds_cmd(args: argparse.Namespace) -> int:
+    """Four bots (the rooms' default skill) play in a server on loopback; a spectator times
+    ``--rounds`` rounds (``game.study.rounds``)."""
+    import asyncio  # noqa: PLC0415
+    import tempfile  # noqa: PLC0415
+
+    try:
+        if not 1 <= args.rounds <= 10_000:
+            raise ValueError(f"--rounds: must be in 1..10000, got {args.rounds}")
+        scene = Scene.load(args.scene or GAME_SCENE)
+        backend = select_backends(args)[0]
+    except (ValueError, SceneError) as e:
+        print(f"clothball bench: {e}", file=sys.stderr)
+        return 2
+    # The game's room settings, but a short pause between matches: it is no round's part.
+    settings = RoomSettings(autoplay=True, restart_delay=1.0)
+    print(f"{args.rounds} rounds of 4 bots (skill {settings.bot_difficulty:g}) on scene "
+          f"{scene.name} (n {scene.n}, {backend}), countdown {settings.countdown:g} s",
+          flush=True)
+
+    def progress(r: rounds.Round) -> None:
+        print(f"  round {r.round}: {r.seconds:5.1f} s (ball off the {EDGE_NAMES[r.edge]} "
+              f"edge)", file=sys.stderr, flush=True)
+
+    with tempfile.TemporaryDirectory(prefix="clothball-rounds-") as data:
+        sys.setswitchinterval(0.0005)  # the room thread needs the GIL briefly every frame
+        with ServerThread(Path(data), scenes={scene.name: scene}, backend=backend, bots=4,
+                          room_settings=settings) as st:
+            room = st.call(lambda srv: srv.main_room.id)
+            try:
+                played = asyncio.run(rounds.watch_rounds(st.ws_url, room, args.rounds,
+                                                         progress=progress))
+            except (TimeoutError, ConnectionError) as e:
+                print(f"clothball bench: {e}", file=sys.stderr)
+                return 1
+            skipped = st.call(lambda srv: srv.main_room.sim.stats.skipped_frames)
+    summary = rounds.summarise(played)
+    summary.update(scene=scene.name, n=scene.n, backend=backend,
+                   bot_difficulty=settings.bot_difficulty, skipped_frames=int(skipped))
+    rounds.print_rounds(summary, played)
+    if skipped:
+        print(f"note: the room dropped {skipped} frames (a loaded machine); lengths count "
+              "the frames simulated", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(
+            {"summary": summary, "rounds": rounds.as_json(played), "argv": sys.argv[1:]},
+            indent=2))
         print(f"wrote {args.json}")
     return 0

@@ -48,7 +48,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="start an in-process server with bots and join it")
     parser.add_argument("--bots", type=int, default=3, choices=range(4), metavar="N",
                         help="--local: bots in the room (default %(default)s)")
-    parser.add_argument("--scene", default="classic", help="--local: scene (default classic)")
+    parser.add_argument("--scene", default="default",
+                        help="--local: scene (default: default, the game's; classic: the "
+                             "paper's set-up)")
     parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda"),
                         help="--local: cloth backend")
     parser.add_argument("--first-to", type=FIRST_TO, default=5, metavar="N",
