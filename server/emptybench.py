@@ -38,7 +38,8 @@ def configure_empty_flags(parser: argparse.ArgumentParser) -> None:
 def _start_host(data: Path, rooms: int) -> tuple[subprocess.Popen[str], str]:
     # Enough rooms for one address (the per-address limit is not what is measured), and
     # rooms that stay open while measured.
-    proc, url = start_host(data, "--bots", "4", "--limit", f"max_rooms={rooms + 4}",
+    proc, url = start_host(data, "--scene", "classic", "--bots", "4",
+                           "--limit", f"max_rooms={rooms + 4}",
                            "--limit", f"rooms_per_address={rooms + 1}",
                            "--limit", "room_idle_close_s=3600")
     if url is None:

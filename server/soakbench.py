@@ -149,7 +149,7 @@ async def _soak(url: str, proc: subprocess.Popen[str], data: Path,
 def run_soak(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "data"
-        proc, url = start_host(data, "--bots", "4", "--limit",
+        proc, url = start_host(data, "--scene", "classic", "--bots", "4", "--limit",
                                f"replays_max_mib={args.soak_retention_mib}")
         if url is None:
             print(f"clothball bench: the server did not start (exit {proc.returncode})",

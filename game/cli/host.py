@@ -40,7 +40,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bots", type=int, default=0, choices=range(5), metavar="N",
                         help="fill N seats of the main room with bots (4: a self-playing demo)")
     parser.add_argument("--scene", action="append", default=None, metavar="S",
-                        help="scene name or TOML path; repeat to offer several (default: classic)")
+                        help="scene name or TOML path; repeat to offer several (default: "
+                             "default, the game's; classic: the paper's set-up)")
     parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda"),
                         help="cloth backend (default: CUDA when a GPU is present, else CPU)")
     parser.add_argument("--data", type=Path, default=None,
@@ -143,7 +144,7 @@ def _check(args: argparse.Namespace) -> tuple[dict[str, Scene], Limits, Any, Any
     """The scenes, limits, origins and trusted proxies asked for; None (said why) when one
     is wrong. The supervisor checks them too, before starting any process."""
     scenes: dict[str, Scene] = {}
-    for s in args.scene or ["classic"]:
+    for s in args.scene or ["default"]:
         try:
             scene = Scene.load(s)
         except SceneError as e:
@@ -251,7 +252,7 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         first = procs[0].ready or {}
         url = f"ws://{_shown(args.host)}:{port}/ws"
         print(f"clothball server on {url}  ({workers} processes; scene "
-              f"{', '.join(args.scene or ['classic'])}, backend {first.get('backend')})")
+              f"{', '.join(args.scene or ['default'])}, backend {first.get('backend')})")
         print(f"spectate in a browser: http://{_shown(args.host)}:{port}/")
         if first.get("recording"):
             print(f"NOT recording rounds: {first['recording']}")
