@@ -121,13 +121,16 @@ class Recording:
             return
         if kind == 1 and len(data) >= P.HEADER.size + 8 and data[0] in (P.MESH, P.TRACK):
             frame = struct.unpack_from("<q", data, P.HEADER.size)[0]
-            if self.first_frame is None:
+            # A MESH is encoded off the frame and may come after a newer TRACK: the span is
+            # from the smallest frame to the largest (as replay.recorded_length takes it).
+            if self.first_frame is None or frame < self.first_frame:
                 self.first_frame = frame
             if frame - self.first_frame > self.cap_frames:
                 self.cut = f"longer than the recording cap ({self.cap_frames * self.frame_dt:g} s)"
                 self._flush()
                 return
-            self.last_frame = frame
+            if self.last_frame is None or frame > self.last_frame:
+                self.last_frame = frame
         record = RECORD.pack(kind, len(data)) + data
         self._buf.append(record)
         self._buf_bytes += len(record)

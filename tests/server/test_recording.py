@@ -123,3 +123,15 @@ def test_a_served_round_longer_than_the_cap_is_cut_and_marked(tmp_path) -> None:
         assert not any(p.is_file() for p in spool.rglob("*.spool"))
 
     run(main())
+
+
+def test_the_span_is_smallest_to_largest_frame_whatever_their_order(tmp_path) -> None:
+    # A MESH encoded off the frame can be recorded after a newer TRACK.
+    rec = Recording("r5", tmp_path, cap_s=3600.0, frame_dt=DT)
+    order = [40, 33, 34, 35, 10, 36, 70, 66]
+    for f in order:
+        rec.append(1, track(f))
+    rec.finish()
+    sent = [(1, track(f)) for f in order]
+    assert rec.duration_s == pytest.approx(recorded_length(DT, sent)) == pytest.approx(0.060)
+    rec.discard()
