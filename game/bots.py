@@ -106,9 +106,17 @@ class BotDevice:
 
     def update_ball(self, position: np.ndarray, velocity: np.ndarray, t: float) -> None:
         """The ball's latest state (from the CORNER stream) at time ``t`` (s)."""
-        self._balls.append((t, np.asarray(position, dtype=np.float64),
-                            np.asarray(velocity, dtype=np.float64)))
+        p = np.asarray(position, dtype=np.float64)
+        if self._balls and float(np.linalg.norm(p - self._balls[-1][1])) > 0.25 * self.size:
+            # The ball was put back for a new round: the next flick comes a whole interval
+            # later (drawn afresh, so the four bots do not flick together as it lands).
+            self._next_flick = t + self._flick_interval()
+        self._balls.append((t, p, np.asarray(velocity, dtype=np.float64)))
         self.time = max(self.time, t)
+
+    def _flick_interval(self) -> float:
+        lo, hi = self.flick_every
+        return float(self.rng.uniform(lo, hi)) * (1.5 - 0.5 * self.difficulty)
 
     def _seen_ball(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The ball as this bot perceives it: delayed by its reaction time."""
@@ -143,8 +151,7 @@ class BotDevice:
         # Attack: a quick flick up while the ball is away from our edges.
         if self.time >= self._next_flick and threat < 0.3:
             self._flick_until = self.time + 0.15
-            lo, hi = self.flick_every
-            self._next_flick = self.time + self.rng.uniform(lo, hi) * (1.5 - 0.5 * skill)
+            self._next_flick = self.time + self._flick_interval()
         if self.time < self._flick_until:
             h[1] = max(h[1], reach.centre[1] + self.flick_lift * ext[1])
         return reach.clamp(h)
