@@ -487,7 +487,11 @@ class Room:
     async def _delayed_start(self, delay: float) -> None:
         await asyncio.sleep(delay)
         self._task = None
-        if not self.humans() and self._bot_seats() and self.match.state in ("waiting", "over"):
+        if self.humans():
+            # A human took a seat meanwhile: their readiness decides (a ready pressed
+            # during the wait found this task pending and must not be lost).
+            self._maybe_start()
+        elif self._bot_seats() and self.match.state in ("waiting", "over"):
             self._start_match()
 
     def _start_match(self) -> None:
