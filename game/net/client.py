@@ -128,7 +128,8 @@ class NetClient:
         self.messages: collections.deque[dict[str, Any]] = collections.deque(maxlen=HISTORY)
         self.received_total = 0  # JSON messages ever received (history index base)
         self.counts = {"corner": 0, "mesh": 0, "json": 0, "bad": 0}
-        self.mesh_times: list[float] = []
+        # When the newest MESH messages came (bounded: a client may watch for hours).
+        self.mesh_times: collections.deque[float] = collections.deque(maxlen=HISTORY)
         self.record_latency = record_latency
         self.latencies: list[float] = []  # s, HIP sent -> CORNER that applied it received
         self.on_corner: Callable[[P.Corner], None] | None = None
