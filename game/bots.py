@@ -28,6 +28,10 @@ from .net.client import NetClient, ServerError
 
 log = logging.getLogger("clothball.bots")
 
+# JSON messages a bot keeps: it waits only for the next few (the server's own bots run
+# inside it, and 2000 room-state messages a bot were megabytes).
+BOT_HISTORY = 200
+
 
 class BotDevice:
     """A simulated hand for one corner. Implements ``game.devices.base.Device``."""
@@ -174,7 +178,7 @@ class BotPlayer:
         """Join (by token, or a seat of ``room``) and play until the connection closes."""
         self.client = client = await NetClient.connect(
             self.url, name=self.name, role="player", room=room, token=token, seat=seat,
-            code=code, corner_rate=self.rate_hz, mesh=False)
+            code=code, corner_rate=self.rate_hz, mesh=False, history=BOT_HISTORY)
         try:
             joined = client.joined
             assert joined is not None and client.reach is not None

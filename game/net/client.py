@@ -114,7 +114,7 @@ class NetClient:
     """A connected client. Create with ``await NetClient.connect(...)``."""
 
     def __init__(self, ws: ClientConnection, clock: Callable[[], float] = time.perf_counter,
-                 record_latency: bool = False) -> None:
+                 record_latency: bool = False, history: int = HISTORY) -> None:
         self.ws = ws
         self.clock = clock
         self.welcome: dict[str, Any] = {}
@@ -125,7 +125,9 @@ class NetClient:
         self.mesh: P.Mesh | None = None
         self.mesh_raw: bytes | None = None
         self.decode_mesh = True
-        self.messages: collections.deque[dict[str, Any]] = collections.deque(maxlen=HISTORY)
+        # The newest JSON messages (``history`` of them: the server's own bots keep few, as
+        # they run inside it and every room's state message is a kilobyte or two).
+        self.messages: collections.deque[dict[str, Any]] = collections.deque(maxlen=history)
         self.received_total = 0  # JSON messages ever received (history index base)
         self.counts = {"corner": 0, "mesh": 0, "json": 0, "bad": 0}
         # When the newest MESH messages came (bounded: a client may watch for hours).
@@ -153,12 +155,12 @@ class NetClient:
                       token: str | None = None, corner_rate: float | None = None,
                       mesh: bool | None = None, timeout: float = 10.0,
                       record_latency: bool = False, decode_mesh: bool = True,
-                      _hops: int = 0, **extra: Any) -> NetClient:
+                      history: int = HISTORY, _hops: int = 0, **extra: Any) -> NetClient:
         """Open a connection, say hello and, for a player or spectator, join ``room``.
         A join the server redirects (the room lives on another process or host) is made
         there, on a new connection."""
         ws = await _open(url, timeout)
-        client = cls(ws, record_latency=record_latency)
+        client = cls(ws, record_latency=record_latency, history=history)
         client.decode_mesh = decode_mesh
         client.name, client.url = name, url
         client._reader = asyncio.create_task(client._read())
@@ -189,7 +191,7 @@ class NetClient:
                         str(reply["url"]), name=name, role=role, room=room, seat=seat,
                         code=code, token=token, corner_rate=corner_rate, mesh=mesh,
                         timeout=timeout, record_latency=record_latency,
-                        decode_mesh=decode_mesh, _hops=_hops + 1, **extra)
+                        decode_mesh=decode_mesh, history=history, _hops=_hops + 1, **extra)
                 client.joined = reply
         except BaseException:
             await client.close()
