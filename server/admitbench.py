@@ -15,12 +15,11 @@ import asyncio
 import json
 import sys
 import tempfile
-import urllib.request
 from pathlib import Path
 from typing import Any
 
 from ..game.net.client import NetClient, ServerError
-from .hostproc import start_host, stop_host
+from .hostproc import start_host, stats, stop_host
 
 
 def configure_admit_flags(parser: argparse.ArgumentParser) -> None:
@@ -33,13 +32,7 @@ def configure_admit_flags(parser: argparse.ArgumentParser) -> None:
                    help="--admit: stop at K rooms (default %(default)s)")
 
 
-def _stats(http: str) -> dict[str, Any]:
-    with urllib.request.urlopen(f"{http}/api/stats", timeout=10) as r:
-        return json.loads(r.read())
-
-
 async def _admit(url: str, args: argparse.Namespace) -> dict[str, Any]:
-    http = url.replace("ws://", "http://", 1)[: -len("/ws")]
     owner = await NetClient.connect(url, name="owner")
     clients = [owner]
     steps = []
@@ -54,7 +47,7 @@ async def _admit(url: str, args: argparse.Namespace) -> dict[str, Any]:
             clients.append(await NetClient.connect(url, role="spectator", room=made["room"],
                                                    decode_mesh=False))
             await asyncio.sleep(args.admit_settle)
-            h = (await asyncio.to_thread(_stats, http))["headroom"]
+            h = (await asyncio.to_thread(stats, url))["headroom"]
             steps.append({"rooms": k + 1, **h})
             print(f"{k + 1:>3} rooms  lateness p99 {h['lateness_p99_ms']:6.2f} ms  skipped "
                   f"{h['skipped_frames']:>4}  CPU {h['cpu_cores']:.2f} cores  "

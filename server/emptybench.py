@@ -17,12 +17,10 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
-from typing import Any
 
 from ..game.net.client import NetClient
-from .hostproc import start_host, stop_host
+from .hostproc import start_host, stats, stop_host
 
 MESH_TARGET_HZ = 30.0
 
@@ -47,12 +45,6 @@ def _start_host(data: Path, rooms: int) -> tuple[subprocess.Popen[str], str]:
     return proc, url
 
 
-def _stats(url: str) -> dict[str, Any]:
-    http = url.replace("ws://", "http://", 1)[: -len("/ws")]
-    with urllib.request.urlopen(f"{http}/api/stats", timeout=10) as r:
-        return json.loads(r.read())
-
-
 async def _make_rooms(url: str, n: int) -> None:
     """N rooms made by one client, which then leaves: nobody is in them."""
     c = await NetClient.connect(url, name="maker")
@@ -66,10 +58,10 @@ async def _measure(url: str, seconds: float) -> dict[str, float]:
                                    decode_mesh=False)
     await asyncio.sleep(2.0)  # settle
     n0, t0 = spec.counts["mesh"], time.perf_counter()
-    s0 = _stats(url)
+    s0 = stats(url)
     await asyncio.sleep(seconds)
     n1, t1 = spec.counts["mesh"], time.perf_counter()
-    s1 = _stats(url)
+    s1 = stats(url)
     await spec.close()
     room, room0 = s1["rooms"]["main"], s0["rooms"]["main"]
     wall = t1 - t0

@@ -3,10 +3,13 @@ interpreter with the server they measure (``--empty-rooms``, ``--soak``, ``--adm
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
+import urllib.request
 from pathlib import Path
+from typing import Any
 
 
 def start_host(data: Path, *extra: str) -> tuple[subprocess.Popen[str], str | None]:
@@ -22,6 +25,21 @@ def start_host(data: Path, *extra: str) -> tuple[subprocess.Popen[str], str | No
             return proc, m.group(1)
     proc.wait()
     return proc, None
+
+
+def http_base(ws_url: str) -> str:
+    """ws://HOST:PORT/ws -> http://HOST:PORT"""
+    return ws_url.replace("ws://", "http://", 1)[: -len("/ws")]
+
+
+def get(url: str, timeout: float = 30.0) -> bytes:
+    with urllib.request.urlopen(url, timeout=timeout) as r:
+        return r.read()
+
+
+def stats(ws_url: str) -> dict[str, Any]:
+    """The server's ``/api/stats``."""
+    return json.loads(get(f"{http_base(ws_url)}/api/stats", timeout=10.0))
 
 
 def stop_host(proc: subprocess.Popen[str]) -> None:

@@ -20,14 +20,13 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..game.net.client import NetClient
-from .hostproc import start_host, stop_host
+from .hostproc import get, http_base, start_host, stats, stop_host
 
 
 def configure_soak_flags(parser: argparse.ArgumentParser) -> None:
@@ -69,18 +68,13 @@ def _disk(path: Path) -> float:
     return total / 2**20
 
 
-def _get(url: str) -> bytes:
-    with urllib.request.urlopen(url, timeout=30) as r:
-        return r.read()
-
-
 async def _download_forever(http: str, stop: asyncio.Event, counts: dict[str, int]) -> None:
     while not stop.is_set():
         try:
-            rows = json.loads(await asyncio.to_thread(_get, f"{http}/api/replays?limit=1"))
+            rows = json.loads(await asyncio.to_thread(get, f"{http}/api/replays?limit=1"))
             if rows.get("replays"):
                 rid = rows["replays"][0]["id"]
-                data = await asyncio.to_thread(_get, f"{http}/api/replays/{rid}")
+                data = await asyncio.to_thread(get, f"{http}/api/replays/{rid}")
                 counts["downloads"] += 1
                 counts["bytes"] += len(data)
         except OSError:
@@ -90,7 +84,7 @@ async def _download_forever(http: str, stop: asyncio.Event, counts: dict[str, in
 
 async def _soak(url: str, proc: subprocess.Popen[str], data: Path,
                 args: argparse.Namespace) -> dict[str, Any]:
-    http = url.replace("ws://", "http://", 1)[: -len("/ws")]
+    http = http_base(url)
     rooms = ["main"]
     owner = await NetClient.connect(url, name="owner")
     for k in range(args.soak_rooms - 1):
@@ -115,9 +109,9 @@ async def _soak(url: str, proc: subprocess.Popen[str], data: Path,
     try:
         while (t := time.monotonic() - t0) < args.soak_seconds:
             rss, fds = _proc(proc.pid)
-            stats = json.loads(await asyncio.to_thread(_get, f"{http}/api/stats"))
+            now = await asyncio.to_thread(stats, url)
             s = {"t_s": round(t, 1), "rss_mib": round(rss, 2), "open_files": fds,
-                 "disk_mib": round(_disk(data), 2), "rounds_saved": stats["rounds_saved"]}
+                 "disk_mib": round(_disk(data), 2), "rounds_saved": now["rounds_saved"]}
             samples.append(s)
             print(f"{s['t_s']:>8.0f} s  RSS {s['rss_mib']:>7.1f} MiB  files {fds:>4}  disk "
                   f"{s['disk_mib']:>7.1f} MiB  rounds {s['rounds_saved']:>5}  downloads "
