@@ -12,16 +12,22 @@ then times frames of one substep each:
 
 Where CG stops on the device when converged, a converged substep costs about what a forced
 one of the same iteration count does; where all capped iterations are launched, every
-converged substep costs about the forced 200.
+converged substep costs about the forced 200. ``--unroll 1,4,8`` repeats the CUDA cases
+with that many CG iterations captured in each turn of the device-side loop
+(``CLOTHBALL_CG_UNROLL``; each turn costs a launch of its body, and the iterations after
+CG stopped within a turn return at once).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import statistics
 import sys
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from ..sim.cloth import Cloth
@@ -31,6 +37,7 @@ from .integrators_ref import IntegratingCloth
 
 FORCED = (1, 5, 10, 20, 50, 100, 200)
 TOLERANCES = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-8)
+UNROLL_ENV = "CLOTHBALL_CG_UNROLL"
 SETTLE_S = 0.45  # the classic ball reaches the cloth at ~0.37 s
 
 
@@ -40,7 +47,8 @@ def _cloth(scene: Scene, backend: str, precision: str, tol: float, cap: int) -> 
     return Cloth(scene.with_changes({"sim": sim}), backend=backend, precision=precision)
 
 
-def measure(n: int, backend: str, precisions: list[str], frames: int) -> list[dict[str, Any]]:
+def measure(n: int, backend: str, precisions: list[str], frames: int,
+            unrolls: list[int | None] | None = None) -> list[dict[str, Any]]:
     scene = sized(Scene.load("classic"), n)
     start = fig4_start(scene)
     # The state just after the impact, from the default settings, shared by every case.
@@ -60,16 +68,34 @@ def measure(n: int, backend: str, precisions: list[str], frames: int) -> list[di
             ref.ball_pos, ref.ball_vel = ball[0].copy(), ball[1].copy()
             ref.step(frames, 1)
             used[tol] = ref.cg_iterations / frames
-    for precision in precisions:
-        for tol, cap in cases:
-            us = _time(scene, backend, precision, tol, cap, pos, vel, ball, frames)
-            it = used.get(tol, float(cap))
-            out.append({"n": n, "backend": backend, "precision": precision,
-                        "cg_tolerance": tol, "cg_max_iterations": cap, "iterations": it,
-                        "us_per_substep": us})
-            print(f"n={n:<4} {precision} tol {tol:<7g} cap {cap:<4} iterations {it:6.1f}  "
-                  f"{us:8.1f} us/substep", flush=True)
+    for unroll in unrolls or [None]:
+        for precision in precisions:
+            for tol, cap in cases:
+                with _unroll(unroll):
+                    us = _time(scene, backend, precision, tol, cap, pos, vel, ball, frames)
+                it = used.get(tol, float(cap))
+                out.append({"n": n, "backend": backend, "precision": precision,
+                            "cg_tolerance": tol, "cg_max_iterations": cap, "iterations": it,
+                            "unroll": unroll, "us_per_substep": us})
+                turn = f" unroll {unroll:<2}" if unroll is not None else ""
+                print(f"n={n:<4} {precision}{turn} tol {tol:<7g} cap {cap:<4} iterations "
+                      f"{it:6.1f}  {us:8.1f} us/substep", flush=True)
     return out
+
+
+@contextlib.contextmanager
+def _unroll(unroll: int | None) -> Iterator[None]:
+    """CLOTHBALL_CG_UNROLL set while a cloth is made (the engine reads it then)."""
+    old = os.environ.get(UNROLL_ENV)
+    if unroll is not None:
+        os.environ[UNROLL_ENV] = str(unroll)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(UNROLL_ENV, None)
+        else:
+            os.environ[UNROLL_ENV] = old
 
 
 def _time(scene: Scene, backend: str, precision: str, tol: float, cap: int, pos: Any,
@@ -96,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", default="40,80", help="comma-separated n")
     p.add_argument("--precisions", default="float32,float64")
     p.add_argument("--frames", type=int, default=100, help="timed frames per case")
+    p.add_argument("--unroll", help="comma-separated CG iterations per turn of the CUDA "
+                   "loop (1-32) to compare; default: the engine's")
     p.add_argument("--json", metavar="FILE")
     a = p.parse_args(argv)
     try:
@@ -103,7 +131,18 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         print(f"cg_cost: --sizes: expected whole numbers, got {a.sizes!r}", file=sys.stderr)
         return 2
-    rows = [r for n in sizes for r in measure(n, a.backend, a.precisions.split(","), a.frames)]
+    unrolls: list[int | None] | None = None
+    if a.unroll:
+        try:
+            unrolls = [int(u) for u in a.unroll.split(",")]
+        except ValueError:
+            unrolls = []
+        if not unrolls or not all(1 <= u <= 32 for u in unrolls):
+            print(f"cg_cost: --unroll: expected whole numbers from 1 to 32, got {a.unroll!r}",
+                  file=sys.stderr)
+            return 2
+    rows = [r for n in sizes
+            for r in measure(n, a.backend, a.precisions.split(","), a.frames, unrolls)]
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)

@@ -6,11 +6,13 @@
 //
 // The iterations are the body of a conditional WHILE node (CUDA >= 12.4): the update's last
 // block counts the iteration and, when CG has converged or reached cg_max_iterations, ends
-// the loop on the device, so a substep costs the iterations it uses. With an older toolkit
+// the loop on the device, so a substep costs the iterations it uses (rounded up to the
+// iterations in one turn of the loop, cg_unroll). With an older toolkit
 // all cg_max_iterations pairs are captured and those after convergence return at once
 // (they read the same scalars), which still costs their launches.
 // Compiled once per real type (CB_REAL).
 #include <algorithm>
+#include <cstdlib>
 #include <stdexcept>
 #include <utility>
 
@@ -93,7 +95,8 @@ template <unsigned S>
 __device__ __forceinline__ void ie_apply(const IeArgs& a, Planes<R> P,
                                          const Ball<R>* __restrict__ ball, int k) {
   const R* s = slot(a, k);
-  if (cg_stopped(k, a.sc[0], k > 0 ? s[-1] : R(0), s[1], a.tol)) return;  // uniform
+  // Uniform. k reaches max_iter only in the loop's unrolled body, after the loop ended.
+  if (k >= a.max_iter || cg_stopped(k, a.sc[0], k > 0 ? s[-1] : R(0), s[1], a.tol)) return;
   const int n = a.p.n, N = n * n, from = k & 1;
   const bool first = k == 0;
   const R beta = first ? R(0) : s[0] / s[-3];
@@ -143,7 +146,11 @@ __device__ __forceinline__ void ie_update(const IeArgs& a, int N, int k, bool lo
   const R pap = s[2];
   if (!(pap > R(0))) {  // iteration k stopped (or found p . A p <= 0): uniform
 #if CB_CG_WHILE
-    if (loop && blockIdx.x == 0 && threadIdx.x == 0) cudaGraphSetConditional(cond, 0);
+    // The count goes to max_iter so that the body's remaining kernels return at once.
+    if (loop && blockIdx.x == 0 && threadIdx.x == 0) {
+      a.iter[0] = unsigned(a.max_iter);
+      cudaGraphSetConditional(cond, 0);
+    }
 #endif
     return;
   }
@@ -156,8 +163,10 @@ __device__ __forceinline__ void ie_update(const IeArgs& a, int N, int k, bool lo
     a.iter[0] = unsigned(k + 1);
 #if CB_CG_WHILE
     const R rr = ci::acc_read(slot(a, k + 1), 1);
-    if (k + 1 >= a.max_iter || cg_stopped(k + 1, a.sc[0], pap, rr, a.tol))
+    if (k + 1 >= a.max_iter || cg_stopped(k + 1, a.sc[0], pap, rr, a.tol)) {
+      a.iter[0] = unsigned(a.max_iter);
       cudaGraphSetConditional(cond, 0);
+    }
 #endif
   }
 }
@@ -201,6 +210,15 @@ struct ApplyEntry {
   static constexpr ApplyKernel fn = &ie_apply_kernel<stiff_set(I)>;
 };
 
+
+// CG iterations captured in each turn of the WHILE loop: CLOTHBALL_CG_UNROLL (1-32), to
+// measure the trade between the loop's per-turn cost and the pairs run after CG stopped.
+constexpr int kCgUnroll = 4;
+int cg_unroll() {
+  const char* env = std::getenv("CLOTHBALL_CG_UNROLL");
+  const int u = env ? std::atoi(env) : kCgUnroll;
+  return std::clamp(u, 1, 32);
+}
 
 class CudaImplicit final : public CudaIntegrator<R> {
  public:
@@ -296,12 +314,20 @@ class CudaImplicit final : public CudaIntegrator<R> {
     kp.func = reinterpret_cast<void*>(apply_);
     kp.gridDim = dim3(blocks);
     kp.kernelParams = apply_args;
-    cudaGraphNode_t apply_node, update_node;
-    CB_CUDA(cudaGraphAddKernelNode(&apply_node, body, nullptr, 0, &kp));
-    kp.func = reinterpret_cast<void*>(&ie_update_loop_kernel);
-    kp.gridDim = dim3(update_blocks);
-    kp.kernelParams = update_args;
-    CB_CUDA(cudaGraphAddKernelNode(&update_node, body, &apply_node, 1, &kp));
+    cudaKernelNodeParams up = kp;
+    up.func = reinterpret_cast<void*>(&ie_update_loop_kernel);
+    up.gridDim = dim3(update_blocks);
+    up.kernelParams = update_args;
+    // unroll_ iterations a body: each turn of the loop costs a device-side launch of the
+    // body on top of its kernels; the pairs after CG stopped return at once.
+    cudaGraphNode_t last = nullptr;
+    for (int u = 0; u < unroll_; ++u) {
+      cudaGraphNode_t apply_node, update_node;
+      CB_CUDA(cudaGraphAddKernelNode(&apply_node, body, last ? &last : nullptr, last ? 1 : 0,
+                                     &kp));
+      CB_CUDA(cudaGraphAddKernelNode(&update_node, body, &apply_node, 1, &up));
+      last = update_node;
+    }
     CB_CUDA(CB_UPDATE_CAPTURE_DEPS(s, &loop, nullptr, 1, cudaStreamSetCaptureDependencies));
   }
 #endif
@@ -309,6 +335,7 @@ class CudaImplicit final : public CudaIntegrator<R> {
   const int N_;
   const unsigned effects_;
   const int max_iter_;
+  const int unroll_ = cg_unroll();  // CG iterations per turn of the device-side loop
   const double m_, c_, mb_, cb_;
   const RhsKernel rhs_;
   const ApplyKernel apply_;  // the operator kernel for the scene's stiffness effects

@@ -26,3 +26,15 @@ def test_cg_cost_rows(tmp_path, capsys) -> None:
 def test_cg_cost_bad_sizes(capsys) -> None:
     assert main(["--backend", "cpu", "--sizes", "x"]) == 2
     assert "--sizes" in capsys.readouterr().err
+
+
+def test_cg_cost_unroll_rows_and_bad_unroll(tmp_path, capsys) -> None:
+    out = tmp_path / "cg.json"
+    assert main(["--backend", "cpu", "--sizes", "8", "--precisions", "float64", "--frames",
+                 "1", "--unroll", "1,4", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert [r["unroll"] for r in rows] == [1] * (len(rows) // 2) + [4] * (len(rows) // 2)
+    assert "unroll 4" in capsys.readouterr().out
+    for bad in ("0", "x", "4,33"):
+        assert main(["--backend", "cpu", "--sizes", "8", "--unroll", bad]) == 2
+        assert "--unroll" in capsys.readouterr().err
