@@ -158,3 +158,49 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
     finally:
         for lg in loggers:
             lg.removeHandler(errors)
+
+
+# --- CLOTHBALL_TEST_WORKERS=2: the server as the first of two processes sharing one port ---
+# (tests/server/workers.py says how). server() and live_server() above, wrapped.
+
+_one_process_server = server
+_one_process_live_server = live_server
+
+
+def _as_given(data: Path, kw: dict[str, Any]) -> dict[str, Any]:
+    """The GameServer arguments server() and live_server() give, for the second process."""
+    return {"scenes": {"tiny": TINY}, "backend": "cpu", "host": "127.0.0.1", **kw,
+            "limits": no_admission(kw.get("limits"))}
+
+
+@contextlib.asynccontextmanager
+async def server(data: Path, *, bots: int = 0, settings: RoomSettings | None = None,
+                 **kw: Any) -> AsyncIterator[GameServer]:
+    from tests.server import workers
+
+    if workers.WORKERS == 1:
+        async with _one_process_server(data, bots=bots, settings=settings, **kw) as srv:
+            yield srv
+        return
+    given = _as_given(data, {**kw, "bots": bots, "room_settings": settings or RoomSettings()})
+    with workers.pair(data, given) as (second, extra):
+        async with _one_process_server(data, bots=bots, settings=settings, **kw,
+                                       **extra) as srv:
+            await workers.ready(srv, second)
+            srv.second_worker = second  # type: ignore[attr-defined]
+            yield srv
+
+
+@contextlib.contextmanager
+def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
+    from tests.server import workers
+
+    if workers.WORKERS == 1:
+        with _one_process_live_server(data, **kw) as ls:
+            yield ls
+        return
+    with workers.pair(data, _as_given(data, kw)) as (second, extra):
+        with _one_process_live_server(data, **kw, **extra) as ls:
+            asyncio.run_coroutine_threadsafe(workers.ready(ls.srv, second), ls.loop).result(30)
+            ls.srv.second_worker = second  # type: ignore[attr-defined]
+            yield ls

@@ -1,0 +1,201 @@
+"""The server suites against a host of two server processes (issue 17: ``--workers 2``
+passes the server, reconnect, fault and hostile-input suites).
+
+With ``CLOTHBALL_TEST_WORKERS=2`` the conftest's ``server()`` and ``live_server()`` run
+their server as the first of two processes sharing one public port, as
+``clothball host --workers 2`` runs them: the server under test stays in the test process
+(so a test can still look at its rooms and counters), configured as a worker (the room
+directory in the data directory, the shared port, a port of its own), and a second real
+process (``tests/server/worker_proc.py``) is started with the same arguments. ``ws_url``
+and ``http_url`` name the shared port, so the kernel spreads the tests' connections over
+both processes: a client that lands on the process without its room is redirected and
+follows, a new room may be placed on either, a reconnect token may arrive at either.
+
+The second process must stop cleanly (exit 0) and log no error or traceback: its stderr is
+checked when the server context ends.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import urllib.request
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from clothball.game.cli.host import DIRECTORY_FILE
+from clothball.server.directory import PUBLISH_S, SqliteDirectory
+
+WORKERS = int(os.environ.get("CLOTHBALL_TEST_WORKERS", "1") or "1")
+if WORKERS not in (1, 2):
+    raise RuntimeError(f"CLOTHBALL_TEST_WORKERS must be 1 or 2, got {WORKERS}")
+
+WORKER_PROC = Path(__file__).with_name("worker_proc.py")
+FIRST_ID, SECOND_ID = "test-worker-0", "test-worker-1"  # their host ids in the directory
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class SecondWorker:
+    """The other process of the pair: started with the test server's arguments, read, and
+    stopped (SIGTERM) at the end."""
+
+    def __init__(self, data: Path, kw: dict[str, Any], shared_port: int) -> None:
+        self.shared_port = shared_port
+        self.stderr: list[str] = []
+        args = {**kw, "data_dir": str(data), "shared_port": shared_port,
+                "host_id": SECOND_ID}
+        fd, name = tempfile.mkstemp(suffix=".kwargs")
+        with os.fdopen(fd, "wb") as f:
+            pickle.dump(args, f)
+        try:
+            self.proc = subprocess.Popen([sys.executable, str(WORKER_PROC), name],
+                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                         text=True)
+            assert self.proc.stdout is not None and self.proc.stderr is not None
+            threading.Thread(target=self._read_stderr, daemon=True).start()
+            first: list[str] = []
+            reader = threading.Thread(target=lambda: first.append(self.proc.stdout.readline()),
+                                      daemon=True)  # type: ignore[union-attr]
+            reader.start()
+            reader.join(60)
+            try:
+                self.port = int(json.loads(first[0])["port"])
+            except (IndexError, ValueError, KeyError) as e:
+                self.proc.kill()
+                self.proc.wait(10)
+                raise AssertionError("the second server process did not start:\n"
+                                     + "".join(self.stderr)) from e
+        finally:
+            os.unlink(name)
+
+    def _read_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.stderr.append(line)
+
+    def stop(self) -> None:
+        """SIGTERM, then check that it stopped cleanly and logged nothing wrong."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            rc = self.proc.wait(60)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(10)
+            raise AssertionError("the second server process did not stop on SIGTERM:\n"
+                                 + "".join(self.stderr)) from None
+        for pipe in (self.proc.stdout, self.proc.stderr):
+            if pipe is not None:
+                with contextlib.suppress(ValueError):  # the reader thread's last line
+                    pipe.close()
+        text = "".join(self.stderr)
+        assert rc == 0, f"the second server process exited {rc}:\n{text}"
+        bad = [ln for ln in self.stderr if ln.startswith(("ERROR", "CRITICAL", "Traceback"))]
+        assert not bad, f"the second server process logged errors:\n{text}"
+
+
+def first_worker_kw(data: Path, shared_port: int) -> dict[str, Any]:
+    """What the process under test is given on top of the test's arguments to be the first
+    of the pair (``serve`` in ``game/cli/host.py`` gives each process the same)."""
+    data.mkdir(parents=True, exist_ok=True)
+    return {"directory": SqliteDirectory(data / DIRECTORY_FILE), "shared_port": shared_port,
+            "host_id": FIRST_ID}
+
+
+async def ready(first: Any, second: SecondWorker, timeout: float = 20.0) -> None:
+    """Wait until each process has read the other from the directory (as the supervisor
+    waits before giving out the address): the first lists the second among its peers, the
+    second lists the first's public rooms. Runs on the loop of ``first`` (the
+    ``GameServer`` under test)."""
+    want = {r.id for r in first.lobby.rooms.values() if r.public}
+    url = f"http://127.0.0.1:{second.port}/api/rooms"
+
+    def listed() -> set[str]:
+        with urllib.request.urlopen(url, timeout=5) as r:
+            return {room["id"] for room in json.loads(r.read())["rooms"]}
+
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while True:
+        peers = first.lobby.peers
+        if peers is not None and SECOND_ID in peers.hosts and \
+                want <= await asyncio.to_thread(listed):
+            return
+        if loop.time() > end:
+            raise AssertionError("the two server processes did not see each other within "
+                                 f"{timeout:g} s")
+        await asyncio.sleep(PUBLISH_S / 5)
+
+
+@dataclass
+class Process:
+    """One process of the service, for ``conftest.http_get``/``http_json``: its own HTTP
+    address (not the shared port, where the kernel picks the process)."""
+
+    http_url: str
+
+
+def processes(srv: Any) -> list[Process]:
+    """Every process of the service, the server under test first: one without
+    ``CLOTHBALL_TEST_WORKERS=2``, two with it (``srv.second_worker``, set by the
+    conftest)."""
+    ports = [srv.port]
+    if getattr(srv, "second_worker", None) is not None:
+        ports.append(srv.second_worker.port)
+    return [Process(f"http://127.0.0.1:{p}/") for p in ports]
+
+
+def public_port(srv: Any) -> int:
+    """The port clients are given: the shared one when there are two processes."""
+    return int(srv.shared_port if srv.shared_port is not None else srv.port)
+
+
+async def service_stats(srv: Any) -> dict[str, Any]:
+    """``/api/stats`` of the whole service: with two processes, each one's (statistics
+    are per process, docs/protocol.md "Several processes") summed: the counters added, the
+    rooms of both (each room lives on one)."""
+    from tests.server.conftest import http_json
+
+    each = [await http_json(p, "/api/stats") for p in processes(srv)]
+    total = dict(each[0])
+    for other in each[1:]:
+        for k in COUNTERS:
+            total[k] += other[k]
+        total["rooms"] = {**total["rooms"], **other["rooms"]}
+    return total
+
+
+COUNTERS = ("messages_in", "messages_out", "bad_messages", "rounds_saved", "rounds_not_saved",
+            "refused_connections", "rooms_stopped", "clients", "cpu_s")
+
+
+@contextlib.contextmanager
+def pair(data: Path, kw: dict[str, Any]) -> Iterator[tuple[SecondWorker, dict[str, Any]]]:
+    """The second process started with ``kw`` (the test server's arguments); yields it and
+    the arguments to give the server under test."""
+    port = free_port()
+    extra = first_worker_kw(data, port)
+    second = SecondWorker(data, kw, port)
+    try:
+        yield second, extra
+    finally:
+        try:
+            second.stop()
+        finally:
+            extra["directory"].close()
