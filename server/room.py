@@ -278,7 +278,7 @@ class Room:
             if bot is not None:
                 bot.kicked("a player took this seat")
         target.kind, target.name, target.ready = "human", name, False
-        target.token = secrets.token_urlsafe(24)
+        target.token = self._new_token()
         self._attach(target, conn)
         if replaced:
             self.event("seat", seat=target.index, kind="human", name=name,
@@ -287,6 +287,11 @@ class Room:
             self.event("seat", seat=target.index, kind="human", name=name)
         self.broadcast_state()
         return self._joined(target)
+
+    def _new_token(self) -> str:
+        """A seat's reconnect key: this room's id, a dot, a secret. The id lets any process
+        of a service send a reconnect to the room's own (``token_room``)."""
+        return f"{self.id}.{secrets.token_urlsafe(24)}"
 
     def resume(self, conn: Peer, token: str) -> dict[str, Any]:
         """Take a held seat back (a reconnect, or a bot claiming the seat it was given)."""
@@ -416,7 +421,7 @@ class Room:
             raise ProtocolError("bad_seat", f"seat {index} is taken ({seat.kind})")
         seat.kind, seat.name, seat.ready = "bot", f"bot-{index}", True
         seat.difficulty = difficulty
-        seat.token = secrets.token_urlsafe(24)
+        seat.token = self._new_token()
         self.event("seat", seat=index, kind="bot", name=seat.name, reason=reason)
         self.broadcast_state()
         self.host.spawn_bot(self, index, seat.token, difficulty)

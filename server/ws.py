@@ -55,6 +55,13 @@ class Connection(BinaryHook, ServerConnection):
             self._deadline.reschedule(None)
 
 
+def token_room(token: str) -> str | None:
+    """The room a reconnect token was given in (``Room._new_token``: id, dot, secret);
+    None for a token of another form."""
+    room_id, dot, _ = token.rpartition(".")
+    return room_id if dot and room_id else None
+
+
 class WsHost(Protocol):
     """What the endpoint uses of its server (``server.app.GameServer``)."""
 
@@ -315,7 +322,15 @@ class WsEndpoint:
         room_id = msg.get("room")
         self._room_options(conn, msg)
         if token is not None:
-            room = self.srv.lobby.get(room_id) if room_id is not None else None
+            if room_id is None:  # the token names its room: Moved when it lives elsewhere
+                room_id = token_room(token)
+                try:
+                    room = self.srv.lobby.get(room_id) if room_id is not None else None
+                except ProtocolError:
+                    raise ProtocolError("bad_token",
+                                        "reconnect token unknown or expired") from None
+            else:
+                room = self.srv.lobby.get(room_id)
             rooms = [room] if room is not None else list(self.srv.lobby.rooms.values())
             for r in rooms:
                 try:
