@@ -52,7 +52,8 @@ class GameServer:
                  origins: tuple[str, ...] | None = None, host_token: str | None = None,
                  trusted_proxies: tuple[Any, ...] = (),
                  directory: Directory | None = None, shared_port: int | None = None,
-                 advertise: str | None = None, host_id: str | None = None) -> None:
+                 advertise: str | None = None, host_id: str | None = None,
+                 db: str | None = None) -> None:
         if scenes is None:
             scenes = {"classic": Scene.load("classic")}
         self.scenes = scenes
@@ -89,9 +90,12 @@ class GameServer:
         # without recording, stored rounds are served if they can be read, every place
         # that would show replays says why, and recording resumes once it can.
         lim = self.limits
+        # ``db``: the replay index in PostgreSQL, shared by a cluster's hosts; its rows name
+        # this host by its HTTP address, known once it listens (``start``).
         self.storage = Storage(self.data_dir, retention=Retention.from_limits(lim),
-                               min_free_bytes=int(lim.storage_min_free_mib * 2**20))
-        self.storage.check_now()
+                               min_free_bytes=int(lim.storage_min_free_mib * 2**20), db=db)
+        if db is None:
+            self.storage.check_now()
         # Every room of a scene is a slot of that scene's worker: one call steps them all.
         self.sims = SimPool(epoch=self.epoch, spool_dir=spool_dir_for(self.data_dir))
         self._share_host_token()
@@ -102,6 +106,7 @@ class GameServer:
         self.lobby.busy = lambda: self.headroom.busy
         self.lobby.read_directory = self._read_directory_now
         self.lobby.publish_now = self._publish_now
+        self.lobby.index_error = lambda: self.storage.index_error
         self.clients: set[Conn] = set()
         self.per_address: collections.Counter[str] = collections.Counter()
         self._server: Server | None = None
@@ -131,6 +136,9 @@ class GameServer:
             raise
         sock = next(iter(self._server.sockets))
         self.port = sock.getsockname()[1]
+        if self.storage.db is not None:
+            self.storage.host_url = self.advertised_http_url
+            await self.storage.check()
         main_id = "main"
         if self.directory is not None:
             self.lobby.me = HostEntry(self.host_id, self.advertised_url)
@@ -262,6 +270,14 @@ class GameServer:
         return self._url(self.port)
 
     @property
+    def advertised_http_url(self) -> str:
+        """The HTTP address of ``advertised_url`` (where other hosts send this host's
+        replay downloads)."""
+        parts = urllib.parse.urlsplit(self.advertised_url)
+        scheme = "https" if parts.scheme == "wss" else "http"
+        return urllib.parse.urlunsplit((scheme, parts.netloc, "", "", ""))
+
+    @property
     def http_url(self) -> str:
         return self.ws_url.replace("ws://", "http://", 1)[: -len("/ws")] + "/"
 
@@ -372,7 +388,8 @@ class GameServer:
         while True:
             await asyncio.sleep(LOBBY_PUSH_S)
             msg = self.lobby.rooms_message()
-            now = key(msg["rooms"]) + str(msg.get("directory_error"))
+            now = key(msg["rooms"]) + str(msg.get("directory_error")) + \
+                str(msg.get("replay_index_error"))
             if now == last:
                 continue
             last = now
@@ -459,6 +476,8 @@ class GameServer:
             "uptime_s": time.perf_counter() - self._wall0,
             "recording": "on" if self.recording_error is None else
                          f"off: {self.recording_error}",
+            "replay_index": "ok" if self.storage.index_error is None else
+                            f"unavailable: {self.storage.index_error}",
             "storage": self.storage_snapshot(),
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),

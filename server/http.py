@@ -6,7 +6,8 @@
 * ``/api/rooms`` public rooms as JSON
 * ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=&player=&code=``)
 * ``/api/replays/<id>`` one replay file (``game.wire.replay``; a private room's: ``?code=``),
-  streamed from disk in chunks, one byte range of it with ``Range: bytes=A-B`` (206)
+  streamed from disk in chunks, one byte range of it with ``Range: bytes=A-B`` (206); with
+  an index shared by hosts (``--db``), a 307 to the host that holds the file
 * ``/api/stats`` the server's own counters (frame lateness, messages, CPU time, storage);
   ``?reset=1`` clears the frame lateness, only with the host's token
   (``Authorization: Bearer TOKEN``, the token in the data directory's ``host-token``)
@@ -53,7 +54,7 @@ from ..game.wire.protocol import ProtocolError, check_text
 from .conn import Conn, TokenBucket, client_address
 from .limits import Limits
 from .lobby import Lobby
-from .replays import ReplayStore
+from .replays import IndexUnavailable, ReplayStore
 
 log = logging.getLogger("clothball.server")
 
@@ -363,9 +364,10 @@ class HttpSurface:
             return self._error(503, f"recording is off: {self.srv.recording_error}")
         try:
             return self._replays_of(store, path, query)
-        except sqlite3.Error as e:
+        except (sqlite3.Error, IndexUnavailable) as e:
             # The index was closed under this query (the data directory's problem is being
-            # acted on: server.replays.Storage) or the disk failed a read.
+            # acted on: server.replays.Storage), the disk failed a read, or a shared index's
+            # PostgreSQL is away.
             return self._error(503, f"the replay index cannot be read now ({e}); try again "
                                     "shortly")
 
@@ -392,9 +394,13 @@ class HttpSurface:
         rid = path[len("/api/replays/"):]
         if rid.endswith(".cbr"):
             rid = rid[:-4]
-        p = store.path_of(rid, code=code)
+        p = store.locate(rid, code=code)
         if p is None:
             return self._error(404, f"no replay {rid[:100]!r}")
+        if isinstance(p, str):
+            # A shared index's round whose file another host holds: the client asks there.
+            return self._response(307, b"", "text/plain; charset=utf-8",
+                                  {"Location": p, "Access-Control-Allow-Origin": "*"})
         return _Download(p, rid)
 
     async def _stream(self, connection: ServerConnection, request: Request, dl: _Download
@@ -426,8 +432,11 @@ class HttpSurface:
                 return self._json({"error": str(e), "status": 416}, 416,
                                   {"Content-Range": f"bytes */{size}"})
             first, last = span if span is not None else (0, size - 1)
+            # Any page may read it (a cluster's page fetches it from another host after a
+            # redirect); a private round needs its code in the URL all the same.
             head = [("Content-Length", str(last - first + 1)),
                     ("Content-Type", "application/octet-stream"),
+                    ("Access-Control-Allow-Origin", "*"),
                     ("Content-Disposition", f'attachment; filename="{dl.rid}.cbr"'),
                     ("Accept-Ranges", "bytes")]
             status = http.HTTPStatus.OK

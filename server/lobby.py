@@ -49,6 +49,8 @@ class Lobby:
         self.publish_now: Callable[[], None] = lambda: None
         # Why no room more fits on this server now (server.headroom); None: room to spare.
         self.busy: Callable[[], str | None] = lambda: None
+        # Why the shared replay index cannot be written now (rounds wait as files), or None.
+        self.index_error: Callable[[], str | None] = lambda: None
 
     def create(self, name: str, scene: str | None = None, *, public: bool = True,
                settings: RoomSettings | None = None, owner: str | None = None,
@@ -143,10 +145,14 @@ class Lobby:
 
     def rooms_message(self) -> dict[str, Any]:
         """The ``rooms`` reply: the listing and, while the shared directory cannot be
-        reached, ``directory_error`` saying so (only this process's rooms are listed)."""
+        reached, ``directory_error`` saying so (only this process's rooms are listed); while
+        the shared replay index cannot be written, ``replay_index_error``."""
         msg: dict[str, Any] = {"type": "rooms", "rooms": self.listing()}
         if self.directory_error is not None:
             msg["directory_error"] = self.directory_error
+        index_error = self.index_error()
+        if index_error is not None:
+            msg["replay_index_error"] = index_error
         return msg
 
     def published(self) -> list[tuple[str, bool, dict[str, Any]]]:

@@ -99,7 +99,11 @@ INDEX_VERSION = 1  # PRAGMA user_version once ``round_players`` holds every roun
 COLUMNS = ("id", "room_id", "room_name", "scene", "round", "players", "conceded_edge",
            "conceded_by", "scores", "started_at", "ended_at", "duration_s", "file", "bytes",
            "access")
-_GET = f"SELECT {', '.join(COLUMNS)} FROM rounds WHERE id = ?"
+
+
+class IndexUnavailable(Exception):
+    """The replay index's database cannot be reached or used now (a PostgreSQL index
+    whose server is down): one line saying so. Rounds are kept as files meanwhile."""
 
 
 def _statements(script: str) -> list[str]:
@@ -139,7 +143,16 @@ class ReplayStore:
     """The data directory's replays: files under ``replays/`` and the index ``index.sqlite``.
 
     Thread-safe: the server calls it from worker threads (``asyncio.to_thread``).
+
+    This class is the embedded index (SQLite) and holds every query; the shared one
+    (``PostgresReplayStore``) runs the same SQL on PostgreSQL and overrides only how it
+    connects, runs a statement and creates its tables (``_fetch``, ``_x``, ``_write``,
+    ``_migrate``).
     """
+
+    columns: tuple[str, ...] = COLUMNS
+    host: str | None = None  # whose files the rows name (a shared index: an HTTP address)
+    index_error: str | None = None  # why the index cannot be written now (shared: its server)
 
     def __init__(self, data_dir: Path | str, *, lock_wait_s: float = LOCK_WAIT_S,
                  retention: Retention | None = None, recover: bool = True,
@@ -149,18 +162,7 @@ class ReplayStore:
         files are rounds being written). ``retention``: pruned after each save; None keeps
         everything. ``read_only``: list and serve what is there, write nothing (a read-only
         or full disk); the index must exist."""
-        self.dir = Path(data_dir)
-        self.replays = self.dir / "replays"
-        self.read_only = read_only
-        self.lock_wait_s = lock_wait_s
-        self.retention = retention
-        self.rounds = 0  # indexed rounds and their bytes, as of the last write or refresh
-        self.bytes = 0
-        self.lock_waits = 0  # writes that found the index locked and waited
-        self._lock = threading.Lock()  # the reading connection
-        self._wlock = threading.Lock()  # the writing connection
-        self._counts: dict[tuple[str, tuple[Any, ...]], int] = {}
-        self._counts_stamp: tuple[int, int] = (-1, -1)
+        self._setup(data_dir, lock_wait_s, retention, read_only)
         if read_only:
             self._wdb: sqlite3.Connection | None = None
             self._db = self._connect_read_only()
@@ -184,6 +186,24 @@ class ReplayStore:
             if retention is not None:
                 self.prune(retention)
         self.refresh_usage()
+
+    def _setup(self, data_dir: Path | str, lock_wait_s: float, retention: Retention | None,
+               read_only: bool) -> None:
+        """What every kind of index starts with (before it connects)."""
+        self.dir = Path(data_dir)
+        self.replays = self.dir / "replays"
+        self.read_only = read_only
+        self.lock_wait_s = lock_wait_s
+        self.retention = retention
+        self.rounds = 0  # indexed rounds and their bytes, as of the last write or refresh
+        self.bytes = 0
+        self.lock_waits = 0  # writes that found the index locked and waited
+        self._lock = threading.Lock()  # the reading connection
+        self._wlock = threading.Lock()  # the writing connection
+        self._counts: dict[tuple[str, tuple[Any, ...]], int] = {}
+        self._counts_stamp: Any = (-1, -1)
+        self._counts_lock = threading.Lock()
+        self.identity: tuple[int, int] | None = None
 
     def _identity(self) -> tuple[int, int] | None:
         """The index file's device and inode: another file (or none) there means the data
@@ -313,8 +333,7 @@ class ReplayStore:
         for tmp in self.replays.glob("*.cbr.tmp"):
             log.info("removing unfinished replay %s", tmp.name)
             tmp.unlink(missing_ok=True)
-        with self._lock:
-            known = {r[0] for r in self._db.execute("SELECT id FROM rounds")}
+        known = self._known()
         for aside in self.replays.glob("*.cbr.del"):  # a prune cut short (see _remove)
             rid = aside.name[:-len(".cbr.del")]
             if rid in known:
@@ -323,12 +342,16 @@ class ReplayStore:
                 aside.unlink(missing_ok=True)
         self.reconcile()
 
+    def _known(self) -> set[str]:
+        """The ids of the indexed rounds whose files are this store's."""
+        mine, args = self._mine()
+        return {r[0] for r in self._fetch(f"SELECT id FROM rounds WHERE {mine}", args)}
+
     def reconcile(self) -> int:
         """Indexes the finished files the index lacks, from their own header. Returns how
         many."""
         indexed = 0
-        with self._lock:
-            known = {r[0] for r in self._db.execute("SELECT id FROM rounds")}
+        known = self._known()
         for path in sorted(self.replays.glob("*.cbr")):
             rid = path.stem
             if rid in known:
@@ -349,32 +372,65 @@ class ReplayStore:
         """Index rounds (header, file name under ``replays/``, its size) in one transaction."""
         rows, players = [], []
         for header, name, size in rounds:
-            row = (
-                header["id"], header["room_id"], header["room_name"], header["scene"],
-                int(header["round"]), json.dumps(header["players"]),
-                header.get("conceded_edge"), header.get("conceded_by"),
-                json.dumps(header["scores"]), float(header["started_at"]),
-                float(header["ended_at"]), float(header["duration_s"]), name, size,
-                header.get("access"),
-            )
+            row = self._tuple(header, name, size)
             rows.append(row)
             names = {p["name"] for p in header["players"]
                      if isinstance(p, dict) and isinstance(p.get("name"), str)}
             players += [(row[0], n, row[1], row[14], row[10]) for n in sorted(names)]
+        ids = [(r[0],) for r in rows]
+
         def write() -> None:
-            db = self._wdb
-            db.executemany("DELETE FROM round_players WHERE round_id = ?",
-                           [(r[0],) for r in rows])
-            db.executemany(
-                f"INSERT OR REPLACE INTO rounds ({', '.join(COLUMNS)}) "
-                f"VALUES ({', '.join('?' * len(COLUMNS))})",
-                rows,
-            )
-            db.executemany(
-                "INSERT INTO round_players (round_id, name, room_id, access, ended_at) "
-                "VALUES (?, ?, ?, ?, ?)", players)
+            self._xmany("DELETE FROM round_players WHERE round_id = ?", ids)
+            self._xmany("DELETE FROM rounds WHERE id = ?", ids)
+            self._xmany(f"INSERT INTO rounds ({', '.join(self.columns)}) "
+                        f"VALUES ({', '.join('?' * len(self.columns))})", rows)
+            self._xmany("INSERT INTO round_players (round_id, name, room_id, access, ended_at) "
+                        "VALUES (?, ?, ?, ?, ?)", players)
 
         self._write(write)
+
+    def _tuple(self, header: dict[str, Any], name: str, size: int) -> tuple[Any, ...]:
+        """A round's index row, in ``columns`` order, from its header."""
+        row = (
+            header["id"], header["room_id"], header["room_name"], header["scene"],
+            int(header["round"]), json.dumps(header["players"]),
+            header.get("conceded_edge"), header.get("conceded_by"),
+            json.dumps(header["scores"]), float(header["started_at"]),
+            float(header["ended_at"]), float(header["duration_s"]), name, size,
+            header.get("access"),
+        )
+        return row + ((self.host,) if "host" in self.columns else ())
+
+    # --- how statements run: the SQLite connections (PostgresReplayStore overrides) -------
+    def _fetch(self, q: str, args: Any = ()) -> list[tuple[Any, ...]]:
+        """The rows of a query, on the reading connection."""
+        with self._lock:
+            return self._db.execute(q, args).fetchall()
+
+    def _x(self, q: str, args: Any = ()) -> None:
+        """One statement on the writing connection (inside ``_write``)."""
+        assert self._wdb is not None
+        self._wdb.execute(q, args)
+
+    def _xmany(self, q: str, rows: list[tuple[Any, ...]]) -> None:
+        assert self._wdb is not None
+        self._wdb.executemany(q, rows)
+
+    def _mine(self) -> tuple[str, list[Any]]:
+        """The condition on the rows whose files are this store's (every row of an
+        embedded index; of a shared one, this host's)."""
+        return "1 = 1", []
+
+    def _count_stamp(self) -> Any:
+        """What changes whenever the index does (None: counts are not remembered)."""
+        with self._lock:
+            # data_version moves with other connections' commits, total_changes with ours
+            return (self._db.execute("PRAGMA data_version").fetchone()[0],
+                    self._db.total_changes)
+
+    def retry_index(self) -> None:
+        """Writes the index rows kept back while the index was unavailable (a shared
+        index only; the embedded one indexes such rounds from their files, ``reconcile``)."""
 
     def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> dict[str, Any]:
         """Write one round's file, then index it. Returns the index row."""
@@ -396,9 +452,9 @@ class ReplayStore:
 
     def refresh_usage(self) -> None:
         """``rounds`` and ``bytes`` read again from the index (another program may prune)."""
-        with self._lock:
-            n, b = self._db.execute("SELECT COUNT(*), COALESCE(SUM(bytes), 0) FROM rounds"
-                                    ).fetchone()
+        mine, args = self._mine()
+        n, b = self._fetch("SELECT COUNT(*), COALESCE(SUM(bytes), 0) FROM rounds WHERE "
+                           + mine, args)[0]
         self.rounds, self.bytes = int(n), int(b)
 
     def prune(self, retention: Retention, *, now: float | None = None,
@@ -408,17 +464,15 @@ class ReplayStore:
         ``max_bytes`` (never the newest). Each round's row and file go together (see the
         module's docstring). Returns the rounds removed (or, ``dry_run``, that would be)."""
         now = time.time() if now is None else now
-        with self._lock:
-            total, oldest = self._db.execute(
-                "SELECT COALESCE(SUM(bytes), 0), MIN(ended_at) FROM rounds").fetchone()
+        mine, margs = self._mine()
+        total, oldest = self._fetch(
+            "SELECT COALESCE(SUM(bytes), 0), MIN(ended_at) FROM rounds WHERE " + mine, margs)[0]
         if total <= retention.max_bytes and (oldest is None or
                                              oldest >= now - retention.max_age_s):
             self.refresh_usage()
             return []  # the usual case after a save: nothing to read row by row
-        with self._lock:
-            rows = self._db.execute(
-                "SELECT id, ended_at, bytes FROM rounds ORDER BY ended_at DESC, id DESC"
-            ).fetchall()
+        rows = self._fetch(f"SELECT id, ended_at, bytes FROM rounds WHERE {mine} "
+                           "ORDER BY ended_at DESC, id DESC", margs)
         keep, total, doomed = True, 0, []
         for i, (rid, ended_at, size) in enumerate(rows):
             too_old = ended_at < now - retention.max_age_s
@@ -452,7 +506,8 @@ class ReplayStore:
         def remove() -> None:
             with contextlib.suppress(FileNotFoundError):  # already gone: the row goes
                 os.replace(path, aside)
-            self._wdb.execute("DELETE FROM rounds WHERE id = ?", (rid,))
+            self._x("DELETE FROM round_players WHERE round_id = ?", (rid,))
+            self._x("DELETE FROM rounds WHERE id = ?", (rid,))
 
         try:
             self._write(remove)
@@ -466,9 +521,8 @@ class ReplayStore:
     def _discard(path: Path) -> None:
         path.unlink(missing_ok=True)
 
-    @staticmethod
-    def _queries(room_id: str | None, player: str | None, code: str | None, limit: int = 100,
-                 offset: int = 0) -> dict[str, tuple[str, list[Any]]]:
+    def _queries(self, room_id: str | None, player: str | None, code: str | None,
+                 limit: int = 100, offset: int = 0) -> dict[str, tuple[str, list[Any]]]:
         """The SQL (and its arguments) of ``list`` and ``count`` for these filters. The
         rounds a request may see: public ones, plus a private room's when the request names
         that room and its code. With ``player`` the filter reads ``round_players``."""
@@ -490,8 +544,8 @@ class ReplayStore:
         count = " + ".join(f"(SELECT COUNT(*) FROM {table} WHERE {w})" for w, _ in arms)
         every = [a for _, arm_args in arms for a in arm_args]
         return {
-            "list": (f"SELECT {', '.join(COLUMNS)} FROM rounds WHERE id IN (SELECT id FROM "
-                     f"({page} ORDER BY ended_at DESC, id LIMIT ? OFFSET ?)) "
+            "list": (f"SELECT {', '.join(self.columns)} FROM rounds WHERE id IN (SELECT id "
+                     f"FROM ({page} ORDER BY ended_at DESC, id LIMIT ? OFFSET ?) AS page) "
                      "ORDER BY ended_at DESC, id", [*every, limit, offset]),
             "count": (f"SELECT {count}", every),
         }
@@ -501,8 +555,7 @@ class ReplayStore:
         """Newest first. ``player``: only rounds where a seat had that name; ``code``: a
         private room's code (with ``room_id``) to see its rounds too."""
         q, args = self._queries(room_id, player, code, limit, offset)["list"]
-        with self._lock:
-            rows = self._db.execute(q, args).fetchall()
+        rows = self._fetch(q, args)
         return [self._row(r) for r in rows]
 
     def count(self, room_id: str | None = None, *, player: str | None = None,
@@ -512,20 +565,22 @@ class ReplayStore:
         ask the same count)."""
         q, args = self._queries(room_id, player, code)["count"]
         key = (q, tuple(args))
-        with self._lock:
-            # data_version moves with other connections' commits, total_changes with ours
-            stamp = (self._db.execute("PRAGMA data_version").fetchone()[0],
-                     self._db.total_changes)
+        stamp = self._count_stamp()
+        if stamp is None:
+            return int(self._fetch(q, args)[0][0])
+        with self._counts_lock:
             if stamp != self._counts_stamp:
                 self._counts.clear()
                 self._counts_stamp = stamp
             n = self._counts.get(key)
-            if n is None:
-                n = int(self._db.execute(q, args).fetchone()[0])
-                if len(self._counts) >= 256:
-                    self._counts.clear()
-                self._counts[key] = n
-            return n
+        if n is None:
+            n = int(self._fetch(q, args)[0][0])  # as of ``stamp`` or newer
+            with self._counts_lock:
+                if stamp == self._counts_stamp:
+                    if len(self._counts) >= 256:
+                        self._counts.clear()
+                    self._counts[key] = n
+        return n
 
     def _all(self, what: str, room_id: str | None, player: str | None
              ) -> tuple[str, list[Any]]:
@@ -542,16 +597,13 @@ class ReplayStore:
                  player: str | None = None) -> list[dict[str, Any]]:
         """Newest first, private rooms' rounds too: the host's own view
         (``clothball replays list``), never the HTTP API's."""
-        q, args = self._all(", ".join(COLUMNS), room_id, player)
-        with self._lock:
-            rows = self._db.execute(q + " ORDER BY ended_at DESC, id LIMIT ?",
-                                    [*args, limit]).fetchall()
+        q, args = self._all(", ".join(self.columns), room_id, player)
+        rows = self._fetch(q + " ORDER BY ended_at DESC, id LIMIT ?", [*args, limit])
         return [self._row(r) for r in rows]
 
     def count_all(self, room_id: str | None = None, player: str | None = None) -> int:
         q, args = self._all("COUNT(*)", room_id, player)
-        with self._lock:
-            return int(self._db.execute(q, args).fetchone()[0])
+        return int(self._fetch(q, args)[0][0])
 
     def file_of(self, rid: str) -> Path | None:
         """The round's file whoever's it is (the host's view), if indexed and there."""
@@ -564,7 +616,8 @@ class ReplayStore:
         """SQLite's plan (``EXPLAIN QUERY PLAN``) of every query the HTTP API can make, by a
         name for it, as "PARENT:STEP" lines (parent 0: the outermost query): what tests
         check for scans and sorts of the rounds."""
-        queries = {"get": (_GET, ["x"])}
+        queries = {"get": (f"SELECT {', '.join(self.columns)} FROM rounds WHERE id = ?",
+                           ["x"])}
         for room in (None, "r"):
             for player in (None, "p"):
                 for code in (None, "c") if room else (None,):
@@ -578,9 +631,8 @@ class ReplayStore:
     def _get(self, rid: str) -> dict[str, Any] | None:
         if not ID_RE.match(rid):
             return None
-        with self._lock:
-            r = self._db.execute(_GET, (rid,)).fetchone()
-        return None if r is None else dict(zip(COLUMNS, r, strict=True))
+        rows = self._fetch(f"SELECT {', '.join(self.columns)} FROM rounds WHERE id = ?", [rid])
+        return None if not rows else dict(zip(self.columns, rows[0], strict=True))
 
     def get(self, rid: str) -> dict[str, Any] | None:
         r = self._get(rid)
@@ -599,9 +651,24 @@ class ReplayStore:
         path = self.replays / f"{rid}.cbr"
         return path if path.is_file() else None
 
-    @staticmethod
-    def _row(r: tuple[Any, ...]) -> dict[str, Any]:
-        d = dict(zip(COLUMNS, r, strict=True))
+    def locate(self, rid: str, code: str | None = None) -> Path | str | None:
+        """Where the round's file is, if the caller may have it: a path here, or (a shared
+        index) the download URL on the host that holds it; None: no such round for them."""
+        r = self._get(rid)
+        if r is None or (r["access"] is not None and (
+                code is None or access_key(r["room_id"], code) != r["access"])):
+            return None
+        path = self.replays / f"{rid}.cbr"
+        if path.is_file():
+            return path
+        owner = r.get("host")
+        if owner and owner != self.host:
+            url = f"{owner.rstrip('/')}/api/replays/{rid}.cbr"
+            return url + (f"?code={urllib.parse.quote(code)}" if code is not None else "")
+        return None
+
+    def _row(self, r: tuple[Any, ...]) -> dict[str, Any]:
+        d = dict(zip(self.columns, r, strict=True))
         d["players"] = json.loads(d["players"])
         d["scores"] = json.loads(d["scores"])
         d["private"] = d.pop("access") is not None
@@ -613,6 +680,201 @@ class ReplayStore:
             self._db.close()
             if self._wdb is not None:
                 self._wdb.close()
+
+
+def _postgres_ddl() -> list[str]:
+    """The index's tables for PostgreSQL: the SQLite schema's, in PostgreSQL's words (8-byte
+    floats and sizes, ids ordered by their bytes as SQLite orders them), with ``host``: the
+    HTTP address of the host that holds each round's file. No trigger: a round's players
+    are deleted with it by the statements that delete it (``_remove``, ``index_many``)."""
+    swaps = [(" REAL ", " DOUBLE PRECISION "), ("bytes INTEGER", "bytes BIGINT"),
+             ("id TEXT PRIMARY KEY", 'id TEXT COLLATE "C" PRIMARY KEY'),
+             ("round_id TEXT NOT NULL", 'round_id TEXT COLLATE "C" NOT NULL'),
+             ("    access TEXT\n);", "    access TEXT,\n    host TEXT\n);"),
+             (") WITHOUT ROWID;", ");")]
+    text = SCHEMA + INDEXES
+    for old, new in swaps:
+        assert old in text, old
+        text = text.replace(old, new)
+    out = [s for s in _statements(text) if not s.startswith("CREATE TRIGGER")]
+    return [*out, "CREATE INDEX IF NOT EXISTS rounds_host ON rounds (host, ended_at)"]
+
+
+class PostgresReplayStore(ReplayStore):
+    """The replay index in PostgreSQL (``clothball host --db postgresql://...``), shared by
+    the hosts of a cluster; each host keeps its rounds' files in its own data directory
+    and its rows name it (``host``: its HTTP address), so any host lists every round and
+    sends a download to the host that holds the file.
+
+    PostgreSQL may be away (restarted, unreachable): a round is then still written as a
+    file and its row kept back (at most ``max_pending``; past that the files themselves
+    are the list) and written by ``retry_index`` once PostgreSQL answers again; meanwhile
+    ``index_error`` says why. Connections are made when first needed and again after one
+    breaks, so a store survives PostgreSQL restarting.
+    """
+
+    columns = (*COLUMNS, "host")
+    _LOCK_ID = 0x636C6F74  # pg_advisory_xact_lock: one host creates the tables at a time
+
+    def __init__(self, data_dir: Path | str, url: str, *, host: str,
+                 retention: Retention | None = None, recover: bool = True,
+                 read_only: bool = False, lock_wait_s: float = LOCK_WAIT_S,
+                 max_pending: int = 1000, connect_timeout_s: float = 2.0) -> None:
+        import psycopg  # the shared index's driver: needed only with --db
+
+        self._pg = psycopg
+        self._setup(data_dir, lock_wait_s, retention, read_only)
+        self.url, self.host = url, host
+        self.max_pending = max_pending
+        self.connect_timeout_s = connect_timeout_s
+        self.pending: list[tuple[dict[str, Any], str, int]] = []  # rows to write
+        self._rescan = False  # more were kept back than ``pending`` holds: read the files
+        self._conns: dict[str, Any] = {}  # "r" (reads), "w" (writes)
+        self._ready = False  # the tables exist
+        self._wconn: Any = None
+        if read_only:
+            with contextlib.suppress(IndexUnavailable):
+                self.refresh_usage()
+            return
+        self.replays.mkdir(parents=True, exist_ok=True)
+        try:
+            if recover:
+                self._recover()
+                if retention is not None:
+                    self.prune(retention)
+            self.refresh_usage()
+        except IndexUnavailable:
+            self._rescan = recover  # the files the index may lack: indexed once it answers
+
+    def _where(self) -> str:
+        u = urllib.parse.urlsplit(self.url)
+        return f"the replay index (PostgreSQL at {u.hostname or 'localhost'}:{u.port or 5432})"
+
+    def _conn(self, which: str) -> Any:
+        conn = self._conns.get(which)
+        if conn is not None and not conn.closed and not conn.broken:
+            return conn
+        conn = self._pg.connect(self.url, autocommit=True,
+                                connect_timeout=max(1, round(self.connect_timeout_s)))
+        if not self._ready:
+            with conn.transaction():
+                conn.execute("SELECT pg_advisory_xact_lock(%s)", (self._LOCK_ID,))
+                for stmt in _postgres_ddl():
+                    conn.execute(stmt)
+            self._ready = True
+        self._conns[which] = conn
+        return conn
+
+    def _drop(self, which: str) -> None:
+        conn = self._conns.pop(which, None)
+        if conn is not None:
+            with contextlib.suppress(Exception):
+                conn.close()
+
+    def _failed(self, which: str, e: Exception) -> IndexUnavailable:
+        self._drop(which)
+        why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        line = f"{self._where()} cannot be used now ({why})"
+        if self.index_error is None:
+            log.warning("%s; rounds are kept as files and indexed once it is back", line)
+        self.index_error = line
+        return IndexUnavailable(line)
+
+    @staticmethod
+    def _sql(q: str) -> str:
+        return q.replace("?", "%s")  # the shared SQL's placeholders in psycopg's style
+
+    def _attempts(self, which: str, fn: Callable[[Any], Any]) -> Any:
+        """``fn(connection)``; once more on a new connection when one kept from before
+        turns out broken (PostgreSQL restarted since: its first use fails)."""
+        for attempt in (0, 1):
+            kept = which in self._conns
+            try:
+                return fn(self._conn(which))
+            except self._pg.Error as e:
+                if attempt or not kept or not isinstance(e, self._pg.OperationalError):
+                    raise self._failed(which, e) from e
+                self._drop(which)
+
+    def _fetch(self, q: str, args: Any = ()) -> list[tuple[Any, ...]]:
+        with self._lock:
+            return self._attempts(
+                "r", lambda c: list(c.execute(self._sql(q), list(args)).fetchall()))
+
+    def _write(self, fn: Callable[[], Any]) -> Any:
+        if self.read_only:
+            raise IndexUnavailable("the replay index is open read-only")
+
+        def once(conn: Any) -> Any:
+            try:
+                with conn.transaction():
+                    self._wconn = conn
+                    return fn()
+            finally:
+                self._wconn = None
+
+        with self._wlock:
+            return self._attempts("w", once)
+
+    def _x(self, q: str, args: Any = ()) -> None:
+        self._wconn.execute(self._sql(q), list(args))
+
+    def _xmany(self, q: str, rows: list[tuple[Any, ...]]) -> None:
+        if rows:
+            with self._wconn.cursor() as cur:
+                cur.executemany(self._sql(q), [list(r) for r in rows])
+
+    def _mine(self) -> tuple[str, list[Any]]:
+        return "host = ?", [self.host]
+
+    def _count_stamp(self) -> Any:
+        return None  # other hosts write too: counted afresh each time
+
+    def _identity(self) -> tuple[int, int] | None:
+        return None  # no index file here: the data directory is checked by its replays/
+
+    def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]) -> dict[str, Any]:
+        """Write the round's file, then index it; with PostgreSQL away the row is kept back
+        (``retry_index``) and the row it will have is returned."""
+        try:
+            return super().save(header, records)
+        except IndexUnavailable:
+            path = self.replays / f"{header['id']}.cbr"
+            size = path.stat().st_size  # written: only the index failed
+            if len(self.pending) < self.max_pending:
+                self.pending.append((header, path.name, size))
+            else:
+                self._rescan = True
+            self.rounds += 1
+            self.bytes += size
+            return self._row(self._tuple(header, path.name, size))
+
+    def retry_index(self) -> None:
+        if not (self.pending or self._rescan or self.index_error):
+            return
+        try:
+            if self.pending:
+                self.index_many(self.pending)
+                log.info("%s is back: indexed the %d rounds kept back", self._where(),
+                         len(self.pending))
+                self.pending = []
+            if self._rescan:
+                self.reconcile()
+                self._rescan = False
+            if self.retention is not None:
+                self.prune(self.retention)
+            else:
+                self.refresh_usage()
+        except IndexUnavailable:
+            return
+        self.index_error = None
+
+    def close(self) -> None:
+        with self._lock, self._wlock:
+            for conn in self._conns.values():
+                with contextlib.suppress(Exception):
+                    conn.close()
+            self._conns.clear()
 
 
 class StorageOff(Exception):
@@ -643,8 +905,14 @@ class Storage:
     """
 
     def __init__(self, data_dir: Path | str, *, retention: Retention | None = None,
-                 min_free_bytes: int = 64 << 20, lock_wait_s: float = LOCK_WAIT_S) -> None:
+                 min_free_bytes: int = 64 << 20, lock_wait_s: float = LOCK_WAIT_S,
+                 db: str | None = None, host_url: str | None = None) -> None:
+        """``db``: a PostgreSQL URL for an index shared by several hosts
+        (``PostgresReplayStore``; ``host_url``, this host's HTTP address, must be set
+        before the first ``check_now``), else the data directory's own SQLite index."""
         self.dir = Path(data_dir)
+        self.db = db
+        self.host_url = host_url
         self.retention = retention
         self.min_free_bytes = min_free_bytes
         self.lock_wait_s = lock_wait_s
@@ -656,6 +924,23 @@ class Storage:
         self._lock_trouble = False
         self._logged_without_store = False
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="replay-writer")
+
+    def _open_store(self, **kw: Any) -> ReplayStore:
+        if self.db is None:
+            return ReplayStore(self.dir, **kw)
+        assert self.host_url is not None, "Storage.host_url is needed with a shared index"
+        kw.pop("lock_wait_s", None)
+        return PostgresReplayStore(self.dir, self.db, host=self.host_url, **kw)
+
+    @property
+    def index_error(self) -> str | None:
+        """Why the shared replay index cannot be written now (rounds wait as files)."""
+        store = self.store
+        if store is None or store.index_error is None:
+            return None
+        waiting = len(getattr(store, "pending", ()))
+        return store.index_error + (f"; {waiting} rounds wait to be indexed" if waiting
+                                    else "")
 
     # --- on the event loop -------------------------------------------------------------------
     async def _run(self, fn: Callable[..., Any], *args: Any) -> Any:
@@ -710,6 +995,8 @@ class Storage:
             found = self._open_for_recording()
         if found is None:
             self._set(None, None)
+            assert self.store is not None
+            self.store.retry_index()
             return
         kind, what = found
         if self.store is not None and not self.store.read_only and kind != "locked":
@@ -717,7 +1004,7 @@ class Storage:
             self.store = None
         if self.store is None and kind not in ("missing", "unusable"):
             try:
-                self.store = ReplayStore(self.dir, read_only=True)
+                self.store = self._open_store(read_only=True)
             except (OSError, sqlite3.Error):
                 self.store = None
         self._set(kind, what)
@@ -740,8 +1027,8 @@ class Storage:
                         "ran: recording goes on in a new index there (the rounds listed "
                         "before are gone)", self.dir)
         try:
-            new = ReplayStore(self.dir, retention=self.retention, lock_wait_s=self.lock_wait_s,
-                              recover=first)
+            new = self._open_store(retention=self.retention, lock_wait_s=self.lock_wait_s,
+                                   recover=first)
             if not first:
                 # Not .tmp files: the rounds being written now are someone's.
                 new.reconcile()

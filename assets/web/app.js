@@ -526,7 +526,21 @@ export function parseRoute(hash) {
   return { view: "lobby" };
 }
 
+// The host of the room being watched went away (the connection had moved there): back to
+// the lobby, which the connection reaches again at the page's own host, saying why.
+function onHostGone(url) {
+  if (app.route?.view !== "room") return;
+  const id = app.route.id;
+  history.replaceState(null, "", "#/");
+  app.route = { view: "lobby" };
+  startLobby();
+  const notice = $("lobby-notice");
+  notice.textContent = `The host of room ${id} (${url}) went away; the room is gone with it.`;
+  notice.hidden = false;
+}
+
 function onRoute() {
+  $("lobby-notice").hidden = true;
   const route = parseRoute(location.hash);
   const prev = app.route;
   app.route = route;
@@ -576,6 +590,7 @@ function init() {
   app.conn = new Connection(wsUrl(), {
     onState: setConnState, onWelcome, onJson, onBinary,
     onClose: () => { if (app.route?.view === "lobby") renderRoomList(); },
+    onHostGone,
   }, "spectator");
   window.addEventListener("hashchange", onRoute);
   app.conn.start();

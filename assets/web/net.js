@@ -8,7 +8,8 @@
 // A `redirect` reply (the room lives on another server process or host; docs/protocol.md)
 // moves the connection to the address it names: the request's promise resolves with the
 // redirect, and the new connection's welcome lets the page send it again there. A lost
-// connection retries at the page's own address (the process that had the room may be gone).
+// connection retries at the page's own address (the process that had the room may be gone);
+// when the lost one was such a move, `onHostGone(url)` tells the page first.
 
 import { decodeJson, hello } from "./protocol.js";
 
@@ -103,6 +104,8 @@ export class Connection {
       for (const { resolve } of this._pending.values()) resolve({ type: "error", code: "closed", message: "connection closed" });
       this._pending.clear();
       if (this.h.onClose) this.h.onClose(ev);
+      // Sent to another host for a room, and that host is gone: the page says so.
+      if (this.url !== this.home && !this._stopped && this.h.onHostGone) this.h.onHostGone(this.url);
       if (!this._stopped) this._scheduleRetry();
     };
     ws.onerror = () => { /* onclose follows; the state shows it */ };

@@ -39,6 +39,16 @@ def redis_url(text: str) -> str:
     return text
 
 
+def postgres_url(text: str) -> str:
+    """An argparse type: a PostgreSQL URL (postgresql://USER@HOST:PORT/DB)."""
+    parts = urllib.parse.urlsplit(text)
+    if parts.scheme not in ("postgresql", "postgres") or not (parts.netloc or parts.query):
+        raise argparse.ArgumentTypeError(
+            f"must be a PostgreSQL URL such as postgresql://clothball@127.0.0.1:5432/clothball,"
+            f" got {text!r}")
+    return text
+
+
 def ws_url(text: str) -> str:
     """An argparse type: a game server's websocket address, ws://HOST:PORT/ws."""
     parts = urllib.parse.urlsplit(text)

@@ -27,7 +27,7 @@ from ...server.app import GameServer, default_data_dir
 from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ..sim.scene import Scene, SceneError, available
-from .args import FIRST_TO, PORT, WORKERS, redis_url, ws_url
+from .args import FIRST_TO, PORT, WORKERS, postgres_url, redis_url, ws_url
 
 log = logging.getLogger("clothball.server")
 
@@ -68,6 +68,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--advertise", type=ws_url, default=None, metavar="ws://HOST:PORT/ws",
                         help="the address other hosts give out for this host's rooms "
                              "(default: the listen address)")
+    parser.add_argument("--db", type=postgres_url, default=None,
+                        metavar="postgresql://USER@HOST:PORT/DB",
+                        help="keep the replay index in this PostgreSQL database, shared by "
+                             "the cluster's hosts: any host lists and serves every host's "
+                             "rounds (default: SQLite in the data directory; docs/cluster.md)")
     # Set by the supervisor for each of its processes (not for users).
     parser.add_argument("--worker-index", type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--shared-port", type=int, default=None, help=argparse.SUPPRESS)
@@ -101,7 +106,7 @@ async def serve(args: argparse.Namespace) -> int:
                         origins=origins, trusted_proxies=trusted,
                         default_room=not worker, directory=directory,
                         shared_port=args.shared_port, advertise=args.advertise,
-                        host_id=f"{socket.gethostname()}-{os.getpid()}")
+                        host_id=f"{socket.gethostname()}-{os.getpid()}", db=args.db)
     try:
         await server.start()
     except OSError as e:
@@ -151,6 +156,12 @@ def _check(args: argparse.Namespace) -> tuple[dict[str, Scene], Limits, Any, Any
             print(f"clothball host: {e}; shipped scenes: {', '.join(available())}")
             return None
         scenes[scene.name] = scene
+    if args.db is not None:
+        try:
+            import psycopg  # noqa: F401  (the shared replay index's driver)
+        except ImportError:
+            print("clothball host: --db needs psycopg: pip install 'clothball[cluster]'")
+            return None
     try:
         limits = Limits()
         for text in args.limit:

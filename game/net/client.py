@@ -14,6 +14,11 @@ The client keeps only the newest CORNER and MESH (a slow consumer sees the lates
 never a backlog) and a bounded history of JSON messages. ``request`` sends a control
 message with an ``id`` and waits for the reply that echoes it (``ServerError`` on an error
 reply). See ``docs/protocol.md``.
+
+A client sent to another process or host for its room (a ``redirect``) whose connection
+there is lost (that host died) goes back to the lobby where it first connected (``home``)
+and receives ``{"type": "host_gone", "room", "url", "message"}`` (a message of its own,
+not the server's), saying which room's host went away.
 """
 
 from __future__ import annotations
@@ -147,6 +152,10 @@ class NetClient:
         self.close_reason = ""
         self.name = "player"
         self.url = ""
+        self.home = ""  # where this client first connected (its lobby if a host goes away)
+        self.host_gone: dict[str, Any] | None = None  # the newest host_gone message
+        self._closing = False
+        self._gone: asyncio.Task[None] | None = None
 
     # --- connecting -----------------------------------------------------------------------
     @classmethod
@@ -155,14 +164,15 @@ class NetClient:
                       token: str | None = None, corner_rate: float | None = None,
                       mesh: bool | None = None, timeout: float = 10.0,
                       record_latency: bool = False, decode_mesh: bool = True,
-                      history: int = HISTORY, _hops: int = 0, **extra: Any) -> NetClient:
+                      history: int = HISTORY, _hops: int = 0, _home: str | None = None,
+                      **extra: Any) -> NetClient:
         """Open a connection, say hello and, for a player or spectator, join ``room``.
         A join the server redirects (the room lives on another process or host) is made
         there, on a new connection."""
         ws = await _open(url, timeout)
         client = cls(ws, record_latency=record_latency, history=history)
         client.decode_mesh = decode_mesh
-        client.name, client.url = name, url
+        client.name, client.url, client.home = name, url, _home or url
         client._reader = asyncio.create_task(client._read())
         hello: dict[str, Any] = {"type": "hello", "version": P.PROTOCOL_VERSION, "name": name,
                                  "role": role, "id": 0, **extra}
@@ -191,7 +201,8 @@ class NetClient:
                         str(reply["url"]), name=name, role=role, room=room, seat=seat,
                         code=code, token=token, corner_rate=corner_rate, mesh=mesh,
                         timeout=timeout, record_latency=record_latency,
-                        decode_mesh=decode_mesh, history=history, _hops=_hops + 1, **extra)
+                        decode_mesh=decode_mesh, history=history, _hops=_hops + 1,
+                        _home=client.home, **extra)
                 client.joined = reply
         except BaseException:
             await client.close()
@@ -323,8 +334,30 @@ class NetClient:
                 for fut in self._pending.values():
                     if not fut.done():
                         fut.set_exception(ConnectionError("connection closed"))
+                if not self._closing and self.url != self.home and self.room is not None:
+                    # The host of the room this client was sent to went away: back to the
+                    # lobby it came from (waiters wait for that rather than fail).
+                    self._reader = None
+                    self._gone = asyncio.create_task(self._host_went_away(self.room, self.url))
                 async with self._changed:
                     self._changed.notify_all()
+
+    async def _host_went_away(self, room: str, url: str) -> None:
+        self.joined = None
+        where = f"the host of room {room} went away ({url})"
+        msg: dict[str, Any] = {"type": "host_gone", "room": room, "url": url,
+                               "message": f"{where}; back in the lobby at {self.home}"}
+        try:
+            await self._move(self.home, 10.0)
+        except (OSError, TimeoutError, ConnectionError, ServerError) as e:
+            msg["message"] = f"{where}; the lobby at {self.home} cannot be reached either: {e}"
+        self.host_gone = msg
+        self.messages.append(msg)
+        self.received_total += 1
+        if self.on_message is not None:
+            self.on_message(msg)
+        async with self._changed:
+            self._changed.notify_all()
 
     def _on_binary(self, data: bytes) -> None:
         now = self.clock()
@@ -399,7 +432,9 @@ class NetClient:
                     m = find()
                     if m is not None:
                         return m
-                    if self._reader is not None and self._reader.done():
+                    # The reader, or while a host gone away is left, that move.
+                    task = self._reader if self._reader is not None else self._gone
+                    if task is not None and task.done():
                         raise ConnectionError(
                             f"connection closed ({self.close_code} {self.close_reason})")
                     await self._changed.wait()
@@ -420,6 +455,10 @@ class NetClient:
             await asyncio.wait_for(asyncio.shield(self._reader), timeout)
 
     async def close(self) -> None:
+        self._closing = True
+        if self._gone is not None and not self._gone.done():
+            self._gone.cancel()
+            await asyncio.gather(self._gone, return_exceptions=True)
         await self.ws.close()
         if self._reader is not None:
             try:
