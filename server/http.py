@@ -288,8 +288,8 @@ class HttpSurface:
             origin = request.headers.get("Origin")
             # Browsers always send Origin; other clients need not. The policy stops a page
             # on another site from using a visitor's browser to play or watch here.
-            if origin is not None and not self._origin_allowed(origin,
-                                                               request.headers.get("Host")):
+            if origin is not None and not self._origin_allowed(
+                    origin, request.headers.get("Host")) and not self._a_hosts_page(origin):
                 self.srv.stats["refused_connections"] += 1
                 return self._error(403, f"origin {origin[:100]!r} is not allowed here (the "
                                         "host can allow it with --origin)")
@@ -347,6 +347,16 @@ class HttpSurface:
                 self._pool, self._replays, path, query)
         finally:
             self._waiting -= 1
+
+    def _a_hosts_page(self, origin: str) -> bool:
+        """``origin`` is the page of a live host of this one's cluster (its advertised
+        address): a page that followed a redirect here from the host that served it."""
+        peers = self.srv.lobby.peers
+        scheme, _, netloc = origin.lower().partition("://")
+        if peers is None or scheme not in ("http", "https"):
+            return False
+        return any(urllib.parse.urlsplit(h.address).netloc.lower() == netloc
+                   for h in peers.hosts.values())
 
     def _route(self, path: str) -> Response:
         if path in ("/", "/index.html"):

@@ -20,6 +20,8 @@ import pytest
 from clothball.game.client.replay import fetch
 from clothball.game.net.client import NetClient
 from clothball.game.wire.replay import read_replay
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
 
 from tests.server.conftest import run, until
 from tests.server.postgres import MISSING, postgres_server
@@ -80,6 +82,13 @@ def test_replays_shared_through_postgresql_across_hosts_and_failures(tmp_path) -
             rid = made["room"]
             x = by_url[owner.url]  # the room's host
             y, z = [h for h in hosts if h is not x]
+            # A page served by x that followed a redirect here is let in; another site's not.
+            async with connect(y.url, origin=http_of(x.url)):  # type: ignore[arg-type]
+                pass
+            with pytest.raises(InvalidStatus) as refused:
+                async with connect(y.url, origin="http://elsewhere.example"):  # type: ignore[arg-type]
+                    pass
+            assert refused.value.response.status_code == 403
             await owner.join(rid, role="spectator")
             for _ in range(4):
                 await owner.request("add_bot")
