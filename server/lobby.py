@@ -58,12 +58,7 @@ class Lobby:
                address: str | None = None) -> Room:
         """Create and start a room. ``room_id`` fixes its id (the host's permanent room is
         "main", so a spectator's link survives a server restart); else a random one."""
-        scene_name = scene or self.default_scene
-        if scene_name not in self.scenes:
-            raise ProtocolError(
-                "bad_message", f"scene {scene_name!r} unknown; this server has "
-                f"{', '.join(sorted(self.scenes))}"
-            )
+        scene_name = self.scene_name(scene)
         if len(self.rooms) >= self.max_rooms:
             raise ProtocolError("server_busy", f"this server already runs {self.max_rooms} rooms")
         why = None if permanent else self.busy()
@@ -87,6 +82,17 @@ class Lobby:
         log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
                  "public" if public else "private")
         return room
+
+    def scene_name(self, scene: str | None) -> str:
+        """The scene a new room would run (None: the default); ``ProtocolError`` naming the
+        scenes there are when it is unknown."""
+        scene_name = scene or self.default_scene
+        if scene_name not in self.scenes:
+            raise ProtocolError(
+                "bad_message", f"scene {scene_name!r} unknown; this server has "
+                f"{', '.join(sorted(self.scenes))}"
+            )
+        return scene_name
 
     def get(self, room_id: object) -> Room:
         """A room of this process; ``Moved`` when another process or host has it."""

@@ -295,6 +295,7 @@ class WsEndpoint:
         scene = P.field_str(msg, "scene", None, max_len=64)
         public = P.field_bool(msg, "public", True)
         settings = parse_settings(msg)
+        self.srv.lobby.scene_name(scene)  # a bad request is refused here, not sent on
         # Moved: another process or host takes new rooms now (unless one sent it here). The
         # asking client is not counted: it leaves with the request.
         if not P.field_bool(msg, "placed", False):
