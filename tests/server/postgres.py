@@ -55,6 +55,14 @@ class Postgres:
     def url(self) -> str:
         return f"postgresql://clothball@127.0.0.1:{self.port}/postgres"
 
+    def database(self, name: str) -> str:
+        """A new empty database on this server; its URL."""
+        import psycopg
+
+        with psycopg.connect(self.url, autocommit=True) as conn:
+            conn.execute(f'CREATE DATABASE "{name}"')
+        return f"postgresql://clothball@127.0.0.1:{self.port}/{name}"
+
     def _run(self, tool: str, *args: str) -> None:
         assert BIN is not None
         cmd = [str(BIN / tool), *args]
