@@ -15,6 +15,13 @@ until a target is missed: frame lateness p99 <= 5 ms in every room, no frame ski
 the server taking in at least 90 % of the HIPs offered. Reported per step: rooms, clients,
 messages a second in and out, lateness, CPU, the load average.
 
+``clothball bench --load --cluster``: the same with 1, 2 and 3 server processes joined as
+the hosts of a cluster through a Redis the bench starts (``redis-server`` on the PATH, a
+free port of loopback): rooms are created through the first host, which places each on the
+least-loaded one, and their clients connect through it too (redirected to the room's
+host). Every step measures all the hosts; on one machine they share its cores with each
+other and with the clients, which the figures say.
+
 Run ``python -m clothball.server.loadbench --role server|spectators|room-clients ...`` only
 through the bench; ``run(args)`` and ``run_load(args)`` start the others themselves.
 """
@@ -63,6 +70,11 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                    help="--load: spectators per room (default %(default)s)")
     g.add_argument("--load-max-rooms", type=int, default=32,
                    help="--load: stop growing at this many rooms (default %(default)s)")
+    g.add_argument("--cluster", action="store_true",
+                   help="--load: rooms held by 1, 2 and 3 hosts of a cluster on this machine, "
+                        "joined through a Redis the bench starts (needs redis-server)")
+    g.add_argument("--cluster-hosts", default="1,2,3", metavar="N,N,...",
+                   help="--load --cluster: the numbers of hosts measured (default %(default)s)")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -74,6 +86,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         default="bench", help=argparse.SUPPRESS)
     parser.add_argument("--url", default="", help=argparse.SUPPRESS)
     parser.add_argument("--no-room", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--directory", default=None, help=argparse.SUPPRESS)  # redis://...
 
 
 # --- the server process ------------------------------------------------------------------------
@@ -88,6 +101,12 @@ async def _serve(args: argparse.Namespace) -> None:
     sys.setswitchinterval(0.0005)
     scene = Scene.load("classic").with_changes({"cloth": {"n": args.server_n}})
     scene.name = "bench"
+    cluster: dict[str, Any] = {}
+    if getattr(args, "directory", None):  # a host of --load --cluster
+        from .directory import RedisDirectory
+
+        cluster = {"directory": RedisDirectory(args.directory),
+                   "host_id": f"bench-{os.getpid()}"}
     with tempfile.TemporaryDirectory() as data:
         # Every client comes from 127.0.0.1: the per-address limits would stop the bench.
         limits = Limits(conns_per_address=100_000, rooms_per_address=100_000, max_rooms=1000,
@@ -96,7 +115,7 @@ async def _serve(args: argparse.Namespace) -> None:
                          host="127.0.0.1", port=0, default_room=not args.no_room,
                          room_settings=RoomSettings(first_to=99, bots_allowed=False,
                                                     unguarded=True),
-                         limits=limits)
+                         limits=limits, **cluster)
         await srv.start()
         room = srv.main_room
         probe = room.sim if room is not None else None
@@ -412,6 +431,8 @@ async def _create_room(ws: str) -> str:
 
 def run_load(args: argparse.Namespace) -> int:
     """Add rooms one at a time until a target is missed; print (or --json) every step."""
+    if getattr(args, "cluster", False):
+        return run_load_cluster(args)
     seconds = float(args.load_seconds)
     base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
             "--server-backend", args.server_backend, "--hip-rate", str(args.hip_rate),
@@ -527,6 +548,167 @@ def _load_line(s: dict[str, Any]) -> str:
             f"{s['skipped_frames']}  CPU server {s['server_cpu_cores']:.2f} clients "
             f"{s['clients_cpu_cores']:.2f} cores  load "
             f"{s['load_average']:.1f}  {'ok' if s['met'] else 'MISSED'}")
+
+
+# --- clothball bench --load --cluster -----------------------------------------------------------
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def run_load_cluster(args: argparse.Namespace) -> int:
+    """``run_load`` over 1, 2 and 3 hosts (``--cluster-hosts``) joined through a Redis of
+    the bench's own; print (or --json) every step of each."""
+    import shutil
+
+    redis_bin = shutil.which("redis-server")
+    if redis_bin is None:
+        print("clothball bench --load --cluster: needs redis-server on the PATH "
+              "(apt: redis-server)", file=sys.stderr)
+        return 2
+    try:
+        counts = [int(x) for x in str(args.cluster_hosts).split(",") if x.strip()]
+        if not counts or min(counts) < 1:
+            raise ValueError
+    except ValueError:
+        print(f"clothball bench: --cluster-hosts must be numbers of hosts like 1,2,3, got "
+              f"{args.cluster_hosts!r}", file=sys.stderr)
+        return 2
+    port = _free_port()
+    with tempfile.TemporaryDirectory(prefix="clothball-bench-redis-") as rdir:
+        redis = subprocess.Popen(
+            [redis_bin, "--port", str(port), "--bind", "127.0.0.1", "--save", "",
+             "--appendonly", "no", "--dir", rdir],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            _wait_port(port)
+            url = f"redis://127.0.0.1:{port}/0"
+            load_before = os.getloadavg()
+            series = {}
+            for n in counts:
+                _redis_flush(url)
+                series[str(n)] = _load_series(args, n, url)
+        finally:
+            redis.terminate()
+            redis.wait(timeout=20)
+    result = {
+        "n": args.server_n, "backend": args.server_backend, "cpus": os.cpu_count(),
+        "hip_rate_hz": args.hip_rate, "spectators_per_room": args.load_spectators,
+        "seconds_per_step": float(args.load_seconds),
+        "load_average_before": list(load_before),
+        "note": f"every host, Redis and the clients run on this one machine and share its "
+                f"{os.cpu_count()} cores",
+        "hosts": series,
+    }
+    if _write_json(result, getattr(args, "json", None)):
+        print(json.dumps(result, indent=2))
+    else:
+        for n, r in series.items():
+            h = r["held"]
+            print(f"{n} host{'s' if n != '1' else ''}: held " + (
+                f"{h['rooms']} rooms ({'+'.join(map(str, h['rooms_per_host']))}), "
+                f"{h['clients']} clients, lateness p99 {h['lateness_p99_ms']:.2f} ms, "
+                f"server CPU {h['server_cpu_cores']:.2f} cores" if h else "not even one room"))
+    return 0
+
+
+def _wait_port(port: int, timeout: float = 20.0) -> None:
+    import socket
+
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return
+        except OSError:
+            if time.monotonic() > end:
+                raise RuntimeError(f"redis-server did not start on port {port}") from None
+            time.sleep(0.05)
+
+
+def _redis_flush(url: str) -> None:
+    import redis
+
+    r = redis.Redis.from_url(url)
+    try:
+        r.flushdb()
+    finally:
+        r.close()
+
+
+def _load_series(args: argparse.Namespace, n_hosts: int, redis_url: str) -> dict[str, Any]:
+    """Rooms added one at a time to ``n_hosts`` hosts until a target is missed."""
+    seconds = float(args.load_seconds)
+    base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
+            "--server-backend", args.server_backend, "--hip-rate", str(args.hip_rate),
+            "--load-spectators", str(args.load_spectators)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    servers = [subprocess.Popen([*base, "--role", "server", "--no-room", "--directory",
+                                 redis_url], stdout=subprocess.PIPE, text=True, env=env)
+               for _ in range(n_hosts)]
+    clients: list[subprocess.Popen[str]] = []
+    steps: list[dict[str, Any]] = []
+    try:
+        infos = [_server_info(s) for s in servers]
+        entry = infos[0][2]  # rooms are asked of the first host, which places them
+        time.sleep(1.5)  # every host has read the others from the directory
+        print(f"load bench, {n_hosts} host{'s' if n_hosts > 1 else ''} in a cluster: rooms "
+              f"of 4 players x {args.hip_rate:g} Hz HIP + {args.load_spectators} spectators, "
+              f"{seconds:g} s a step, n={args.server_n}, backend {infos[0][0]['backend']}, "
+              f"{os.cpu_count()} CPUs shared by hosts and clients", file=sys.stderr)
+        for rooms in range(1, args.load_max_rooms + 1):
+            room = asyncio.run(_create_room(entry))
+            proc = subprocess.Popen([*base, "--role", "room-clients", "--url",
+                                     json.dumps({"ws": entry, "room": room})],
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                    env=env)
+            clients.append(proc)
+            assert proc.stdout is not None
+            if not proc.stdout.readline():
+                raise RuntimeError("a room's clients did not connect")
+            time.sleep(1.0)  # settle
+            s0 = [_get(f"{http}/api/stats?reset=1", info["token"]) for info, http, _ in infos]
+            c0, w0 = _cpu_seconds(clients), time.perf_counter()
+            time.sleep(seconds)
+            s1 = [_get(f"{http}/api/stats") for _, http, _ in infos]
+            step = _load_step(rooms, _merged(s0), _merged(s1), args)
+            step["hosts"] = n_hosts
+            step["rooms_per_host"] = [len(s["rooms"]) for s in s1]
+            step["clients_cpu_cores"] = (_cpu_seconds(clients) - c0) / (time.perf_counter() - w0)
+            steps.append(step)
+            print(f"{n_hosts}h " + _load_line(step), file=sys.stderr, flush=True)
+            if not step["met"]:
+                break
+    finally:
+        for proc in clients:
+            if proc.stdin is not None:
+                proc.stdin.close()
+        for proc in clients:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        for s in servers:
+            _stop_server(s)
+    held = [s for s in steps if s["met"]]
+    return {"held": held[-1] if held else None,
+            "first_missed": next((s for s in steps if not s["met"]), None), "steps": steps}
+
+
+def _merged(stats: list[dict[str, Any]]) -> dict[str, Any]:
+    """Several hosts' ``/api/stats`` as one server's (counters summed, rooms together; the
+    clock is the first host's, read within milliseconds of the others')."""
+    out: dict[str, Any] = {"uptime_s": stats[0]["uptime_s"], "rooms": {}}
+    for key in ("messages_in", "messages_out", "cpu_s"):
+        out[key] = sum(s[key] for s in stats)
+    for s in stats:
+        out["rooms"].update(s["rooms"])
+    return out
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ here (docs/benchmarks/load.md has the figures)."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -32,3 +33,28 @@ def test_load_bench_runs_and_reports_every_step(tmp_path) -> None:
     held = r["held"]
     assert held is None or held["met"]
     assert "load average" in out.stderr and "held:" in out.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("redis-server") is None,
+                    reason="needs redis-server (apt: redis-server)")
+def test_load_bench_over_a_cluster_places_rooms_on_every_host(tmp_path) -> None:
+    dest = tmp_path / "cluster.json"
+    out = subprocess.run(
+        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--cluster",
+         "--cluster-hosts", "1,2", "--load-seconds", "1", "--load-max-rooms", "2",
+         "--server-n", "12", "--hip-rate", "50", "--load-spectators", "1", "--json", str(dest)],
+        capture_output=True, text=True, timeout=240, check=True,
+    )
+    r = json.loads(dest.read_text())
+    assert set(r["hosts"]) == {"1", "2"} and "share" in r["note"]
+    for n, series in r["hosts"].items():
+        for i, step in enumerate(series["steps"], start=1):
+            assert step["hosts"] == int(n) and step["rooms"] == i
+            assert len(step["rooms_per_host"]) == int(n) and sum(step["rooms_per_host"]) == i
+            assert step["messages_in_per_s"] > 0
+    # The first host, asked for every room, places each on the least-loaded host.
+    two = r["hosts"]["2"]["steps"]
+    if len(two) == 2:
+        assert sorted(two[1]["rooms_per_host"]) == [1, 1]
+    assert "2 hosts: held" in out.stdout
