@@ -154,6 +154,10 @@ class ClientModel:
         elif t == "error":
             self.last_error = f"{msg.get('code')}: {msg.get('message')}"
             self.log(f"server: {msg.get('message')}", now, "error")
+        elif t == "host_gone":  # NetClient's own: the room's host went away, back in a lobby
+            self.joined, self.room, self.role = None, None, "lobby"
+            self.countdown_to = None
+            self.log(str(msg.get("message") or "the room's host went away"), now, "error")
         elif t == "kicked" or t == "bye":
             self.log(f"server: {msg.get('reason') or msg.get('message') or t}", now, "error")
 

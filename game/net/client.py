@@ -451,8 +451,18 @@ class NetClient:
         )
 
     async def wait_closed(self, timeout: float = 10.0) -> None:
-        if self._reader is not None:
-            await asyncio.wait_for(asyncio.shield(self._reader), timeout)
+        """Until the connection is closed for good: a redirect's or a gone host's move to
+        another connection is waited through."""
+        async def waiting() -> None:
+            while True:
+                task = self._reader if self._reader is not None else self._gone
+                if task is None:
+                    return
+                await asyncio.shield(task)
+                if (self._reader if self._reader is not None else self._gone) is task:
+                    return  # it ended and nothing took over
+
+        await asyncio.wait_for(waiting(), timeout)
 
     async def close(self) -> None:
         self._closing = True

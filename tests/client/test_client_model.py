@@ -25,6 +25,18 @@ def room(rid: str = "r1", state: str = "waiting", **kw: Any) -> dict[str, Any]:
     return info
 
 
+def test_model_back_in_the_lobby_when_the_rooms_host_went_away() -> None:
+    m = ClientModel(name="ann")
+    m.apply({"type": "welcome", "rooms": [room("r1")]}, 0.0)
+    m.apply({"type": "joined", "room": "r1", "role": "spectator", "geometry": {},
+             "state": room("r1")}, 1.0)
+    assert m.room is not None and m.role == "spectator"
+    text = "the host of room r1 went away (ws://b:1/ws); back in the lobby at ws://a:1/ws"
+    m.apply({"type": "host_gone", "room": "r1", "url": "ws://b:1/ws", "message": text}, 2.0)
+    assert m.room is None and m.joined is None and m.role == "lobby"
+    assert m.match_state == "lobby" and m.recent_events(2.0)[-1] == text
+
+
 def test_model_follows_a_match() -> None:
     m = ClientModel(name="ann")
     m.apply({"type": "welcome", "rooms": [room("r1"), room("r2")]}, 0.0)

@@ -148,6 +148,8 @@ def test_replays_shared_through_postgresql_across_hosts_and_failures(tmp_path) -
             assert gone["room"] == rid and gone["url"] == x.url
             assert f"the host of room {rid} went away" in gone["message"]
             assert watcher.url == y.url and watcher.room is None
+            with pytest.raises(TimeoutError):  # alive, in y's lobby
+                await watcher.wait_closed(timeout=0.5)
             rooms = (await watcher.request("list_rooms"))["rooms"]
             assert main_z in [r["id"] for r in rooms]
             n = watch_z.counts["mesh"]
