@@ -163,6 +163,8 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
 # --- CLOTHBALL_TEST_WORKERS=2: the server as the first of two processes sharing one port ---
 # (tests/server/workers.py says how). server() and live_server() above, wrapped.
 
+import pytest  # noqa: E402  (used only by this section)
+
 _one_process_server = server
 _one_process_live_server = live_server
 
@@ -178,7 +180,7 @@ async def server(data: Path, *, bots: int = 0, settings: RoomSettings | None = N
                  **kw: Any) -> AsyncIterator[GameServer]:
     from tests.server import workers
 
-    if workers.WORKERS == 1:
+    if workers.current() == 1:
         async with _one_process_server(data, bots=bots, settings=settings, **kw) as srv:
             yield srv
         return
@@ -195,7 +197,7 @@ async def server(data: Path, *, bots: int = 0, settings: RoomSettings | None = N
 def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
     from tests.server import workers
 
-    if workers.WORKERS == 1:
+    if workers.current() == 1:
         with _one_process_live_server(data, **kw) as ls:
             yield ls
         return
@@ -204,3 +206,26 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
             asyncio.run_coroutine_threadsafe(workers.ready(ls.srv, second), ls.loop).result(30)
             ls.srv.second_worker = second  # type: ignore[attr-defined]
             yield ls
+
+
+@pytest.fixture(autouse=True)
+def server_processes(request: pytest.FixtureRequest) -> Iterator[int]:
+    """How many processes the test's servers have: CLOTHBALL_TEST_WORKERS (default 1), or
+    this test's parameter (pytest_generate_tests)."""
+    from tests.server import workers
+
+    n = getattr(request, "param", workers.WORKERS)
+    with workers.using(n):
+        yield n
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """In a plain run (CI), the issue 17 suites' tests that start a server run with one
+    process and with two ("1proc", "2procs")."""
+    from tests.server import workers
+
+    module = metafunc.module.__name__.rpartition(".")[2]
+    if workers.WORKERS == 1 and module in workers.SUITES and \
+            workers.starts_a_server(metafunc.function):
+        metafunc.parametrize("server_processes", [1, 2], ids=["1proc", "2procs"],
+                             indirect=True)

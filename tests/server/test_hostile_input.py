@@ -38,6 +38,7 @@ from tests.server.conftest import (
     server,
     until,
 )
+from tests.server.workers import processes, public_port, service_stats
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
 
@@ -373,16 +374,19 @@ def test_index_queries_run_on_their_own_threads_and_are_rate_limited(tmp_path) -
                 return real(*a, **k)
 
             srv.store.count = count  # type: ignore[method-assign]
+            # Asked of this process: its index is watched, and the rate is per process (with
+            # CLOTHBALL_TEST_WORKERS=2, the shared port would spread the queries over two).
+            here = processes(srv)[0]
             for _ in range(3):
-                assert (await http_json(srv, "/api/replays"))["total"] == 0
+                assert (await http_json(here, "/api/replays"))["total"] == 0
             assert threads and all(t.startswith("replay-index") for t in threads), threads
-            status, body, headers = await http_get(srv, "/api/replays?player=x")
+            status, body, headers = await http_get(here, "/api/replays?player=x")
             assert status == 429 and b"replay queries a second" in body
-            status, _, _ = await http_get(srv, "/api/replays/nope")
+            status, _, _ = await http_get(here, "/api/replays/nope")
             assert status == 429
             # the rest of the HTTP surface is not limited by it
-            assert (await http_get(srv, "/healthz"))[0] == 200
-            assert (await http_get(srv, "/api/rooms"))[0] == 200
+            assert (await http_get(here, "/healthz"))[0] == 200
+            assert (await http_get(here, "/api/rooms"))[0] == 200
 
     run(main())
 
@@ -396,11 +400,14 @@ def test_public_endpoints_name_no_private_room(tmp_path) -> None:
             owner = await NetClient.connect(srv.ws_url, name="owner")
             made = await owner.request("create_room", public=False)
             rid = made["room"]
-            await until(lambda: rid in srv.lobby.rooms, 5)
-            for path in ("/api/stats", "/api/rooms", "/api/replays", "/"):
-                status, body, _ = await http_get(srv, path)
-                assert status == 200 and rid.encode() not in body, path
-            assert "main" in (await http_json(srv, "/api/stats"))["rooms"]
+            # known here: this process's room, or (two processes) in the directory it read
+            await until(lambda: rid in srv.lobby.rooms or (
+                srv.lobby.peers is not None and rid in srv.lobby.peers.rooms), 5)
+            for proc in processes(srv):  # every process's endpoints
+                for path in ("/api/stats", "/api/rooms", "/api/replays", "/"):
+                    status, body, _ = await http_get(proc, path)
+                    assert status == 200 and rid.encode() not in body, path
+            assert "main" in (await service_stats(srv))["rooms"]
             await owner.close()
 
     run(main())
@@ -412,13 +419,20 @@ def test_public_endpoints_name_no_private_room(tmp_path) -> None:
 def test_the_default_origin_policy_is_the_servers_own_pages(tmp_path) -> None:
     async def main() -> None:
         async with server(tmp_path) as srv:
-            own = f"http://127.0.0.1:{srv.port}"
+            port = public_port(srv)
+            own = f"http://127.0.0.1:{port}"
             for origin in (own, None):  # its own page, and a client that is not a browser
                 async with connect(srv.ws_url, origin=origin) as ws:
                     await ws.send(json.dumps(HELLO))
                     assert json.loads(await ws.recv())["type"] == "welcome"
-            for origin in ("https://elsewhere.example", "null", f"http://127.0.0.1:{srv.port + 1}",
-                           f"http://evil.example:{srv.port}"):
+            # a page redirected to a process's own port (--workers) is still its own page
+            for proc in processes(srv):
+                async with connect(proc.http_url.replace("http", "ws", 1) + "ws",
+                                   origin=own) as ws:
+                    await ws.send(json.dumps(HELLO))
+                    assert json.loads(await ws.recv())["type"] == "welcome"
+            for origin in ("https://elsewhere.example", "null", f"http://127.0.0.1:{port + 1}",
+                           f"http://evil.example:{port}"):
                 with pytest.raises(InvalidStatus) as e:
                     async with connect(srv.ws_url, origin=origin):
                         pass

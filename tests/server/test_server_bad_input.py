@@ -18,6 +18,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from tests.server.conftest import http_json, run, server, until
+from tests.server.workers import service_stats
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
 
@@ -39,6 +40,39 @@ async def next_error(ws: ClientConnection, timeout: float = 5.0) -> dict[str, An
         m = await recv_json(ws, timeout)
         if m["type"] == "error":
             return m
+
+
+async def error_for(ws: ClientConnection, msg: str | bytes) -> dict[str, Any]:
+    """Send ``msg``; the error it gets. A ``redirect`` (the room lives on another process,
+    ``CLOTHBALL_TEST_WORKERS=2``) is followed as the bundled clients follow one: the same
+    request, with the redirect's ``with`` fields, from a new connection there."""
+    await ws.send(msg)
+    while True:
+        m = await recv_json(ws)
+        if m["type"] == "error":
+            return m
+        if m["type"] == "redirect":
+            assert isinstance(msg, str), m
+            async with connect(m["url"]) as there:
+                await there.send(json.dumps(HELLO))
+                await there.send(json.dumps({**json.loads(msg), **m.get("with", {})}))
+                return await next_error(there)
+
+
+async def open_seated(url: str, hello: dict[str, Any]) -> tuple[ClientConnection,
+                                                                 dict[str, Any]]:
+    """A connection whose hello seats it (following a redirect, as ``error_for``); it and
+    its ``joined``."""
+    for _ in range(3):
+        ws = await connect(url)
+        await ws.send(json.dumps(hello))
+        while (m := await recv_json(ws))["type"] not in ("joined", "redirect"):
+            pass
+        if m["type"] == "joined":
+            return ws, m
+        await ws.close()
+        url = m["url"]
+    raise AssertionError(f"redirected too often (last to {url})")
 
 
 async def closed_with(ws: ClientConnection) -> int | None:
@@ -134,8 +168,7 @@ def test_bad_messages_after_hello_get_errors_and_the_room_runs_on(tmp_path) -> N
                     ('{"type": "ping", "pad": "' + "x" * 5000 + '"}', "too_big"),
                 ]
                 for msg, code in cases:
-                    await ws.send(msg)
-                    err = await next_error(ws)
+                    err = await error_for(ws, msg)
                     assert err["code"] == code, (msg, err)
                     assert isinstance(err["message"], str) and err["message"]
                     await asyncio.sleep(0.06)  # stay under the control-message rate
@@ -148,12 +181,10 @@ def test_bad_messages_after_hello_get_errors_and_the_room_runs_on(tmp_path) -> N
                 assert pong["type"] == "pong" and pong["t"] == 1.5 and pong["re"] == 9
 
             # a seated player's bad HIPs
-            async with connect(srv.ws_url) as ws:
-                await ws.send(json.dumps({**HELLO, "role": "player", "room": rid, "seat": 1,
-                                          "corner_rate": 5, "mesh": False}))
-                await recv_json(ws)  # welcome
-                while (joined := await recv_json(ws))["type"] != "joined":
-                    pass
+            ws, joined = await open_seated(srv.ws_url, {**HELLO, "role": "player", "room": rid,
+                                                        "seat": 1, "corner_rate": 5,
+                                                        "mesh": False})
+            async with ws:
                 c = joined["reach"]["centre"]
                 bad_hips: list[tuple[bytes, str]] = [
                     (P.encode_hip((math.nan, 0, 0), 1, 0.0), "bad_binary"),
@@ -214,7 +245,7 @@ def test_bad_messages_after_hello_get_errors_and_the_room_runs_on(tmp_path) -> N
             assert room.sim.alive and room.sim.stats.frames > sim0 + 100
             rooms = await http_json(srv, "/api/rooms")
             assert rooms["rooms"][0]["id"] == rid
-            stats = await http_json(srv, "/api/stats")
+            stats = await service_stats(srv)
             assert stats["bad_messages"] >= 30
             await player.close()
 

@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import types
 import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -40,6 +41,43 @@ from clothball.server.directory import PUBLISH_S, SqliteDirectory
 WORKERS = int(os.environ.get("CLOTHBALL_TEST_WORKERS", "1") or "1")
 if WORKERS not in (1, 2):
     raise RuntimeError(f"CLOTHBALL_TEST_WORKERS must be 1 or 2, got {WORKERS}")
+
+_now = [WORKERS]  # the processes of the servers started now (the conftest's fixture sets it)
+
+# The suites of issue 17. Without CLOTHBALL_TEST_WORKERS, each of their tests that starts a
+# server (calls server() or live_server()) runs twice, with one process and with two (the
+# conftest's pytest_generate_tests): what CI runs.
+SUITES = ("test_server_bad_input", "test_server_fastpaths", "test_server_match",
+          "test_server_play", "test_server_reconnect", "test_server_sim", "test_faults",
+          "test_hostile_input")
+
+
+def current() -> int:
+    """How many processes a server started now has: 1 or 2."""
+    return _now[0]
+
+
+@contextlib.contextmanager
+def using(n: int) -> Iterator[None]:
+    old, _now[0] = _now[0], n
+    try:
+        yield
+    finally:
+        _now[0] = old
+
+
+def starts_a_server(fn: Any) -> bool:
+    """Whether a test function (or a function nested in it) calls ``server`` or
+    ``live_server``."""
+    def names(code: types.CodeType) -> Iterator[str]:
+        yield from code.co_names
+        for c in code.co_consts:
+            if isinstance(c, types.CodeType):
+                yield from names(c)
+
+    code = getattr(fn, "__code__", None)
+    return code is not None and bool({"server", "live_server"} & set(names(code)))
+
 
 WORKER_PROC = Path(__file__).with_name("worker_proc.py")
 FIRST_ID, SECOND_ID = "test-worker-0", "test-worker-1"  # their host ids in the directory
