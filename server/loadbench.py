@@ -44,6 +44,8 @@ from typing import Any
 
 import numpy as np
 
+from . import loops
+
 TARGET_LATENCY_P99_MS = 5.0
 TARGET_LATENESS_P99_MS = 5.0
 TARGET_MESH_HZ = 30.0
@@ -64,6 +66,9 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                    help="cloth nodes per side in the bench room (default %(default)s)")
     g.add_argument("--server-backend", default="cpu", choices=("auto", "cpu", "cuda"),
                    help="cloth backend of the bench room (default %(default)s)")
+    g.add_argument("--server-loop", default=None, choices=loops.CHOICES,
+                   help="the server process's event loop (default: $CLOTHBALL_LOOP, else "
+                        "auto: uvloop where installed)")
     g.add_argument("--load-seconds", type=float, default=10.0,
                    help="--load: measured seconds per number of rooms (default %(default)s)")
     g.add_argument("--load-spectators", type=int, default=4,
@@ -125,7 +130,7 @@ async def _serve(args: argparse.Namespace) -> None:
             probe = Cloth(scene, backend=args.server_backend, threads=1)
         print(json.dumps({"port": srv.port, "room": room.id if room is not None else None,
                           "backend": probe.backend, "substeps": probe.substeps,
-                          "token": srv.host_token}), flush=True)
+                          "token": srv.host_token, "loop": loops.running()}), flush=True)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, stop.set)
@@ -224,6 +229,11 @@ async def _play(ws_url: str, room: str, n_players: int, rate: float, seconds: fl
     return out
 
 
+def _loop_flag(args: argparse.Namespace) -> list[str]:
+    choice = getattr(args, "server_loop", None)
+    return ["--server-loop", choice] if choice else []
+
+
 def _pct(v: np.ndarray) -> dict[str, float]:
     if v.size == 0:
         return {"count": 0}
@@ -259,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the whole bench (server, spectators and players) and print the figures."""
     role = getattr(args, "role", "bench")
     if role == "server":
-        asyncio.run(_serve(args))
+        loops.run(_serve(args), args.server_loop)
         return 0
     if role == "spectators":
         asyncio.run(_spectate(args))
@@ -274,7 +284,8 @@ def run(args: argparse.Namespace) -> int:
             "--server-backend", args.server_backend, "--seconds", str(seconds),
             "--spectators", str(args.spectators)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    server = subprocess.Popen([*base, "--role", "server"], stdout=subprocess.PIPE, text=True,
+    server = subprocess.Popen([*base, "--role", "server", *_loop_flag(args)],
+                              stdout=subprocess.PIPE, text=True,
                               env=env)
     spect: subprocess.Popen[str] | None = None
     try:
@@ -282,6 +293,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"server bench: {args.players} players x {args.hip_rate:g} Hz HIP, "
               f"{args.spectators} spectators, {seconds:g} s, n={args.server_n}, "
               f"backend {info['backend']} ({info['substeps']} substeps/frame), "
+              f"event loop {info['loop']}, "
               f"{os.cpu_count()} CPUs", file=sys.stderr)
         if args.spectators > 0:
             spect = subprocess.Popen(
@@ -439,7 +451,8 @@ def run_load(args: argparse.Namespace) -> int:
             "--load-spectators", str(args.load_spectators)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     load_before = os.getloadavg()
-    server = subprocess.Popen([*base, "--role", "server", "--no-room"], stdout=subprocess.PIPE,
+    server = subprocess.Popen([*base, "--role", "server", "--no-room", *_loop_flag(args)],
+                              stdout=subprocess.PIPE,
                               text=True, env=env)
     clients: list[subprocess.Popen[str]] = []
     steps: list[dict[str, Any]] = []
@@ -448,6 +461,7 @@ def run_load(args: argparse.Namespace) -> int:
         print(f"load bench: rooms of 4 players x {args.hip_rate:g} Hz HIP + "
               f"{args.load_spectators} spectators, {seconds:g} s a step, n={args.server_n}, "
               f"backend {info['backend']} ({info['substeps']} substeps/frame), "
+              f"event loop {info['loop']}, "
               f"{os.cpu_count()} CPUs, load average {load_before[0]:.2f}", file=sys.stderr)
         for rooms in range(1, args.load_max_rooms + 1):
             room = asyncio.run(_create_room(ws))
@@ -484,6 +498,7 @@ def run_load(args: argparse.Namespace) -> int:
     held = [s for s in steps if s["met"]]
     result = {
         "n": args.server_n, "backend": info["backend"], "substeps": info["substeps"],
+        "server_loop": info["loop"],
         "cpus": os.cpu_count(), "hip_rate_hz": args.hip_rate,
         "spectators_per_room": args.load_spectators, "seconds_per_step": seconds,
         "load_average_before": list(load_before),
