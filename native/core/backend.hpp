@@ -29,15 +29,16 @@ class Backend {
   virtual void step(int frames, int substeps, double dt) = 0;
   // False once any node's position or velocity became non-finite (sticky until set_state).
   virtual bool state_finite() = 0;
-  // The effect set the running kernels were compiled for (Effect bits + STRAIN_LIMIT).
+  // The effects the running kernels simulate (Effect bits + STRAIN_LIMIT): their compiled
+  // set and the run-time ones (compiled_effect_set in params.hpp).
   virtual unsigned compiled_effects() const = 0;
   // Whether the next substep computes ball contact: false while no node can touch the
   // ball, when the sweep runs compiled without it (forces.hpp, contact_possible).
   virtual bool ball_contact_on() = 0;
 };
 
-// Each backend is compiled once per real type, in its own translation unit (the effect-set
-// specialisations make these the long compiles; two units build in parallel).
+// Each backend is compiled once per real type, in its own translation units (the effect-set
+// specialisations make these the long compiles; they build in parallel).
 template <class R>
 std::unique_ptr<Backend> make_cpu_backend_t(const Config& c);
 template <class R>
@@ -63,7 +64,7 @@ int cpu_threads();
 // Device-to-device copy bandwidth (bytes read + written per second / 1e9), median of reps.
 double cuda_copy_bandwidth_gbs(size_t bytes, int reps);
 
-// A table with one entry per effect set: Impl<E>::fn for every E in [0, N).
+// A table with one entry per compiled effect set: Impl<E>::fn for every E in [0, N).
 template <class Fn, template <unsigned> class Impl, unsigned... E>
 std::array<Fn, sizeof...(E)> effect_table(std::integer_sequence<unsigned, E...>) {
   return {{Impl<E>::fn...}};

@@ -125,8 +125,9 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>
     if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * n), k, L, R(1));
     if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * n), k, L, R(1));
   }
-  if constexpr ((E & GRAVITY) != 0) f += p.gravity_force;
-  if constexpr ((E & DAMPING) != 0) f -= vi * p.damping;
+  // Run-time effects (params.hpp): both terms are zero when the scene lacks them.
+  f += p.gravity_force;
+  f -= vi * p.damping;
   if constexpr ((E & BALL) != 0) {
     // Uniform over a sweep: a run-time mode (not an effect set), fixed at compile time
     // where E carries BALL_NODES or BALL_EDGES (the CPU sweep).
@@ -145,9 +146,11 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>
     }
     f += contact;
   }
-  if constexpr ((E & COUPLING) != 0 && !Interior) {
-    int c = corner_slot(i, j, n);
-    if (c >= 0) f += (fin.hips[c] - pi) * p.coupling_k;  // eq. (7), the node's side
+  if constexpr (!Interior) {  // a run-time effect: the corners are never interior
+    if ((p.effects & COUPLING) != 0) {
+      int c = corner_slot(i, j, n);
+      if (c >= 0) f += (fin.hips[c] - pi) * p.coupling_k;  // eq. (7), the node's side
+    }
   }
   if constexpr ((E & WIND) != 0) {
     // The (up to) six triangles around the node; quad (a, b, c, d) = ((i,j), (i,j+1),
@@ -229,10 +232,10 @@ CB_HD void strain_limit_line(const Params<R>& p, const Planes<R>& P, const Plane
 }
 
 // Eqs. (5)-(6): the ball under gravity, minus the summed contact forces, minus damping.
-template <class R, unsigned E>
+template <class R>
 CB_HD Ball<R> ball_update(const Params<R>& p, Ball<R> b, V3<R> contact_sum, R dt) {
   V3<R> f{R(0), R(0), R(0)};
-  if constexpr ((E & GRAVITY) != 0) f = p.gravity * p.ball_mass;
+  if ((p.effects & GRAVITY) != 0) f = p.gravity * p.ball_mass;
   f -= contact_sum;
   f -= b.v * p.ball_damping;
   euler_update(b.p, b.v, f, p.ball_inv_mass, dt);

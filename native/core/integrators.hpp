@@ -7,18 +7,16 @@
 namespace cb {
 
 // --- the force Jacobian K = dF/dx, applied matrix-free ----------------------------------
-// Effects with a position Jacobian. Damping is a diagonal term (a runtime scalar of the CG
-// operator), gravity and wind have none (wind is explicit in implicit Euler), so the
-// Jacobian-vector product needs 2^5 specialisations, not 2^8.
-constexpr unsigned kStiffEffects = STRUCTURAL | SHEAR | BEND | BALL | COUPLING;
-constexpr unsigned kNumStiffSets = 32;
-// The idx-th subset of kStiffEffects: bits 0-2 are STRUCTURAL..BEND, 3 BALL, 4 COUPLING.
-constexpr unsigned stiff_set(unsigned idx) {
-  return (idx & 7u) | ((idx & 8u) ? unsigned(BALL) : 0u) | ((idx & 16u) ? unsigned(COUPLING) : 0u);
-}
-constexpr unsigned stiff_index(unsigned e) {
-  return (e & 7u) | ((e & BALL) ? 8u : 0u) | ((e & COUPLING) ? 16u : 0u);
-}
+// Compiled effects with a position Jacobian. Damping is a diagonal term (a runtime scalar of
+// the CG operator), gravity and wind have none (wind is explicit in implicit Euler), and
+// coupling's (the 4 corners) is a run-time test on the border path, as in node_force: the
+// Jacobian-vector product needs 2^4 specialisations.
+constexpr unsigned kStiffEffects = STRUCTURAL | SHEAR | BEND | BALL;
+constexpr unsigned kNumStiffSets = 16;
+static_assert(kStiffEffects == kNumStiffSets - 1, "the stiffness effects are bits 0-3");
+// The idx-th subset of kStiffEffects, and a set's index: bits 0-3 are both.
+constexpr unsigned stiff_set(unsigned idx) { return idx; }
+constexpr unsigned stiff_index(unsigned e) { return e & kStiffEffects; }
 
 // A pair force phi(d) = s d (d = partner - node, see spring_force) linearised: transverse
 // stiffness s projected to s >= 0 (Choi & Ko: keeps -K positive semidefinite, so CG
@@ -109,8 +107,8 @@ CB_HD V3<R> node_jvp(const Params<R>& p, const Planes<R>& pos, const W& w, V3<R>
     cj = pair_jvp(contact_terms(p, xi, ball_p), wb - wi);
     out += cj;
   }
-  if constexpr ((S & COUPLING) != 0 && !Interior) {
-    if (corner_slot(i, j, p.n) >= 0) out -= wi * p.coupling_k;
+  if constexpr (!Interior) {
+    if ((p.effects & COUPLING) != 0 && corner_slot(i, j, p.n) >= 0) out -= wi * p.coupling_k;
   }
   return out;
 }
@@ -128,8 +126,9 @@ CB_HD V3<R> node_neg_diag(const Params<R>& p, const Planes<R>& pos, V3<R> xi, in
     cd = pair_diag(contact_terms(p, xi, ball_p));
     out += cd;
   }
-  if constexpr ((S & COUPLING) != 0 && !Interior) {
-    if (corner_slot(i, j, p.n) >= 0) out += V3<R>{p.coupling_k, p.coupling_k, p.coupling_k};
+  if constexpr (!Interior) {
+    if ((p.effects & COUPLING) != 0 && corner_slot(i, j, p.n) >= 0)
+      out += V3<R>{p.coupling_k, p.coupling_k, p.coupling_k};
   }
   return out;
 }
@@ -160,9 +159,17 @@ CB_HD V3<R> vv_kick(V3<R> vh, V3<R> f, R inv_mass, R gamma, R dt) {
   return (vh + f * (inv_mass * h)) * (R(1) / (R(1) + h * gamma));
 }
 
+// Verlet's parameters: those of the scene with node_force's damping term zeroed, as F
+// excludes damping (it is gamma, in the kicks).
+template <class R>
+CB_HD Params<R> vv_params(Params<R> p) {
+  p.damping = R(0);
+  return p;
+}
+
 // The force pass of one node: F at (x', v½) from buffer (P, V), closing kick into (P2, V2),
 // F kept in Fb. With dt = 0 it only evaluates F (the priming pass). Returns the node's
-// contact force, for the ball's sum.
+// contact force, for the ball's sum. `p` comes from vv_params (F without damping).
 template <class R, unsigned E, bool Interior = false>
 CB_HD V3<R> vv_force_node(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
                           const Planes<R>& P2, const Planes<R>& V2, const Planes<R>& Fb,
@@ -171,8 +178,7 @@ CB_HD V3<R> vv_force_node(const Params<R>& p, const Planes<R>& P, const Planes<R
   const int q = i * p.n + j;
   const V3<R> x = P.get(q), vh = V.get(q);
   V3<R> contact{R(0), R(0), R(0)};
-  const V3<R> f = node_force<R, (E & ~unsigned(DAMPING)), Interior>(p, P, V, x, vh, i, j, fin,
-                                                                    ball_p, contact);
+  const V3<R> f = node_force<R, E, Interior>(p, P, V, x, vh, i, j, fin, ball_p, contact);
   const V3<R> v = vv_kick(vh, f, p.inv_mass, gamma, dt);
   Fb.set(q, f);
   P2.set(q, x);
@@ -182,11 +188,11 @@ CB_HD V3<R> vv_force_node(const Params<R>& p, const Planes<R>& P, const Planes<R
 }
 
 // The ball's force in Verlet: weight minus the contacts (its damping is in the kicks).
-template <class R, unsigned E>
+template <class R>
 CB_HD V3<R> vv_ball_force(const Params<R>& p, V3<R> contact_sum) {
   V3<R> f{R(0), R(0), R(0)};
   f -= contact_sum;
-  if constexpr ((E & GRAVITY) != 0) f += p.gravity * p.ball_mass;
+  if ((p.effects & GRAVITY) != 0) f += p.gravity * p.ball_mass;
   return f;
 }
 
@@ -249,7 +255,7 @@ CB_HD void ie_rhs_ball(const Params<R>& p, const CgVectors<R>& cg, Ball<R> b,
   V3<R> rhs{R(0), R(0), R(0)}, dg{R(1), R(1), R(1)};
   if constexpr ((E & BALL) != 0) {
     V3<R> fb = s.contact * R(-1) - b.v * p.ball_damping;
-    if constexpr ((E & GRAVITY) != 0) fb += p.gravity * p.ball_mass;
+    if ((p.effects & GRAVITY) != 0) fb += p.gravity * p.ball_mass;
     const V3<R> kvb = s.cj * R(-1);
     rhs = (fb + kvb * dt) * dt;
     const R dt2 = dt * dt;

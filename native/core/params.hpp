@@ -6,22 +6,31 @@
 
 namespace cb {
 
-// Effects that change the per-node force. Each combination is compiled as its own kernel,
-// so an absent effect is compiled out rather than branched over.
+// Effects that change the per-node force. The costly ones (bits 0-4: springs, ball contact,
+// wind; tens of flops a node) are compile-time choices: each of their 32 combinations is
+// compiled as its own kernel, so an absent costly effect is compiled out rather than
+// branched over. The cheap ones (bits 5-7) are parameters of those kernels: gravity adds a
+// constant and damping -c v to each node (zeroed when absent: f + 0 and f - 0 v are exact,
+// see Params::from), coupling acts on the 4 corners only, which the bounds-tested border
+// path reaches (a run-time test there). Without them every effect set was a kernel of its
+// own: 256 of them, and most of a 17-minute build (issue 19).
 enum Effect : unsigned {
   STRUCTURAL = 1u << 0,
   SHEAR = 1u << 1,
   BEND = 1u << 2,
-  GRAVITY = 1u << 3,
-  DAMPING = 1u << 4,
-  BALL = 1u << 5,
-  COUPLING = 1u << 6,
-  WIND = 1u << 7,
+  BALL = 1u << 3,
+  WIND = 1u << 4,
+  GRAVITY = 1u << 5,
+  DAMPING = 1u << 6,
+  COUPLING = 1u << 7,
 };
 constexpr unsigned kNumForceEffects = 8;
+constexpr unsigned kNumCompiledEffects = 5;  // bits 0-4
 // Strain limiting is a pass after the substep, not a force: launched or not, per scene.
 constexpr unsigned STRAIN_LIMIT = 1u << 8;
-constexpr unsigned kNumEffectSets = 1u << kNumForceEffects;
+// The compiled effect sets: a backend's kernel tables have one entry per set, indexed by
+// effects & (kNumEffectSets - 1).
+constexpr unsigned kNumEffectSets = 1u << kNumCompiledEffects;
 // The ball's contact mode as a compile-time choice, or-ed into E by the CPU sweep only: a
 // run-time test inside its vectorised loop is not hoisted and made the sweep 4x slower.
 // With neither bit node_force reads Params::ball_edges (the GPU: a uniform branch).
@@ -59,9 +68,10 @@ inline int strain_sweeps(const Config& c) {
   return (c.effects & STRAIN_LIMIT) ? std::max(1, c.strain_iterations) : 0;
 }
 
-// The effect set a backend runs for this configuration: force bits and STRAIN_LIMIT.
+// The effects a backend simulates for this configuration (force bits and STRAIN_LIMIT): its
+// kernels' compiled set (bits 0-4) and the run-time ones.
 inline unsigned compiled_effect_set(const Config& c) {
-  return c.effects & ((kNumEffectSets - 1) | STRAIN_LIMIT);
+  return c.effects & (((1u << kNumForceEffects) - 1) | STRAIN_LIMIT);
 }
 
 template <class R>
@@ -70,9 +80,10 @@ struct Params {
   R L, L_diag, L_bend;
   R inv_mass;
   R k_struct, k_shear, k_bend, struct_compress;
-  V3<R> gravity_force;  // m g per node
+  unsigned effects;     // Config::effects: the run-time effects are tested here
+  V3<R> gravity_force;  // m g per node; 0 without GRAVITY
   V3<R> gravity;
-  R damping;
+  R damping;            // 0 without DAMPING
   R ball_radius, ball_inv_mass, ball_mass, ball_k, ball_damping;
   bool ball_edges;         // Config::ball_edges
   R coupling_k;
@@ -82,6 +93,7 @@ struct Params {
   static Params from(const Config& c) {
     Params p{};
     p.n = c.n;
+    p.effects = c.effects;
     p.L = R(c.rest_len);
     p.L_diag = R(c.rest_len * 1.4142135623730951);
     p.L_bend = R(2.0 * c.rest_len);
@@ -91,9 +103,16 @@ struct Params {
     p.k_bend = R(c.k_bend);
     p.struct_compress = R(c.struct_compress);
     p.gravity = {R(c.gravity[0]), R(c.gravity[1]), R(c.gravity[2])};
-    p.gravity_force = {R(c.gravity[0] * c.node_mass), R(c.gravity[1] * c.node_mass),
-                       R(c.gravity[2] * c.node_mass)};
-    p.damping = R(c.damping);
+    // Added to every node's force whether or not the scene has gravity or damping: zero
+    // without them. node_force's sum starts at +0 and only adds, so it is never -0, and
+    // f + 0 and f - (v * 0) are f exactly: the result is the one of a kernel compiled
+    // without the term (for finite v; a non-finite v makes the node's own update
+    // non-finite either way).
+    const bool g = (c.effects & GRAVITY) != 0;
+    p.gravity_force = {R(g ? c.gravity[0] * c.node_mass : 0.0),
+                       R(g ? c.gravity[1] * c.node_mass : 0.0),
+                       R(g ? c.gravity[2] * c.node_mass : 0.0)};
+    p.damping = R((c.effects & DAMPING) ? c.damping : 0.0);
     p.ball_radius = R(c.ball_radius);
     p.ball_mass = R(c.ball_mass);
     p.ball_inv_mass = R(1.0 / c.ball_mass);

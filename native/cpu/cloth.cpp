@@ -164,7 +164,7 @@ class CpuCloth final : public Backend {
               nearest2 = o[3] < nearest2 ? o[3] : nearest2;
             }
             const V3<R> before = c.ball_.p;
-            c.ball_ = ball_update<R, E>(p, c.ball_, sum, dt);
+            c.ball_ = ball_update<R>(p, c.ball_, sum, dt);
             c.contact_on_ = contact_possible(p, nearest2, c.ball_.p - before, sweeps > 0);
           }
           c.cur_ = 1 - cur;

@@ -1,6 +1,6 @@
 // Linearised implicit Euler on the CPU backend (see core/integrators.hpp): per substep an
 // effect-specialised right-hand-side pass, then Jacobi-preconditioned CG whose operator
-// pass is specialised on the stiffness effects only (32 sets), with OpenMP reductions in a
+// pass is specialised on the stiffness effects only (16 sets), with OpenMP reductions in a
 // fixed order. Compiled once per real type (CB_REAL).
 #include <omp.h>
 

@@ -49,7 +49,7 @@ class CpuVerlet final : public CpuIntegrator<R> {
 #pragma omp parallel num_threads(nt)
     {
       const int tid = omp_get_thread_num();
-      const Params<R> p = v.p;
+      const Params<R> p = vv_params(v.p);
       const FrameInputs<R> fin = v.fin;
       const R gamma = s.gamma_;
       R check = 0;
@@ -82,7 +82,7 @@ class CpuVerlet final : public CpuIntegrator<R> {
 #pragma omp single
         {
           if constexpr ((E & BALL) != 0) {
-            s.fb_ = vv_ball_force<R, E>(p, {tot[0], tot[1], tot[2]});
+            s.fb_ = vv_ball_force<R>(p, {tot[0], tot[1], tot[2]});
             v.ball->v = vv_kick(v.ball->v, s.fb_, p.ball_inv_mass, s.gamma_b_, h);
           }
           *v.cur = 1 - cur;

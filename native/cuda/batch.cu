@@ -55,9 +55,9 @@ template <class R>
 struct BatchEntry {
   template <unsigned E>
   struct At {
-    // The frame's end needs only what the ball's update reads of the set (as cloth.cu).
+    // The frame's end depends on the set only through the ball (as cloth.cu).
     static constexpr BatchKernels<R> fn{&batch_load<R>, &batch_substep<R, E>,
-                                        &batch_finish<R, E & (BALL | GRAVITY)>};
+                                        &batch_finish<R, E & BALL>};
   };
 };
 
@@ -68,7 +68,8 @@ const std::array<BatchKernels<CB_REAL>, kNumEffectSets>& batch_kernel_table<CB_R
 #ifdef CB_LAB_EFFECT_SET
   // A lab build (tools/lab/substep_bench.cu) compiles only the set it times.
   static std::array<BatchKernels<CB_REAL>, kNumEffectSets> t{};
-  t[CB_LAB_EFFECT_SET] = BatchEntry<CB_REAL>::template At<CB_LAB_EFFECT_SET>::fn;
+  constexpr unsigned kLab = (CB_LAB_EFFECT_SET) & (kNumEffectSets - 1);  // its compiled bits
+  t[kLab] = BatchEntry<CB_REAL>::template At<kLab>::fn;
   return t;
 #else
   return dispatch_table<BatchKernels<CB_REAL>, BatchEntry<CB_REAL>::template At>();

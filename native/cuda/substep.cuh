@@ -114,13 +114,13 @@ struct BallNow {
 // substep computes it alike from the previous substep's finished sums, so no block waits
 // for the others inside a launch (no last-block ticket); the launch boundary is the barrier.
 // `prev` null: the first substep of a frame, whose ball the last frame finished.
-template <class R, unsigned E>
+template <class R>
 __device__ BallNow<R> ball_now(const Params<R>& p, const Ball<R>* prev, const BallAcc<R>* acc,
                                const Ball<R>* cur, const BallCtl* ctl, R dt) {
   if (prev == nullptr) return {*cur, ctl->contact_on != 0};
   const Ball<R> b0 = *prev;
   const V3<R> sum{acc->f[0], acc->f[1], acc->f[2]};
-  const Ball<R> b = ball_update<R, E>(p, b0, sum, dt);
+  const Ball<R> b = ball_update<R>(p, b0, sum, dt);
   return {b, contact_possible(p, RealBits<R>::real(acc->nearest2), b.p - b0.p,
                               ctl->strain_limited != 0)};
 }
@@ -159,7 +159,7 @@ __device__ __forceinline__ void se_substep_body(Params<R> p, DevBuf<R> in,
   V3<R> ball_p{R(0), R(0), R(0)};
   bool touch = false;
   if constexpr ((E & BALL) != 0) {
-    const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
+    const BallNow<R> now = ball_now<R>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
     ball_p = now.b.p;
     touch = now.contact;
     if (block == 0 && threadIdx.x == 0) {
@@ -230,7 +230,7 @@ __device__ __forceinline__ void finish_body(const Params<R>& p, const DevBuf<R>&
     Ball<R> b = *sb.cur;
     if constexpr ((E & BALL) != 0) {
       if (sb.prev != nullptr) {
-        const BallNow<R> now = ball_now<R, E>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
+        const BallNow<R> now = ball_now<R>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
         b = now.b;
         *sb.cur = b;
         sb.ctl->contact_on = now.contact ? 1 : 0;

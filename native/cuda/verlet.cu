@@ -68,7 +68,7 @@ __global__ void __launch_bounds__(kBlock)
     const R c[3] = {contact.x, contact.y, contact.z};
     if (ci::grid_sum(c, a.acc, a.ticket)) {
       const V3<R> sum{ci::acc_read(a.acc, 0), ci::acc_read(a.acc, 1), ci::acc_read(a.acc, 2)};
-      const V3<R> fb = vv_ball_force<R, E>(p, sum);
+      const V3<R> fb = vv_ball_force<R>(p, sum);
       Ball<R> b = *ball_in;
       b.v = vv_kick(b.v, fb, p.ball_inv_mass, a.gamma_b, dt);
       *ball_out = b;
@@ -97,7 +97,7 @@ class CudaVerlet final : public CudaIntegrator<R> {
     CB_CUDA(cudaMemset(fb_, 0, sizeof(V3<R>)));
     CB_CUDA(cudaMalloc(&acc_, sizeof(R) * 4));
     CB_CUDA(cudaMemset(acc_, 0, sizeof(R) * 4));
-    args_.p = Params<R>::from(c);
+    args_.p = vv_params(Params<R>::from(c));
     args_.F = {f_, f_ + N_, f_ + 2 * size_t(N_)};
     args_.fb = fb_;
     args_.acc = acc_;

@@ -118,7 +118,7 @@ __global__ void __launch_bounds__(kFrameBlock) frame_kernel(FrameArgs<R> a) {
     barrier();
     if constexpr ((E & BALL) != 0) {
       const volatile R* va = acc;  // summed by atomics in L2: read past L1
-      ball = ball_update<R, E>(p, ball, V3<R>{va[0], va[1], va[2]}, dt);
+      ball = ball_update<R>(p, ball, V3<R>{va[0], va[1], va[2]}, dt);
       if (first == 0) {
         R* z = a.acc + 4 * ((a.acc_base + s + 2) % 3);
         z[0] = z[1] = z[2] = R(0);
