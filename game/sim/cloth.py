@@ -263,7 +263,8 @@ class Cloth:
 
     @property
     def compiled_effects(self) -> frozenset[str]:
-        """The effect set the running kernels were compiled for."""
+        """The effects the running kernels simulate: their compiled set (the costly
+        effects) and the run-time ones (gravity, damping, coupling; docs/effects.md)."""
         return effect_names(self._engine.compiled_effects())
 
     # --- stepping -------------------------------------------------------------------------
