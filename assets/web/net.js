@@ -105,7 +105,9 @@ export class Connection {
       this._pending.clear();
       if (this.h.onClose) this.h.onClose(ev);
       // Sent to another host for a room, and that host is gone: the page says so.
-      if (this.url !== this.home && !this._stopped && this.h.onHostGone) this.h.onHostGone(this.url);
+      // (1006: no close frame, it died; 1001: it stopped. Other codes are its word to us.)
+      const gone = ev.code === 1006 || ev.code === 1001;
+      if (gone && this.url !== this.home && !this._stopped && this.h.onHostGone) this.h.onHostGone(this.url);
       if (!this._stopped) this._scheduleRetry();
     };
     ws.onerror = () => { /* onclose follows; the state shows it */ };

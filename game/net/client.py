@@ -45,6 +45,10 @@ from .fastpath import BinaryHook, try_send_binary
 
 HISTORY = 2000
 MAX_REDIRECTS = 3  # hops a request may be sent on (a room lives on one process or host)
+# How a connection ends when its server goes away: no close frame (1006, the process died;
+# None before websockets sets it) or "going away" (1001, it stopped). Other codes are the
+# server's word about this client (replaced, refused): no host went away.
+HOST_GONE_CODES = (None, 1001, 1006)
 
 
 class _Connection(BinaryHook, ClientConnection):
@@ -334,7 +338,8 @@ class NetClient:
                 for fut in self._pending.values():
                     if not fut.done():
                         fut.set_exception(ConnectionError("connection closed"))
-                if not self._closing and self.url != self.home and self.room is not None:
+                if (not self._closing and self.url != self.home and self.room is not None
+                        and ws.close_code in HOST_GONE_CODES):
                     # The host of the room this client was sent to went away: back to the
                     # lobby it came from (waiters wait for that rather than fail).
                     self._reader = None
