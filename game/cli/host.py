@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.parse
 from pathlib import Path
 from typing import Any
 
@@ -134,6 +135,10 @@ async def serve(args: argparse.Namespace) -> int:
         print(f"host token (resets /api/stats) in {Path(data).resolve() / 'host-token'}")
     if args.host in ("127.0.0.1", "localhost", "::1"):
         print("(only this machine can connect; --host 0.0.0.0 to let others in)")
+    if args.db:
+        state = server.storage.index_error or "reachable"
+        print(f"replay index in {_without_password(args.db)} ({state}), shared with the "
+              f"other hosts; this host's files named as {server.advertised_http_url}")
     if args.cluster:
         print(f"in the cluster at {args.cluster} as {server.advertised_url}")
     await _until_stopped()
@@ -293,6 +298,15 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
                     w.proc.kill()
     print("stopped")
     return 0
+
+
+def _without_password(url: str) -> str:
+    """``url`` with any password in it replaced by ``***`` (it is printed)."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.password is None:
+        return url
+    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
+    return urllib.parse.urlunsplit(parts._replace(netloc=netloc))
 
 
 def _shown(host: str) -> str:
