@@ -145,9 +145,10 @@ class ReplayStore:
     Thread-safe: the server calls it from worker threads (``asyncio.to_thread``).
 
     This class is the embedded index (SQLite) and holds every query; the shared one
-    (``PostgresReplayStore``) runs the same SQL on PostgreSQL and overrides only how it
-    connects, runs a statement and creates its tables (``_fetch``, ``_x``, ``_write``,
-    ``_migrate``).
+    (``PostgresReplayStore``) runs the same SQL on PostgreSQL and overrides how it connects
+    and runs statements (``_fetch``, ``_x``, ``_xmany``, ``_write``), which rows are its
+    own (``_mine``: its host's) and how a round is kept back while the database is away
+    (``save``, ``retry_index``).
     """
 
     columns: tuple[str, ...] = COLUMNS
