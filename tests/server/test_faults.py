@@ -17,6 +17,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,7 @@ from clothball.server.limits import Limits
 from clothball.server.replays import ReplayStore
 from clothball.server.room import RoomSettings
 
+from tests.server import workers
 from tests.server.conftest import (
     FAST,
     TINY,
@@ -142,23 +144,43 @@ def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_
 # --- SIGKILL mid-round --------------------------------------------------------------------------
 
 
-def start_server(data: Path, *args: str) -> tuple[subprocess.Popen[str], int, str]:
-    proc = subprocess.Popen([sys.executable, str(HERE / "server_proc.py"), str(data), *args],
-                            stdout=subprocess.PIPE, text=True)
-    assert proc.stdout is not None
-    line = proc.stdout.readline()
-    if not line:
-        proc.kill()
-        raise AssertionError("the server process did not start")
-    info = json.loads(line)
-    return proc, info["port"], info["recording"]
+@dataclass
+class ServerProcs:
+    """The server of the fault tests: one process, or two sharing a port (the test run with
+    two processes, ``tests/server/workers.py``), each with a room of four bots recording
+    into the one data directory."""
+
+    procs: list[subprocess.Popen[str]]
+    port: int  # where clients connect: the shared port with two
+    ports: list[int]  # each process's own
+    recording: str
 
 
-def stop(proc: subprocess.Popen[str]) -> None:
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    if proc.stdout is not None:
-        proc.stdout.close()
+def start_server(data: Path, *args: str) -> ServerProcs:
+    n = workers.current()
+    shared = ["--shared-port", str(workers.free_port())] if n == 2 else []
+    procs, ports, recording = [], [], ""
+    for _ in range(n):  # one after the other: the first's room is "main"
+        proc = subprocess.Popen([sys.executable, str(HERE / "server_proc.py"), str(data),
+                                 *args, *shared], stdout=subprocess.PIPE, text=True)
+        procs.append(proc)
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        if not line:
+            stop(ServerProcs(procs, 0, [], ""))
+            raise AssertionError("the server process did not start")
+        info = json.loads(line)
+        ports.append(info["port"])
+        recording = recording or info["recording"]
+    return ServerProcs(procs, int(shared[1]) if shared else ports[0], ports, recording)
+
+
+def stop(server: ServerProcs) -> None:
+    for proc in server.procs:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
 
 
 def get(port: int, path: str) -> bytes:
@@ -190,7 +212,8 @@ def test_sigkill_mid_round_and_restart_keep_the_index_and_every_earlier_round(tm
     kept: dict[str, bytes] = {}
     rng = random.Random()
     for _ in range(3):
-        proc, port, _ = start_server(data)
+        procs = start_server(data)
+        port = procs.port
         try:
             # every round recorded before any kill is listed and byte-for-byte the same
             listed = {r["id"] for r in replays(port)["replays"]}
@@ -206,7 +229,7 @@ def test_sigkill_mid_round_and_restart_keep_the_index_and_every_earlier_round(tm
                 kept[r["id"]] = body
             time.sleep(rng.uniform(0.0, 2.0))  # rounds last about a second: kill in one
         finally:
-            stop(proc)
+            stop(procs)
         assert set(kept) <= check_data_dir(data)
     assert len(kept) >= 6
 
@@ -258,9 +281,10 @@ def test_sigkill_while_writing_replays_leaves_them_complete_or_absent(tmp_path) 
 @pytest.mark.slow
 def test_a_full_disk_loses_the_round_not_the_match(tmp_path) -> None:
     data = tmp_path / "data"
-    proc, port, recording = start_server(data, "--fsize", "40000")
+    procs = start_server(data, "--fsize", "40000")
+    port = procs.port
     try:
-        assert recording == "on"
+        assert procs.recording == "on"
 
         async def main() -> str:
             spec = await NetClient.connect(f"ws://127.0.0.1:{port}/ws", role="spectator",
@@ -273,15 +297,17 @@ def test_a_full_disk_loses_the_round_not_the_match(tmp_path) -> None:
             return str(failed["id"])
 
         lost = run(main())
-        stats = json.loads(get(port, "/api/stats"))
-        assert stats["rounds_not_saved"] >= 1 and stats["rooms"]["main"]["frames"] > 0
-        assert replays(port)["total"] == stats["rounds_saved"]  # the index still answers
+        each = [json.loads(get(p, "/api/stats")) for p in procs.ports]  # per process
+        assert sum(st["rounds_not_saved"] for st in each) >= 1
+        assert each[0]["rooms"]["main"]["frames"] > 0
+        # the index (the processes share it) still answers
+        assert replays(port)["total"] == sum(st["rounds_saved"] for st in each)
         # no half-written file kept, nothing indexed for it
         assert not (data / "replays" / f"{lost}.cbr.tmp").exists()
         assert not (data / "replays" / f"{lost}.cbr").exists()
         assert lost not in [r["id"] for r in replays(port)["replays"]]
     finally:
-        stop(proc)
+        stop(procs)
 
 
 @pytest.mark.parametrize("kind", ["not-a-directory", "read-only"])

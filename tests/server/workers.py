@@ -68,7 +68,7 @@ def using(n: int) -> Iterator[None]:
 
 def starts_a_server(fn: Any) -> bool:
     """Whether a test function (or a function nested in it) calls ``server`` or
-    ``live_server``."""
+    ``live_server`` (or test_faults' ``start_server``, its server processes)."""
     def names(code: types.CodeType) -> Iterator[str]:
         yield from code.co_names
         for c in code.co_consts:
@@ -76,7 +76,8 @@ def starts_a_server(fn: Any) -> bool:
                 yield from names(c)
 
     code = getattr(fn, "__code__", None)
-    return code is not None and bool({"server", "live_server"} & set(names(code)))
+    return code is not None and bool({"server", "live_server", "start_server"}
+                                     & set(names(code)))
 
 
 WORKER_PROC = Path(__file__).with_name("worker_proc.py")
