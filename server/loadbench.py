@@ -675,7 +675,8 @@ def _load_series(args: argparse.Namespace, n_hosts: int, redis_url: str) -> dict
         print(f"load bench, {n_hosts} host{'s' if n_hosts > 1 else ''} in a cluster: rooms "
               f"of 4 players x {args.hip_rate:g} Hz HIP + {args.load_spectators} spectators, "
               f"{seconds:g} s a step, n={args.server_n}, backend {infos[0][0]['backend']}, "
-              f"{os.cpu_count()} CPUs shared by hosts and clients", file=sys.stderr)
+              f"event loop {infos[0][0].get('loop')}, {os.cpu_count()} CPUs shared by hosts "
+              "and clients", file=sys.stderr)
         for rooms in range(1, args.load_max_rooms + 1):
             room = asyncio.run(_create_room(entry))
             proc = subprocess.Popen([*base, "--role", "room-clients", "--url",
@@ -711,7 +712,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, redis_url: str) -> dict
         for s in servers:
             _stop_server(s)
     held = [s for s in steps if s["met"]]
-    return {"held": held[-1] if held else None,
+    return {"server_loop": infos[0][0].get("loop"), "held": held[-1] if held else None,
             "first_missed": next((s for s in steps if not s["met"]), None), "steps": steps}
 
 
