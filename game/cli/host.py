@@ -14,16 +14,20 @@ import asyncio
 import json
 import logging
 import os
+import shutil
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import urllib.parse
 from pathlib import Path
 from typing import Any
 
+from ...server import loops
 from ...server.app import GameServer, default_data_dir
 from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
@@ -77,6 +81,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     # Set by the supervisor for each of its processes (not for users).
     parser.add_argument("--worker-index", type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--shared-port", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--rooms-file", type=Path, default=None, help=argparse.SUPPRESS)
 
 
 async def serve(args: argparse.Namespace) -> int:
@@ -99,8 +104,7 @@ async def serve(args: argparse.Namespace) -> int:
     if args.cluster:
         directory = RedisDirectory(args.cluster)
     elif worker is not None:
-        Path(data).mkdir(parents=True, exist_ok=True)
-        directory = SqliteDirectory(Path(data) / DIRECTORY_FILE)
+        directory = SqliteDirectory(args.rooms_file or Path(data) / DIRECTORY_FILE)
     server = GameServer(data, scenes=scenes, backend=args.backend, host=args.host,
                         port=0 if worker is not None else args.port,
                         bots=args.bots, room_settings=settings, limits=limits,
@@ -195,8 +199,13 @@ RESTART_S = 1.0  # a process that died is started again after this long
 
 def run(args: argparse.Namespace) -> int:
     workers = args.workers or os.cpu_count() or 1
+    try:  # CLOTHBALL_LOOP=uvloop chooses uvloop (server/loops.py)
+        loops.loop_factory()
+    except loops.LoopError as e:
+        print(f"clothball host: {e}")
+        return 2
     if args.worker_index is not None or workers == 1:
-        return asyncio.run(serve(args))
+        return loops.run(serve(args))
     return supervise(args, workers)
 
 
@@ -249,9 +258,11 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         print(f"clothball host: cannot listen on {args.host}: {e.strerror}")
         return 1
     data = Path(args.data or default_data_dir())
+    rooms_file, spare = _rooms_file(data)
     base = [sys.executable, "-m", "clothball.game.cli", *args.argv]
     procs = [_Worker(k, [*base, "--data", str(data), "--port", str(port), "--workers", "1",
-                         "--worker-index", str(k), "--shared-port", str(port)])
+                         "--worker-index", str(k), "--shared-port", str(port),
+                         "--rooms-file", str(rooms_file)])
              for k in range(workers)]
     stopping = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -296,6 +307,8 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
                     w.proc.wait(timeout=30)
                 except subprocess.TimeoutExpired:
                     w.proc.kill()
+        if spare is not None:
+            shutil.rmtree(spare, ignore_errors=True)
     print("stopped")
     return 0
 
@@ -307,6 +320,21 @@ def _without_password(url: str) -> str:
         return url
     netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
     return urllib.parse.urlunsplit(parts._replace(netloc=netloc))
+
+
+def _rooms_file(data: Path) -> tuple[Path, Path | None]:
+    """Where the processes keep their room directory: in the data directory, or, when that
+    cannot be written (the processes then play without recording, as one process does), in
+    a directory of its own made for this run (returned second, to be removed at the end)."""
+    try:
+        data.mkdir(parents=True, exist_ok=True)
+        SqliteDirectory(data / DIRECTORY_FILE).close()
+        return data / DIRECTORY_FILE, None
+    except (OSError, sqlite3.Error) as e:
+        spare = Path(tempfile.mkdtemp(prefix="clothball-rooms-"))
+        print(f"the data directory {data} cannot be used ({getattr(e, 'strerror', None) or e}):"
+              f" the processes' room directory is in {spare}")
+        return spare / DIRECTORY_FILE, spare
 
 
 def _shown(host: str) -> str:

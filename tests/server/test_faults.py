@@ -348,6 +348,26 @@ def test_an_unusable_data_directory_turns_recording_off_and_play_goes_on(tmp_pat
     run(main())
 
 
+def test_two_processes_on_an_unusable_data_directory_play_without_recording(tmp_path) -> None:
+    """``clothball host --workers 2`` whose data directory cannot be made: as one process
+    does, the processes play without recording (their room directory goes elsewhere)."""
+    from tests.server.test_workers import host
+
+    (tmp_path / "a-file").write_text("not a directory")
+    unusable = tmp_path / "a-file" / "data"
+
+    async def main(url: str) -> None:
+        spec = await NetClient.connect(url, role="spectator", room="main")
+        await until(lambda: spec.mesh is not None, 10, "a mesh")
+        at = workers.Process(url.replace("ws://", "http://")[:-len("ws")])
+        status, body, _ = await http_get(at, "/api/replays")
+        assert status == 503 and b"recording is off" in body
+        await spec.close()
+
+    with host(tmp_path, "--data", str(unusable), "--bots", "4") as url:
+        run(main(url))
+
+
 # --- a simulation that turns non-finite --------------------------------------------------------
 
 

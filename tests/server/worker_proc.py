@@ -24,6 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from clothball.game.cli.host import DIRECTORY_FILE  # noqa: E402
+from clothball.server import loops  # noqa: E402
 from clothball.server.app import GameServer  # noqa: E402
 from clothball.server.directory import SqliteDirectory  # noqa: E402
 
@@ -46,4 +47,4 @@ async def main(kwargs_file: str) -> None:
 if __name__ == "__main__":
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
-    asyncio.run(main(sys.argv[1]))
+    loops.run(main(sys.argv[1]))  # on the loop serve() runs on (CLOTHBALL_LOOP)
