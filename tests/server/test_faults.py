@@ -382,10 +382,10 @@ def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_pa
     unstable.name = "unstable"
 
     async def main() -> None:
-        srv = GameServer(tmp_path, scenes={"tiny": TINY, "unstable": unstable}, backend="cpu",
-                         port=0, room_settings=RoomSettings(bots_allowed=False, unguarded=True))
-        await srv.start()
-        try:
+        async with workers.started(
+                tmp_path, expected_errors=(r"room \S+ stopped: .*non-finite",),
+                scenes={"tiny": TINY, "unstable": unstable}, backend="cpu", port=0,
+                room_settings=RoomSettings(bots_allowed=False, unguarded=True)) as srv:
             main_room = srv.main_room
             assert main_room is not None
             watcher = await NetClient.connect(srv.ws_url, role="spectator", room="main")
@@ -399,8 +399,11 @@ def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_pa
                 assert "non-finite" in ev["reason"]
                 err = await c.wait_for(lambda m: m["type"] == "error", since=0)
                 assert err["code"] == "room_stopped" and rid in err["message"]
-            await until(lambda: rid not in srv.lobby.rooms, 5, "the room closed")
-            assert srv.stats["rooms_stopped"] == 1
+            # gone from this process and (two processes) from the directory it read
+            await until(lambda: rid not in srv.lobby.rooms and (
+                srv.lobby.peers is None or rid not in srv.lobby.peers.rooms), 5,
+                "the room closed")
+            assert (await workers.service_stats(srv))["rooms_stopped"] == 1
             # the clients are back in the lobby, connected, and can go elsewhere
             assert rid not in [r["id"] for r in (await player.request("list_rooms"))["rooms"]]
             again = await player.join("main", role="spectator")
@@ -410,11 +413,9 @@ def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_pa
             await asyncio.sleep(0.3)
             assert main_room.sim.stats.frames > f0 + 200 and main_room.sim.alive
             assert watcher._reader is not None and not watcher._reader.done()
-            stats = await http_json(srv, "/api/stats")
+            stats = await workers.service_stats(srv)
             assert rid not in stats["rooms"] and "main" in stats["rooms"]
             for c in (watcher, owner, player, spec):
                 await c.close()
-        finally:
-            await srv.stop()
 
     run(main())

@@ -22,6 +22,7 @@ import contextlib
 import json
 import os
 import pickle
+import re
 import signal
 import socket
 import subprocess
@@ -30,7 +31,7 @@ import tempfile
 import threading
 import types
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,7 +69,8 @@ def using(n: int) -> Iterator[None]:
 
 def starts_a_server(fn: Any) -> bool:
     """Whether a test function (or a function nested in it) calls ``server`` or
-    ``live_server`` (or test_faults' ``start_server``, its server processes)."""
+    ``live_server`` (or ``started`` here, or test_faults' ``start_server``, its server
+    processes)."""
     def names(code: types.CodeType) -> Iterator[str]:
         yield from code.co_names
         for c in code.co_consts:
@@ -76,7 +78,7 @@ def starts_a_server(fn: Any) -> bool:
                 yield from names(c)
 
     code = getattr(fn, "__code__", None)
-    return code is not None and bool({"server", "live_server", "start_server"}
+    return code is not None and bool({"server", "live_server", "started", "start_server"}
                                      & set(names(code)))
 
 
@@ -94,8 +96,10 @@ class SecondWorker:
     """The other process of the pair: started with the test server's arguments, read, and
     stopped (SIGTERM) at the end."""
 
-    def __init__(self, data: Path, kw: dict[str, Any], shared_port: int) -> None:
+    def __init__(self, data: Path, kw: dict[str, Any], shared_port: int,
+                 expected_errors: tuple[str, ...] = ()) -> None:
         self.shared_port = shared_port
+        self.expected_errors = expected_errors  # regular expressions of errors it may log
         self.stderr: list[str] = []
         args = {**kw, "data_dir": str(data), "shared_port": shared_port,
                 "host_id": SECOND_ID}
@@ -145,7 +149,8 @@ class SecondWorker:
                     pipe.close()
         text = "".join(self.stderr)
         assert rc == 0, f"the second server process exited {rc}:\n{text}"
-        bad = [ln for ln in self.stderr if ln.startswith(("ERROR", "CRITICAL", "Traceback"))]
+        bad = [ln for ln in self.stderr if ln.startswith(("ERROR", "CRITICAL", "Traceback"))
+               and not any(re.search(e, ln) for e in self.expected_errors)]
         assert not bad, f"the second server process logged errors:\n{text}"
 
 
@@ -225,12 +230,13 @@ COUNTERS = ("messages_in", "messages_out", "bad_messages", "rounds_saved", "roun
 
 
 @contextlib.contextmanager
-def pair(data: Path, kw: dict[str, Any]) -> Iterator[tuple[SecondWorker, dict[str, Any]]]:
+def pair(data: Path, kw: dict[str, Any], expected_errors: tuple[str, ...] = ()
+         ) -> Iterator[tuple[SecondWorker, dict[str, Any]]]:
     """The second process started with ``kw`` (the test server's arguments); yields it and
     the arguments to give the server under test."""
     port = free_port()
     extra = first_worker_kw(data, port)
-    second = SecondWorker(data, kw, port)
+    second = SecondWorker(data, kw, port, expected_errors)
     try:
         yield second, extra
     finally:
@@ -238,3 +244,31 @@ def pair(data: Path, kw: dict[str, Any]) -> Iterator[tuple[SecondWorker, dict[st
             second.stop()
         finally:
             extra["directory"].close()
+
+
+@contextlib.asynccontextmanager
+async def started(data: Path, expected_errors: tuple[str, ...] = (),
+                  **kw: Any) -> AsyncIterator[Any]:
+    """``GameServer(data, **kw)`` started (and stopped at the end), as the first of two
+    processes when ``current()`` is 2, for a test that gives the server arguments the
+    conftest's ``server()`` does not take. ``expected_errors``: regular expressions of the
+    errors the second process may log (a test that provokes them)."""
+    from clothball.server.app import GameServer
+
+    if current() == 1:
+        srv = GameServer(data, **kw)
+        await srv.start()
+        try:
+            yield srv
+        finally:
+            await srv.stop()
+        return
+    with pair(data, kw, expected_errors) as (second, extra):
+        srv = GameServer(data, **kw, **extra)
+        await srv.start()
+        try:
+            await ready(srv, second)
+            srv.second_worker = second
+            yield srv
+        finally:
+            await srv.stop()
