@@ -68,7 +68,7 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                    help="cloth backend of the bench room (default %(default)s)")
     g.add_argument("--server-loop", default=None, choices=loops.CHOICES,
                    help="the server process's event loop (default: $CLOTHBALL_LOOP, else "
-                        "auto: uvloop where installed)")
+                        "asyncio)")
     g.add_argument("--load-seconds", type=float, default=10.0,
                    help="--load: measured seconds per number of rooms (default %(default)s)")
     g.add_argument("--load-spectators", type=int, default=4,

@@ -1,7 +1,8 @@
-"""Which asyncio event loop a server process runs on: ``uvloop`` where it is installed
-(measured: ``docs/benchmarks/load.md``), else asyncio's own. ``CLOTHBALL_LOOP=asyncio``
-chooses asyncio's loop anyway, ``CLOTHBALL_LOOP=uvloop`` insists on uvloop (an error
-naming what to install when it is missing)."""
+"""Which asyncio event loop a server process runs on: asyncio's own, or ``uvloop`` with
+``CLOTHBALL_LOOP=uvloop`` (a one-line error naming what to install when it is missing).
+asyncio's stays the default: measured with ``clothball bench --load``, uvloop took about a
+fifth less of the server's CPU but held no more rooms, its frame lateness p99 no better
+(``docs/benchmarks/load.md``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Any, TypeVar
 
 T = TypeVar("T")
 
-CHOICES = ("auto", "uvloop", "asyncio")
+CHOICES = ("asyncio", "uvloop")
 
 
 class LoopError(ValueError):
@@ -21,20 +22,18 @@ class LoopError(ValueError):
 
 def loop_factory(choice: str | None = None) -> tuple[str, Callable[[], asyncio.AbstractEventLoop]]:
     """The loop's name and a factory for it. ``choice``: one of ``CHOICES``; None reads
-    ``CLOTHBALL_LOOP`` (default ``auto``: uvloop when importable)."""
+    ``CLOTHBALL_LOOP`` (default ``asyncio``)."""
     if choice is None:
-        choice = os.environ.get("CLOTHBALL_LOOP", "").strip().lower() or "auto"
+        choice = os.environ.get("CLOTHBALL_LOOP", "").strip().lower() or "asyncio"
     if choice not in CHOICES:
         raise LoopError(f"CLOTHBALL_LOOP={choice!r} is not one of {', '.join(CHOICES)}")
-    if choice != "asyncio":
+    if choice == "uvloop":
         try:
             import uvloop
         except ImportError:
-            if choice == "uvloop":
-                raise LoopError("CLOTHBALL_LOOP=uvloop but uvloop is not installed: "
-                                "pip install uvloop (Linux, macOS), or unset it") from None
-        else:
-            return "uvloop", uvloop.new_event_loop
+            raise LoopError("CLOTHBALL_LOOP=uvloop but uvloop is not installed: "
+                            "pip install uvloop (Linux, macOS), or unset it") from None
+        return "uvloop", uvloop.new_event_loop
     return "asyncio", asyncio.new_event_loop
 
 

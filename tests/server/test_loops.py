@@ -1,5 +1,5 @@
-"""The server process's event loop (server/loops.py): uvloop where installed, asyncio's own
-without it or when asked for, a one-line error for a choice that cannot be had."""
+"""The server process's event loop (server/loops.py): asyncio's own by default, uvloop when
+asked for, a one-line error for a choice that cannot be had."""
 
 from __future__ import annotations
 
@@ -13,17 +13,17 @@ async def kind() -> str:
     return loops.running()
 
 
-def test_auto_is_uvloop_where_installed_and_asyncio_on_request(monkeypatch) -> None:
+def test_asyncio_by_default_and_uvloop_on_request(monkeypatch) -> None:
     pytest.importorskip("uvloop")
     monkeypatch.delenv("CLOTHBALL_LOOP", raising=False)
-    assert loops.run(kind()) == "uvloop"
-    assert loops.run(kind(), "asyncio") == "asyncio"
-    monkeypatch.setenv("CLOTHBALL_LOOP", "asyncio")
     assert loops.run(kind()) == "asyncio"
-    assert loops.run(kind(), "uvloop") == "uvloop"  # the argument over the environment
+    assert loops.run(kind(), "uvloop") == "uvloop"
+    monkeypatch.setenv("CLOTHBALL_LOOP", "uvloop")
+    assert loops.run(kind()) == "uvloop"
+    assert loops.run(kind(), "asyncio") == "asyncio"  # the argument over the environment
 
 
-def test_without_uvloop_auto_falls_back_and_uvloop_says_what_to_install(monkeypatch) -> None:
+def test_without_uvloop_asking_for_it_says_what_to_install(monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "uvloop", None)  # import uvloop raises ImportError
     monkeypatch.delenv("CLOTHBALL_LOOP", raising=False)
     assert loops.run(kind()) == "asyncio"
