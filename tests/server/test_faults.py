@@ -16,6 +16,7 @@ import struct
 import subprocess
 import sys
 import time
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,26 +50,60 @@ HERE = Path(__file__).parent
 
 
 def raw_client(port: int, hello: dict[str, Any], rcvbuf: int | None = None) -> socket.socket:
-    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    if rcvbuf:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-    s.settimeout(10)
-    s.connect(("127.0.0.1", port))
-    key = base64.b64encode(os.urandom(16))
-    s.sendall(b"GET /ws HTTP/1.1\r\nHost: localhost\r\nUpgrade: websocket\r\n"
-              b"Connection: Upgrade\r\nSec-WebSocket-Key: " + key +
-              b"\r\nSec-WebSocket-Version: 13\r\n\r\n")
-    head = b""
-    while b"\r\n\r\n" not in head:
-        head += s.recv(1)
-    assert b" 101 " in head.split(b"\r\n")[0], head
-    payload = json.dumps(hello).encode()
-    mask = os.urandom(4)
-    n = len(payload)
-    frame = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0xFE]) +
-                             struct.pack(">H", n))
-    s.sendall(frame + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
-    return s
+    """A connection whose hello seats it, read until the hello's answer; a ``redirect`` (the
+    room lives on the other process, with two) is followed to the port it names."""
+    for _ in range(3):
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        if rcvbuf:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        s.settimeout(10)
+        s.connect(("127.0.0.1", port))
+        key = base64.b64encode(os.urandom(16))
+        s.sendall(b"GET /ws HTTP/1.1\r\nHost: localhost\r\nUpgrade: websocket\r\n"
+                  b"Connection: Upgrade\r\nSec-WebSocket-Key: " + key +
+                  b"\r\nSec-WebSocket-Version: 13\r\n\r\n")
+        head = b""
+        while b"\r\n\r\n" not in head:
+            head += s.recv(1)
+        assert b" 101 " in head.split(b"\r\n")[0], head
+        payload = json.dumps(hello).encode()
+        mask = os.urandom(4)
+        n = len(payload)
+        frame = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0xFE]) +
+                                 struct.pack(">H", n))
+        s.sendall(frame + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
+        while (answer := _next_text(s))["type"] not in ("joined", "redirect", "error"):
+            pass
+        if answer["type"] != "redirect":
+            assert answer["type"] == "joined", answer
+            return s
+        s.close()
+        port = int(urllib.parse.urlsplit(answer["url"]).port or 0)
+    raise AssertionError("redirected too often")
+
+
+def _exactly(s: socket.socket, n: int) -> bytes:
+    out = b""
+    while len(out) < n:
+        got = s.recv(n - len(out))
+        if not got:
+            raise ConnectionError("closed by the server")
+        out += got
+    return out
+
+
+def _next_text(s: socket.socket) -> dict[str, Any]:
+    """The next text message the server sent (its frames are unmasked; others skipped)."""
+    while True:
+        b0, b1 = _exactly(s, 2)
+        n = b1 & 0x7F
+        if n == 126:
+            n = struct.unpack(">H", _exactly(s, 2))[0]
+        elif n == 127:
+            n = struct.unpack(">Q", _exactly(s, 8))[0]
+        data = _exactly(s, n)
+        if b0 & 0x0F == 1:
+            return dict(json.loads(data))
 
 
 def conn_of(ls: LiveServer, seat: int) -> Any:
@@ -94,14 +129,14 @@ def test_a_client_that_vanishes_without_a_close(tmp_path) -> None:
         hello = {"type": "hello", "version": 1, "role": "player", "room": room.id,
                  "corner_rate": 50, "mesh": False}
         # 1. the TCP connection is reset (a crashed client): noticed at once
-        s = raw_client(ls.srv.port, {**hello, "seat": 2})
+        s = raw_client(workers.public_port(ls.srv), {**hello, "seat": 2})
         wait(lambda: conn_of(ls, 2) is not None, 5, "seat 2 taken")
         s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
         s.close()
         wait(lambda: conn_of(ls, 2) is None, 5, "the reset client's seat released")
         assert ls.call(lambda: room.seats[2].held_until) is not None  # held for its return
         # 2. the client goes silent (a pulled cable): the pings go unanswered
-        s = raw_client(ls.srv.port, {**hello, "seat": 3})
+        s = raw_client(workers.public_port(ls.srv), {**hello, "seat": 3})
         wait(lambda: conn_of(ls, 3) is not None, 5, "seat 3 taken")
         took = wait(lambda: conn_of(ls, 3) is None, 10, "the silent client dropped")
         assert took < 5
@@ -117,8 +152,9 @@ def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_
         assert room is not None
         skipped0 = room.sim.stats.skipped_frames
         f0, t0 = room.sim.stats.frames, time.monotonic()
-        s = raw_client(ls.srv.port, {"type": "hello", "version": 1, "role": "player",
-                                     "room": room.id, "seat": 1}, rcvbuf=4096)
+        s = raw_client(workers.public_port(ls.srv),
+                       {"type": "hello", "version": 1, "role": "player", "room": room.id,
+                        "seat": 1}, rcvbuf=4096)
         wait(lambda: conn_of(ls, 1) is not None, 5, "the slow client seated")
         conn = conn_of(ls, 1)
         peak_buffer, peak_queue = 0, 0
