@@ -169,7 +169,7 @@ _one_process_server = server
 _one_process_live_server = live_server
 
 
-def _as_given(data: Path, kw: dict[str, Any]) -> dict[str, Any]:
+def _as_given(kw: dict[str, Any]) -> dict[str, Any]:
     """The GameServer arguments server() and live_server() give, for the second process."""
     return {"scenes": {"tiny": TINY}, "backend": "cpu", "host": "127.0.0.1", **kw,
             "limits": no_admission(kw.get("limits"))}
@@ -184,7 +184,7 @@ async def server(data: Path, *, bots: int = 0, settings: RoomSettings | None = N
         async with _one_process_server(data, bots=bots, settings=settings, **kw) as srv:
             yield srv
         return
-    given = _as_given(data, {**kw, "bots": bots, "room_settings": settings or RoomSettings()})
+    given = _as_given({**kw, "bots": bots, "room_settings": settings or RoomSettings()})
     with workers.pair(data, given) as (second, extra):
         async with _one_process_server(data, bots=bots, settings=settings, **kw,
                                        **extra) as srv:
@@ -201,7 +201,7 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
         with _one_process_live_server(data, **kw) as ls:
             yield ls
         return
-    with workers.pair(data, _as_given(data, kw)) as (second, extra):
+    with workers.pair(data, _as_given(kw)) as (second, extra):
         with _one_process_live_server(data, **kw, **extra) as ls:
             asyncio.run_coroutine_threadsafe(workers.ready(ls.srv, second), ls.loop).result(30)
             ls.srv.second_worker = second  # type: ignore[attr-defined]
