@@ -441,6 +441,21 @@ async def _create_room(ws: str) -> str:
     return str(made["room"])
 
 
+def _start_room(base: list[str], ws: str, env: dict[str, str]) -> subprocess.Popen[str]:
+    """Creates a room through ``ws`` and starts its players and spectators in a process of
+    their own; returns once they are connected and the room has settled."""
+    room = asyncio.run(_create_room(ws))
+    proc = subprocess.Popen([*base, "--role", "room-clients", "--url",
+                             json.dumps({"ws": ws, "room": room})],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    assert proc.stdout is not None
+    if not proc.stdout.readline():
+        proc.kill()
+        raise RuntimeError("a room's clients did not connect")
+    time.sleep(1.0)  # settle
+    return proc
+
+
 def run_load(args: argparse.Namespace) -> int:
     """Add rooms one at a time until a target is missed; print (or --json) every step."""
     if getattr(args, "cluster", False):
@@ -464,16 +479,7 @@ def run_load(args: argparse.Namespace) -> int:
               f"event loop {info['loop']}, "
               f"{os.cpu_count()} CPUs, load average {load_before[0]:.2f}", file=sys.stderr)
         for rooms in range(1, args.load_max_rooms + 1):
-            room = asyncio.run(_create_room(ws))
-            proc = subprocess.Popen([*base, "--role", "room-clients", "--url",
-                                     json.dumps({"ws": ws, "room": room})],
-                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                    env=env)
-            clients.append(proc)
-            assert proc.stdout is not None
-            if not proc.stdout.readline():
-                raise RuntimeError("a room's clients did not connect")
-            time.sleep(1.0)  # settle
+            clients.append(_start_room(base, ws, env))
             s0 = _get(f"{http}/api/stats?reset=1", info["token"])
             c0, w0 = _cpu_seconds(clients), time.perf_counter()
             time.sleep(seconds)
@@ -678,16 +684,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, redis_url: str) -> dict
               f"event loop {infos[0][0].get('loop')}, {os.cpu_count()} CPUs shared by hosts "
               "and clients", file=sys.stderr)
         for rooms in range(1, args.load_max_rooms + 1):
-            room = asyncio.run(_create_room(entry))
-            proc = subprocess.Popen([*base, "--role", "room-clients", "--url",
-                                     json.dumps({"ws": entry, "room": room})],
-                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                    env=env)
-            clients.append(proc)
-            assert proc.stdout is not None
-            if not proc.stdout.readline():
-                raise RuntimeError("a room's clients did not connect")
-            time.sleep(1.0)  # settle
+            clients.append(_start_room(base, entry, env))
             s0 = [_get(f"{http}/api/stats?reset=1", info["token"]) for info, http, _ in infos]
             c0, w0 = _cpu_seconds(clients), time.perf_counter()
             time.sleep(seconds)
