@@ -75,6 +75,9 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                    help="--load: spectators per room (default %(default)s)")
     g.add_argument("--load-max-rooms", type=int, default=32,
                    help="--load: stop growing at this many rooms (default %(default)s)")
+    g.add_argument("--workers", type=int, default=1, metavar="N",
+                   help="--load: N server processes on one port, as `clothball host --workers "
+                        "N` runs them (rooms placed on the least-loaded); default %(default)s")
     g.add_argument("--cluster", action="store_true",
                    help="--load: rooms held by 1, 2 and 3 hosts of a cluster on this machine, "
                         "joined through a Redis the bench starts (needs redis-server)")
@@ -91,7 +94,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         default="bench", help=argparse.SUPPRESS)
     parser.add_argument("--url", default="", help=argparse.SUPPRESS)
     parser.add_argument("--no-room", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--directory", default=None, help=argparse.SUPPRESS)  # redis://...
+    # A host's room directory: redis://... (--load --cluster) or a SQLite file (--workers).
+    parser.add_argument("--directory", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--shared-port", type=int, default=None, help=argparse.SUPPRESS)
 
 
 # --- the server process ------------------------------------------------------------------------
@@ -107,11 +112,12 @@ async def _serve(args: argparse.Namespace) -> None:
     scene = Scene.load("classic").with_changes({"cloth": {"n": args.server_n}})
     scene.name = "bench"
     cluster: dict[str, Any] = {}
-    if getattr(args, "directory", None):  # a host of --load --cluster
-        from .directory import RedisDirectory
+    if getattr(args, "directory", None):  # a host of --load --cluster, or a --workers process
+        from .directory import RedisDirectory, SqliteDirectory
 
-        cluster = {"directory": RedisDirectory(args.directory),
-                   "host_id": f"bench-{os.getpid()}"}
+        kind = RedisDirectory if args.directory.startswith("redis://") else SqliteDirectory
+        cluster = {"directory": kind(args.directory), "host_id": f"bench-{os.getpid()}",
+                   "shared_port": getattr(args, "shared_port", None)}
     with tempfile.TemporaryDirectory() as data:
         # Every client comes from 127.0.0.1: the per-address limits would stop the bench.
         limits = Limits(conns_per_address=100_000, rooms_per_address=100_000, max_rooms=1000,
@@ -460,6 +466,12 @@ def run_load(args: argparse.Namespace) -> int:
     """Add rooms one at a time until a target is missed; print (or --json) every step."""
     if getattr(args, "cluster", False):
         return run_load_cluster(args)
+    if getattr(args, "workers", 1) < 1:
+        print(f"clothball bench: --workers must be at least 1, got {args.workers}",
+              file=sys.stderr)
+        return 2
+    if getattr(args, "workers", 1) > 1:
+        return run_load_workers(args)
     seconds = float(args.load_seconds)
     base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
             "--server-backend", args.server_backend, "--hip-rate", str(args.hip_rate),
@@ -630,11 +642,35 @@ def run_load_cluster(args: argparse.Namespace) -> int:
         print(json.dumps(result, indent=2))
     else:
         for n, r in series.items():
-            h = r["held"]
-            print(f"{n} host{'s' if n != '1' else ''}: held " + (
-                f"{h['rooms']} rooms ({'+'.join(map(str, h['rooms_per_host']))}), "
-                f"{h['clients']} clients, lateness p99 {h['lateness_p99_ms']:.2f} ms, "
-                f"server CPU {h['server_cpu_cores']:.2f} cores" if h else "not even one room"))
+            print(_held_line(f"{n} host{'s' if n != '1' else ''}", r["held"]))
+    return 0
+
+
+def _held_line(what: str, h: dict[str, Any] | None) -> str:
+    """The summary of a series of steps over several hosts or processes."""
+    if h is None:
+        return f"{what}: held not even one room"
+    return (f"{what}: held {h['rooms']} rooms ({'+'.join(map(str, h['rooms_per_host']))}), "
+            f"{h['clients']} clients, lateness p99 {h['lateness_p99_ms']:.2f} ms, "
+            f"server CPU {h['server_cpu_cores']:.2f} cores")
+
+
+def run_load_workers(args: argparse.Namespace) -> int:
+    """``run_load`` over ``--workers`` server processes sharing one port and a SQLite room
+    directory, as ``clothball host --workers N`` runs them."""
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory(prefix="clothball-bench-workers-") as d:
+        series = _load_series(args, args.workers, str(Path(d) / "rooms.sqlite"), _free_port())
+    result = {
+        "n": args.server_n, "backend": args.server_backend, "cpus": os.cpu_count(),
+        "workers": args.workers, "hip_rate_hz": args.hip_rate,
+        "spectators_per_room": args.load_spectators, "seconds_per_step": float(args.load_seconds),
+        "load_average_before": list(load_before), **series,
+    }
+    if _write_json(result, getattr(args, "json", None)):
+        print(json.dumps(result, indent=2))
+    else:
+        print(_held_line(f"{args.workers} processes", series["held"]))
     return 0
 
 
@@ -662,23 +698,31 @@ def _redis_flush(url: str) -> None:
         r.close()
 
 
-def _load_series(args: argparse.Namespace, n_hosts: int, redis_url: str) -> dict[str, Any]:
-    """Rooms added one at a time to ``n_hosts`` hosts until a target is missed."""
+def _load_series(args: argparse.Namespace, n_hosts: int, directory: str,
+                 shared_port: int | None = None) -> dict[str, Any]:
+    """Rooms added one at a time to ``n_hosts`` hosts sharing the room ``directory`` until a
+    target is missed; with ``shared_port`` they are one host's processes on that port and
+    rooms are asked of it (as clients of `clothball host --workers` reach them)."""
     seconds = float(args.load_seconds)
     base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
             "--server-backend", args.server_backend, "--hip-rate", str(args.hip_rate),
             "--load-spectators", str(args.load_spectators)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    shared = ["--shared-port", str(shared_port)] if shared_port is not None else []
     servers = [subprocess.Popen([*base, "--role", "server", "--no-room", "--directory",
-                                 redis_url], stdout=subprocess.PIPE, text=True, env=env)
+                                 directory, *shared, *_loop_flag(args)],
+                                stdout=subprocess.PIPE, text=True, env=env)
                for _ in range(n_hosts)]
     clients: list[subprocess.Popen[str]] = []
     steps: list[dict[str, Any]] = []
     try:
         infos = [_server_info(s) for s in servers]
-        entry = infos[0][2]  # rooms are asked of the first host, which places them
+        # Rooms are asked of the first host (or the shared port), which places them.
+        entry = infos[0][2] if shared_port is None else f"ws://127.0.0.1:{shared_port}/ws"
         time.sleep(1.5)  # every host has read the others from the directory
-        print(f"load bench, {n_hosts} host{'s' if n_hosts > 1 else ''} in a cluster: rooms "
+        what = (f"{n_hosts} server processes on one port" if shared_port is not None
+                else f"{n_hosts} host{'s' if n_hosts > 1 else ''} in a cluster")
+        print(f"load bench, {what}: rooms "
               f"of 4 players x {args.hip_rate:g} Hz HIP + {args.load_spectators} spectators, "
               f"{seconds:g} s a step, n={args.server_n}, backend {infos[0][0]['backend']}, "
               f"event loop {infos[0][0].get('loop')}, {os.cpu_count()} CPUs shared by hosts "
@@ -694,7 +738,8 @@ def _load_series(args: argparse.Namespace, n_hosts: int, redis_url: str) -> dict
             step["rooms_per_host"] = [len(s["rooms"]) for s in s1]
             step["clients_cpu_cores"] = (_cpu_seconds(clients) - c0) / (time.perf_counter() - w0)
             steps.append(step)
-            print(f"{n_hosts}h " + _load_line(step), file=sys.stderr, flush=True)
+            tag = "p" if shared_port is not None else "h"  # processes of one host, or hosts
+            print(f"{n_hosts}{tag} " + _load_line(step), file=sys.stderr, flush=True)
             if not step["met"]:
                 break
     finally:

@@ -58,3 +58,32 @@ def test_load_bench_over_a_cluster_places_rooms_on_every_host(tmp_path) -> None:
     if len(two) == 2:
         assert sorted(two[1]["rooms_per_host"]) == [1, 1]
     assert "2 hosts: held" in out.stdout
+
+
+@pytest.mark.slow
+def test_load_bench_over_two_processes_on_one_port_spreads_the_rooms(tmp_path) -> None:
+    dest = tmp_path / "workers.json"
+    out = subprocess.run(
+        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--workers", "2",
+         "--load-seconds", "1", "--load-max-rooms", "2", "--server-n", "12", "--hip-rate", "50",
+         "--load-spectators", "1", "--json", str(dest)],
+        capture_output=True, text=True, timeout=240, check=True,
+    )
+    r = json.loads(dest.read_text())
+    assert r["workers"] == 2 and r["n"] == 12
+    for i, step in enumerate(r["steps"], start=1):
+        assert step["rooms"] == i and step["clients"] == 5 * i
+        assert len(step["rooms_per_host"]) == 2 and sum(step["rooms_per_host"]) == i
+        assert step["messages_in_per_s"] > 0
+    # Rooms asked through the shared port go to the least-loaded process.
+    if len(r["steps"]) == 2:
+        assert sorted(r["steps"][1]["rooms_per_host"]) == [1, 1]
+    assert "2 server processes on one port" in out.stderr
+
+
+def test_load_bench_refuses_fewer_than_one_worker() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--workers", "0"],
+        capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "--workers must be at least 1" in out.stderr
+    assert "Traceback" not in out.stderr
