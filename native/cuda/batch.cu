@@ -51,13 +51,53 @@ __global__ void batch_finish(Params<R> p, const SlotDev<R>* __restrict__ table, 
                     int(threadIdx.x));
 }
 
+// A whole frame for every slot, a block a slot, where a slot's two state buffers fit in
+// shared memory (CudaBatch::fused_bytes): the slot's current buffer is copied in, the
+// substeps alternate between the two copies and meet at a block barrier instead of a launch
+// boundary, every neighbour read is on chip, and the result is copied to the global buffer
+// the frame ends in (the one the per-substep launches would have written last). Each
+// substep is se_substep_body over the slot's nodes as one block of one (the lone cloth's
+// arithmetic per node); the frame's end is batch_finish's.
+template <class R, unsigned E>
+__global__ void __launch_bounds__(kFusedBlock)
+    batch_frame(Params<R> p, const SlotDev<R>* __restrict__ table, int substeps, int b0,
+                R dt) {
+  follow_previous_launch();
+  extern __shared__ unsigned char shared_bytes[];
+  R* sh = reinterpret_cast<R*>(shared_bytes);
+  const SlotDev<R>& s = table[blockIdx.x];
+  const int N = p.n * p.n, t = int(threadIdx.x);
+  const size_t planes = 6 * size_t(N);
+  const R* __restrict__ in = s.state[b0];
+  for (size_t q = size_t(t); q < planes; q += blockDim.x) sh[q] = in[q];
+  __syncthreads();
+  int b = b0, c = 0;  // the buffer the slot's ball goes with; the shared copy read
+  for (int k = 0; k < substeps; ++k) {
+    const SubstepBall<R> sb = substep_ball_at(s.ball[b], s.ball[1 - b], s.ring, s.ctl, k);
+    se_substep_body<R, E>(p, dev_buf(sh + planes * size_t(c), N),
+                          dev_buf(sh + planes * size_t(1 - c), N), s.fin, sb, s.nonfinite, dt,
+                          0, 1);
+    __syncthreads();  // the substep's nodes, ball and sums are written
+    b = 1 - b;
+    c = 1 - c;
+  }
+  R* __restrict__ out = s.state[b];
+  for (size_t q = size_t(t); q < planes; q += blockDim.x) out[q] = sh[planes * size_t(c) + q];
+  __syncthreads();
+  if (t < 32) {
+    const int k = (E & BALL) != 0 ? substeps : 0;
+    const SubstepBall<R> sb = substep_ball_at(s.ball[b], s.ball[1 - b], s.ring, s.ctl, k);
+    finish_body<R, E & BALL>(p, dev_buf(out, N), sb, s.nonfinite, dt, s.readback, t);
+  }
+}
+
 template <class R>
 struct BatchEntry {
   template <unsigned E>
   struct At {
     // The frame's end depends on the set only through the ball (as cloth.cu).
     static constexpr BatchKernels<R> fn{&batch_load<R>, &batch_substep<R, E>,
-                                        &batch_finish<R, E & BALL>};
+                                        &batch_finish<R, E & BALL>, &batch_frame<R, E>};
   };
 };
 

@@ -434,8 +434,12 @@ class CudaBatch final : public BatchStepper {
         group_(group_size(first)),
         overlap_(first.overlap_launches_),
         kernels_(batch_kernel_table<R>()[first.effects_ & (kNumEffectSets - 1)]),
+        fused_bytes_(fused_bytes(first.N_)),
         cloths_(size_t(capacity), nullptr) {
     const size_t cap = size_t(capacity);
+    if (fused_bytes_ > 0)
+      CB_CUDA(cudaFuncSetAttribute(kernels_.frame, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                   int(fused_bytes_)));
     CB_CUDA(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
     CB_CUDA(cudaMalloc(&table_, sizeof(SlotDev<R>) * cap));
     CB_CUDA(cudaHostAlloc(&fin_host_, sizeof(FrameInputs<R>) * cap, cudaHostAllocMapped));
@@ -529,6 +533,24 @@ class CudaBatch final : public BatchStepper {
     CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
     launch_kernel(stream_, false, kernels_.load, unsigned((m + kBlock - 1) / kBlock),
                   unsigned(kBlock), t, m);
+    if (fused_bytes_ > 0) {  // the whole frame in one launch, a block a slot
+      cudaLaunchConfig_t cfg{};
+      cfg.gridDim = dim3(unsigned(m));
+      cfg.blockDim = dim3(unsigned(kFusedBlock));
+      cfg.dynamicSmemBytes = fused_bytes_;
+      cfg.stream = stream_;
+      cudaLaunchAttribute attr{};
+      attr.id = cudaLaunchAttributeProgrammaticStreamSerialization;
+      attr.val.programmaticStreamSerializationAllowed = 1;
+      cfg.attrs = &attr;
+      cfg.numAttrs = overlap_ ? 1 : 0;
+      CB_CUDA(cudaLaunchKernelEx(&cfg, kernels_.frame, p_, t, substeps, b0, dt));
+      CB_CUDA(cudaStreamEndCapture(stream_, &graph));
+      cudaGraphExec_t exec;
+      CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
+      CB_CUDA(cudaGraphDestroy(graph));
+      return exec;
+    }
     const int group = group_ > 0 ? group_ : m;
     for (int g0 = 0; g0 < m; g0 += group) {
       const int mg = std::min(group, m - g0);
@@ -572,6 +594,19 @@ class CudaBatch final : public BatchStepper {
     return std::max(1, std::min(std::min(node_blocks, resident_blocks_), std::max(fewest, fill)));
   }
 
+  // Shared memory for a slot's two state buffers (12 planes of N) where they fit in one
+  // block's and CLOTHBALL_CUDA_BATCH_FUSED is not 0 (to measure against the launches a
+  // substep); 0: a launch a substep. On an H100 float32 fits up to n = 69.
+  static size_t fused_bytes(int N) {
+    const char* env = std::getenv("CLOTHBALL_CUDA_BATCH_FUSED");
+    if (env && std::atoi(env) == 0) return 0;
+    int dev = 0, optin = 0;
+    CB_CUDA(cudaGetDevice(&dev));
+    CB_CUDA(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, dev));
+    const size_t bytes = sizeof(R) * 12 * size_t(N);
+    return bytes <= size_t(optin) ? bytes : 0;
+  }
+
   static int group_size(const CudaCloth<R>& c) {
     const char* env = std::getenv("CLOTHBALL_CUDA_BATCH_GROUP");
     if (env) return std::max(0, std::atoi(env));
@@ -589,6 +624,7 @@ class CudaBatch final : public BatchStepper {
   const int group_;   // slots stepped through a frame's substeps together (0: all)
   const bool overlap_;
   const BatchKernels<R> kernels_;
+  const size_t fused_bytes_;  // > 0: the frame in one launch (batch_frame), else a launch a substep
   std::vector<CudaCloth<R>*> cloths_;  // by slot; null: not attached
   cudaStream_t stream_ = nullptr;
   SlotDev<R>* table_ = nullptr;        // the stepped slots (built_), on the device

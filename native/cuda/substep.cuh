@@ -278,13 +278,18 @@ struct SlotDev {
   R* readback;                    // its row (kReadback values) of the mapped read-back
 };
 
+// Threads of the fused frame's block (one block a slot, its state in shared memory).
+constexpr int kFusedBlock = 1024;
+
 // The batch's kernels for one effect set. `b` is the table's buffer (0 or 1) a launch
-// reads; the substep runs `blocks` blocks a slot, slot-major.
+// reads; the substep runs `blocks` blocks a slot, slot-major; `frame` runs a whole frame,
+// a block a slot (substeps, then the frame's end).
 template <class R>
 struct BatchKernels {
   void (*load)(const SlotDev<R>*, int);
   void (*substep)(Params<R>, const SlotDev<R>*, int, int, int, R);
   void (*finish)(Params<R>, const SlotDev<R>*, int, int, R);
+  void (*frame)(Params<R>, const SlotDev<R>*, int, int, R);
 };
 
 // One entry per effect set, as cloth.cu's kernel table (defined in cuda/batch.cu, once per
