@@ -462,6 +462,18 @@ def _start_room(base: list[str], ws: str, env: dict[str, str]) -> subprocess.Pop
     return proc
 
 
+def _stop_clients(clients: list[subprocess.Popen[str]]) -> None:
+    """Ends the rooms' client processes (their stdin closing is their signal)."""
+    for proc in clients:
+        if proc.stdin is not None:
+            proc.stdin.close()
+    for proc in clients:
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
 def run_load(args: argparse.Namespace) -> int:
     """Add rooms one at a time until a target is missed; print (or --json) every step."""
     if getattr(args, "cluster", False):
@@ -504,14 +516,7 @@ def run_load(args: argparse.Namespace) -> int:
             if not step["met"]:
                 break
     finally:
-        for proc in clients:
-            if proc.stdin is not None:
-                proc.stdin.close()
-        for proc in clients:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        _stop_clients(clients)
         _stop_server(server)
     held = [s for s in steps if s["met"]]
     result = {
@@ -743,14 +748,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str,
             if not step["met"]:
                 break
     finally:
-        for proc in clients:
-            if proc.stdin is not None:
-                proc.stdin.close()
-        for proc in clients:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        _stop_clients(clients)
         for s in servers:
             _stop_server(s)
     held = [s for s in steps if s["met"]]
