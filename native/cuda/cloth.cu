@@ -534,36 +534,24 @@ class CudaBatch final : public BatchStepper {
     launch_kernel(stream_, false, kernels_.load, unsigned((m + kBlock - 1) / kBlock),
                   unsigned(kBlock), t, m);
     if (fused_bytes_ > 0) {  // the whole frame in one launch, a block a slot
-      cudaLaunchConfig_t cfg{};
-      cfg.gridDim = dim3(unsigned(m));
-      cfg.blockDim = dim3(unsigned(kFusedBlock));
-      cfg.dynamicSmemBytes = fused_bytes_;
-      cfg.stream = stream_;
-      cudaLaunchAttribute attr{};
-      attr.id = cudaLaunchAttributeProgrammaticStreamSerialization;
-      attr.val.programmaticStreamSerializationAllowed = 1;
-      cfg.attrs = &attr;
-      cfg.numAttrs = overlap_ ? 1 : 0;
-      CB_CUDA(cudaLaunchKernelEx(&cfg, kernels_.frame, p_, t, substeps, b0, dt));
-      CB_CUDA(cudaStreamEndCapture(stream_, &graph));
-      cudaGraphExec_t exec;
-      CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
-      CB_CUDA(cudaGraphDestroy(graph));
-      return exec;
-    }
-    const int group = group_ > 0 ? group_ : m;
-    for (int g0 = 0; g0 < m; g0 += group) {
-      const int mg = std::min(group, m - g0);
-      int b = b0;
-      for (int k = 0; k < substeps; ++k) {
-        const int blocks = slot_blocks(mg);
-        launch_kernel(stream_, overlap_, kernels_.substep, unsigned(mg) * unsigned(blocks),
-                      unsigned(kBlock), p_, t + g0, blocks, k, b, dt);
-        b = 1 - b;
+      launch_kernel_shared(stream_, overlap_, fused_bytes_, kernels_.frame, unsigned(m),
+                           unsigned(kFusedBlock), p_, t, substeps, b0, dt);
+    } else {
+      const int group = group_ > 0 ? group_ : m;
+      for (int g0 = 0; g0 < m; g0 += group) {
+        const int mg = std::min(group, m - g0);
+        int b = b0;
+        for (int k = 0; k < substeps; ++k) {
+          const int blocks = slot_blocks(mg);
+          launch_kernel(stream_, overlap_, kernels_.substep, unsigned(mg) * unsigned(blocks),
+                        unsigned(kBlock), p_, t + g0, blocks, k, b, dt);
+          b = 1 - b;
+        }
       }
+      const int b = substeps % 2 ? 1 - b0 : b0;
+      launch_kernel(stream_, overlap_, kernels_.finish, unsigned(m), 32u, p_, t, substeps, b,
+                    dt);
     }
-    const int b = substeps % 2 ? 1 - b0 : b0;
-    launch_kernel(stream_, overlap_, kernels_.finish, unsigned(m), 32u, p_, t, substeps, b, dt);
     CB_CUDA(cudaStreamEndCapture(stream_, &graph));
     cudaGraphExec_t exec;
     CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));

@@ -247,12 +247,14 @@ __device__ __forceinline__ void finish_body(const Params<R>& p, const DevBuf<R>&
 
 // A launch into a frame's graph that may overlap the one before it (see
 // follow_previous_launch); an ordinary launch where `overlap` is off.
+// `shared`: the launch's dynamic shared memory in bytes.
 template <class... Ps, class... As>
-void launch_kernel(cudaStream_t stream, bool overlap, void (*kernel)(Ps...), unsigned grid,
-                   unsigned block, As&&... args) {
+void launch_kernel_shared(cudaStream_t stream, bool overlap, size_t shared,
+                          void (*kernel)(Ps...), unsigned grid, unsigned block, As&&... args) {
   cudaLaunchConfig_t cfg{};
   cfg.gridDim = dim3(grid);
   cfg.blockDim = dim3(block);
+  cfg.dynamicSmemBytes = shared;
   cfg.stream = stream;
   cudaLaunchAttribute attr{};
   attr.id = cudaLaunchAttributeProgrammaticStreamSerialization;
@@ -260,6 +262,12 @@ void launch_kernel(cudaStream_t stream, bool overlap, void (*kernel)(Ps...), uns
   cfg.attrs = &attr;
   cfg.numAttrs = overlap ? 1 : 0;
   CB_CUDA(cudaLaunchKernelEx(&cfg, kernel, std::forward<As>(args)...));
+}
+
+template <class... Ps, class... As>
+void launch_kernel(cudaStream_t stream, bool overlap, void (*kernel)(Ps...), unsigned grid,
+                   unsigned block, As&&... args) {
+  launch_kernel_shared(stream, overlap, 0, kernel, grid, block, std::forward<As>(args)...);
 }
 
 // --- The batch: every slot of a ClothBatch in one launch (cuda/batch.cu) ----------------
