@@ -1,7 +1,8 @@
 """Three ``clothball host --cluster redis://...`` processes on loopback with a real Redis
 (started here on a free port): one lobby over all hosts, rooms placed on the least-loaded
 host, joins and watches followed across hosts, a host killed with SIGKILL leaving the
-directory within the TTL while the others run on, and Redis stopped and restarted."""
+directory within the TTL while the others run on, Redis stopped and restarted, and the
+killed host restarted, joining again."""
 
 from __future__ import annotations
 
@@ -196,6 +197,12 @@ def test_three_hosts_one_lobby_placement_redirects_and_failures(tmp_path) -> Non
             assert {r: back[r] for r in alive} == alive
             reply = await la.request("list_rooms")
             assert "directory_error" not in reply and back[main_b] == b.url
+            # Host c restarted (its data directory as before) joins again: its show room is
+            # listed from the others, and none of the dead process's rooms comes back.
+            c2 = await asyncio.to_thread(stack.enter_context,
+                                         cluster_host(tmp_path, "c", redis, "--bots", "4"))
+            again = await wait_listing(la, lambda h: c2.url in h.values(), "c back")
+            assert not (c_rooms & set(again))
             for cl in (la, maker, watcher_b):
                 await cl.close()
 
