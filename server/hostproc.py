@@ -1,12 +1,16 @@
-"""A ``clothball host`` in a process of its own, for the benches that must not share an
-interpreter with the server they measure (``--empty-rooms``, ``--soak``, ``--admit``)."""
+"""Processes around a server: a ``clothball host`` of its own, for the benches that must
+not share an interpreter with the server they measure (``--empty-rooms``, ``--soak``,
+``--admit``); a free port and a Redis of its own on one (``bench --load --cluster`` and the
+cluster tests); reading a server's HTTP API."""
 
 from __future__ import annotations
 
 import json
 import re
+import socket
 import subprocess
 import sys
+import time
 import urllib.request
 from pathlib import Path
 from typing import Any
@@ -32,14 +36,59 @@ def http_base(ws_url: str) -> str:
     return ws_url.replace("ws://", "http://", 1)[: -len("/ws")]
 
 
-def get(url: str, timeout: float = 30.0) -> bytes:
-    with urllib.request.urlopen(url, timeout=timeout) as r:
+def get(url: str, timeout: float = 30.0, token: str | None = None) -> bytes:
+    """GET ``url``; ``token``: the host's (``/api/stats?reset=1`` needs it)."""
+    req = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"} if token
+                                 else {})
+    with urllib.request.urlopen(req, timeout=timeout) as r:
         return r.read()
+
+
+def get_json(url: str, token: str | None = None) -> Any:
+    return json.loads(get(url, timeout=10.0, token=token))
 
 
 def stats(ws_url: str) -> dict[str, Any]:
     """The server's ``/api/stats``."""
-    return json.loads(get(f"{http_base(ws_url)}/api/stats", timeout=10.0))
+    return get_json(f"{http_base(ws_url)}/api/stats")
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` now (IPv4 or IPv6)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def wait_port(port: int, what: str, timeout: float = 20.0) -> None:
+    """Until something listens on ``port`` of 127.0.0.1; ``RuntimeError`` naming ``what``
+    after ``timeout`` s."""
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return
+        except OSError:
+            if time.monotonic() > end:
+                raise RuntimeError(f"{what} did not start on port {port}") from None
+            time.sleep(0.05)
+
+
+def start_redis(redis_server: str, port: int, workdir: Path | str) -> subprocess.Popen[bytes]:
+    """``redis-server`` on 127.0.0.1:``port``, nothing persisted (its files in ``workdir``),
+    started and answering."""
+    proc = subprocess.Popen(
+        [redis_server, "--port", str(port), "--bind", "127.0.0.1", "--save", "",
+         "--appendonly", "no", "--dir", str(workdir)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_port(port, "redis-server")
+    except RuntimeError:
+        proc.kill()
+        proc.wait()
+        raise
+    return proc
 
 
 def stop_host(proc: subprocess.Popen[str]) -> None:

@@ -38,13 +38,13 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import loops
+from .hostproc import free_port, get_json, start_redis
 
 TARGET_LATENCY_P99_MS = 5.0
 TARGET_LATENESS_P99_MS = 5.0
@@ -263,14 +263,6 @@ def _stop_server(server: subprocess.Popen[str]) -> None:
         server.kill()
 
 
-def _get(url: str, token: str | None = None) -> Any:
-    """GET ``url`` as JSON; ``token``: the host's (``/api/stats?reset=1`` needs it)."""
-    req = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"} if token
-                                 else {})
-    with urllib.request.urlopen(req, timeout=10) as r:
-        return json.loads(r.read())
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the whole bench (server, spectators and players) and print the figures."""
     role = getattr(args, "role", "bench")
@@ -309,9 +301,9 @@ def run(args: argparse.Namespace) -> int:
             assert spect.stdout is not None
             json.loads(spect.stdout.readline())  # connected
         players = asyncio.run(_play(ws, info["room"], args.players, args.hip_rate, seconds,
-                                    lambda: _get(f"{http}/api/stats?reset=1", info["token"])))
+                                    lambda: get_json(f"{http}/api/stats?reset=1", info["token"])))
         stats0, t0 = players.pop("stats0"), players.pop("t0")
-        stats1 = _get(f"{http}/api/stats")
+        stats1 = get_json(f"{http}/api/stats")
         dt = time.perf_counter() - t0
         spec_out = {"rates": [], "cpu": 0.0}
         if spect is not None:
@@ -504,10 +496,10 @@ def run_load(args: argparse.Namespace) -> int:
               f"{os.cpu_count()} CPUs, load average {load_before[0]:.2f}", file=sys.stderr)
         for rooms in range(1, args.load_max_rooms + 1):
             clients.append(_start_room(base, ws, env))
-            s0 = _get(f"{http}/api/stats?reset=1", info["token"])
+            s0 = get_json(f"{http}/api/stats?reset=1", info["token"])
             c0, w0 = _cpu_seconds(clients), time.perf_counter()
             time.sleep(seconds)
-            s1 = _get(f"{http}/api/stats")
+            s1 = get_json(f"{http}/api/stats")
             step = _load_step(rooms, s0, s1, args)
             # The clients share the machine with the server: what they cost is reported.
             step["clients_cpu_cores"] = (_cpu_seconds(clients) - c0) / (time.perf_counter() - w0)
@@ -591,14 +583,6 @@ def _load_line(s: dict[str, Any]) -> str:
 # --- clothball bench --load --cluster -----------------------------------------------------------
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def run_load_cluster(args: argparse.Namespace) -> int:
     """``run_load`` over 1, 2 and 3 hosts (``--cluster-hosts``) joined through a Redis of
     the bench's own; print (or --json) every step of each."""
@@ -617,14 +601,10 @@ def run_load_cluster(args: argparse.Namespace) -> int:
         print(f"clothball bench: --cluster-hosts must be numbers of hosts like 1,2,3, got "
               f"{args.cluster_hosts!r}", file=sys.stderr)
         return 2
-    port = _free_port()
+    port = free_port()
     with tempfile.TemporaryDirectory(prefix="clothball-bench-redis-") as rdir:
-        redis = subprocess.Popen(
-            [redis_bin, "--port", str(port), "--bind", "127.0.0.1", "--save", "",
-             "--appendonly", "no", "--dir", rdir],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        redis = start_redis(redis_bin, port, rdir)
         try:
-            _wait_port(port)
             url = f"redis://127.0.0.1:{port}/0"
             load_before = os.getloadavg()
             series = {}
@@ -665,7 +645,7 @@ def run_load_workers(args: argparse.Namespace) -> int:
     directory, as ``clothball host --workers N`` runs them."""
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="clothball-bench-workers-") as d:
-        series = _load_series(args, args.workers, str(Path(d) / "rooms.sqlite"), _free_port())
+        series = _load_series(args, args.workers, str(Path(d) / "rooms.sqlite"), free_port())
     result = {
         "n": args.server_n, "backend": args.server_backend, "cpus": os.cpu_count(),
         "workers": args.workers, "hip_rate_hz": args.hip_rate,
@@ -677,20 +657,6 @@ def run_load_workers(args: argparse.Namespace) -> int:
     else:
         print(_held_line(f"{args.workers} processes", series["held"]))
     return 0
-
-
-def _wait_port(port: int, timeout: float = 20.0) -> None:
-    import socket
-
-    end = time.monotonic() + timeout
-    while True:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-            return
-        except OSError:
-            if time.monotonic() > end:
-                raise RuntimeError(f"redis-server did not start on port {port}") from None
-            time.sleep(0.05)
 
 
 def _redis_flush(url: str) -> None:
@@ -734,10 +700,10 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str,
               "and clients", file=sys.stderr)
         for rooms in range(1, args.load_max_rooms + 1):
             clients.append(_start_room(base, entry, env))
-            s0 = [_get(f"{http}/api/stats?reset=1", info["token"]) for info, http, _ in infos]
+            s0 = [get_json(f"{http}/api/stats?reset=1", info["token"]) for info, http, _ in infos]
             c0, w0 = _cpu_seconds(clients), time.perf_counter()
             time.sleep(seconds)
-            s1 = [_get(f"{http}/api/stats") for _, http, _ in infos]
+            s1 = [get_json(f"{http}/api/stats") for _, http, _ in infos]
             step = _load_step(rooms, _merged(s0), _merged(s1), args)
             step["hosts"] = n_hosts
             step["rooms_per_host"] = [len(s["rooms"]) for s in s1]

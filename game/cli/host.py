@@ -30,6 +30,7 @@ from typing import Any
 from ...server import loops
 from ...server.app import GameServer, default_data_dir
 from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
+from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ..sim.scene import Scene, SceneError, available
 from .args import FIRST_TO, PORT, WORKERS, postgres_url, redis_url, ws_url
@@ -209,13 +210,6 @@ def run(args: argparse.Namespace) -> int:
     return supervise(args, workers)
 
 
-def _free_port(host: str) -> int:
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
-
-
 class _Worker:
     """One server process of the supervisor: started, its ready line read, its later output
     passed on."""
@@ -253,7 +247,7 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
     if _check(args) is None:
         return 2
     try:
-        port = args.port or _free_port(args.host)
+        port = args.port or free_port(args.host)
     except OSError as e:
         print(f"clothball host: cannot listen on {args.host}: {e.strerror}")
         return 1

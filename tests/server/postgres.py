@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from tests.server.test_cluster import free_port
+from clothball.server.hostproc import free_port
 
 
 def _bin_dir() -> Path | None:

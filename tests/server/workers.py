@@ -24,7 +24,6 @@ import os
 import pickle
 import re
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -38,6 +37,7 @@ from typing import Any
 
 from clothball.game.cli.host import DIRECTORY_FILE
 from clothball.server.directory import PUBLISH_S, SqliteDirectory
+from clothball.server.hostproc import free_port
 
 WORKERS = int(os.environ.get("CLOTHBALL_TEST_WORKERS", "1") or "1")
 if WORKERS not in (1, 2):
@@ -84,12 +84,6 @@ def starts_a_server(fn: Any) -> bool:
 
 WORKER_PROC = Path(__file__).with_name("worker_proc.py")
 FIRST_ID, SECOND_ID = "test-worker-0", "test-worker-1"  # their host ids in the directory
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class SecondWorker:
