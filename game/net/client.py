@@ -437,8 +437,7 @@ class NetClient:
                     m = find()
                     if m is not None:
                         return m
-                    # The reader, or while a host gone away is left, that move.
-                    task = self._reader if self._reader is not None else self._gone
+                    task = self._live_task()
                     if task is not None and task.done():
                         raise ConnectionError(
                             f"connection closed ({self.close_code} {self.close_reason})")
@@ -455,16 +454,21 @@ class NetClient:
             timeout, since,
         )
 
+    def _live_task(self) -> asyncio.Task[None] | None:
+        """What keeps this client going: its reader, or while a host gone away is left,
+        that move (``_host_went_away``)."""
+        return self._reader if self._reader is not None else self._gone
+
     async def wait_closed(self, timeout: float = 10.0) -> None:
         """Until the connection is closed for good: a redirect's or a gone host's move to
         another connection is waited through."""
         async def waiting() -> None:
             while True:
-                task = self._reader if self._reader is not None else self._gone
+                task = self._live_task()
                 if task is None:
                     return
                 await asyncio.shield(task)
-                if (self._reader if self._reader is not None else self._gone) is task:
+                if self._live_task() is task:
                     return  # it ended and nothing took over
 
         await asyncio.wait_for(waiting(), timeout)
