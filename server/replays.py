@@ -930,7 +930,6 @@ class Storage:
         if self.db is None:
             return ReplayStore(self.dir, **kw)
         assert self.host_url is not None, "Storage.host_url is needed with a shared index"
-        kw.pop("lock_wait_s", None)
         return PostgresReplayStore(self.dir, self.db, host=self.host_url, **kw)
 
     @property
