@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import pytest
 from clothball.game.sim.scene import Scene
 from clothball.server.room import RoomSettings
 from clothball.server.thread import ServerThread
@@ -66,6 +67,16 @@ def make_driver(width: int = 1280, height: int = 800, *, mobile: bool = False) -
     drv = webdriver.Chrome(service=Service(driver), options=opts)
     drv.set_script_timeout(60)
     return drv
+
+
+@pytest.fixture(scope="module")
+def driver() -> Iterator[Any]:
+    """A headless Chromium of 1100 x 720 for a test module's pages (``make_driver``)."""
+    d = make_driver(1100, 720)
+    try:
+        yield d
+    finally:
+        d.quit()
 
 
 def console_errors(driver: Any) -> list[dict[str, Any]]:

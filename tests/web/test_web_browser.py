@@ -51,15 +51,6 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerThread]:
         yield st
 
 
-@pytest.fixture(scope="module")
-def driver() -> Iterator[Any]:
-    d = make_driver(1100, 720)
-    try:
-        yield d
-    finally:
-        d.quit()
-
-
 def js(driver: Any, script: str, *args: Any) -> Any:
     return driver.execute_script(script, *args)
 

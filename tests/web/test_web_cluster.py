@@ -9,26 +9,14 @@ Skipped only when chromium or chromedriver is not installed (CI installs both).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from typing import Any
-
 import pytest
 from clothball.server.directory import SqliteDirectory
 
-from tests.web.conftest import console_errors, find_browser, make_driver, wait_for, web_server
+from tests.web.conftest import console_errors, find_browser, wait_for, web_server
 from tests.web.test_web_browser import SCENE, SETTINGS, js, open_page
 
 _, _, WHY = find_browser()
 pytestmark = pytest.mark.skipif(bool(WHY), reason=WHY or "browser present")
-
-
-@pytest.fixture()
-def driver() -> Iterator[Any]:
-    d = make_driver(1100, 720)
-    try:
-        yield d
-    finally:
-        d.quit()
 
 
 def test_page_follows_a_room_to_another_host_and_hears_when_it_goes(tmp_path, driver) -> None:
