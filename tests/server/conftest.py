@@ -16,6 +16,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
+import pytest
 from clothball.game.sim.scene import Scene
 from clothball.server.app import GameServer
 from clothball.server.limits import Limits
@@ -40,8 +41,11 @@ def run(coro: Awaitable[T], timeout: float = 90.0) -> T:
 
 
 @contextlib.asynccontextmanager
-async def server(data: Path, *, bots: int = 0, settings: RoomSettings | None = None,
-                 **kw: Any) -> AsyncIterator[GameServer]:
+async def _one_process_server(data: Path, *, bots: int = 0,
+                              settings: RoomSettings | None = None, **kw: Any
+                              ) -> AsyncIterator[GameServer]:
+    """A started server (scene TINY, CPU, port 0) in this process; ``server`` (below) is
+    the tests' entry, with a second process when asked for."""
     kw["limits"] = no_admission(kw.get("limits"))
     srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", host="127.0.0.1", port=0,
                      bots=bots, room_settings=settings or RoomSettings(), **kw)
@@ -140,7 +144,9 @@ class LiveServer:
 
 
 @contextlib.contextmanager
-def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
+def _one_process_live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
+    """A server on a thread of its own, its errors collected; ``live_server`` (below) is
+    the tests' entry, with a second process when asked for."""
     errors = ErrorLog()
     # The server's loggers only: a test's own clients log under websockets.client.
     loggers = [logging.getLogger("clothball"), logging.getLogger("websockets.server")]
@@ -161,12 +167,8 @@ def live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
 
 
 # --- CLOTHBALL_TEST_WORKERS=2: the server as the first of two processes sharing one port ---
-# (tests/server/workers.py says how). server() and live_server() above, wrapped.
-
-import pytest  # noqa: E402  (used only by this section)
-
-_one_process_server = server
-_one_process_live_server = live_server
+# (tests/server/workers.py says how): server() and live_server(), the tests' entries, over
+# _one_process_server() and _one_process_live_server() above.
 
 
 def _as_given(kw: dict[str, Any]) -> dict[str, Any]:
