@@ -38,7 +38,7 @@ import struct
 import sys
 import time
 import urllib.parse
-from typing import Any
+from typing import Any, cast
 
 from ..game.wire import protocol as P
 
@@ -102,8 +102,8 @@ class Conn(asyncio.Protocol):
 
     # --- asyncio.Protocol --------------------------------------------------------------
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
+        # a stream transport (uvloop's is not an asyncio.Transport subclass, hence the cast)
+        self.transport = cast(asyncio.Transport, transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.lost = True
