@@ -144,17 +144,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
 # --- the server process ------------------------------------------------------------------------
 
 
-async def _serve(args: argparse.Namespace) -> None:
+def bench_scene(args: argparse.Namespace) -> Any:
+    """The bench rooms' scene: ``--scene`` (default classic) with ``--server-n`` nodes a side
+    (default: 64 on classic, else the scene's own). ``SceneError`` when there is none such."""
     from ..game.sim.scene import Scene
+
+    scene = Scene.load(getattr(args, "scene", None) or "classic")
+    n = args.server_n if args.server_n is not None else (
+        None if getattr(args, "scene", None) else 64)
+    return scene if n is None else scene.with_changes({"cloth": {"n": n}})
+
+
+async def _serve(args: argparse.Namespace) -> None:
     from .app import GameServer
     from .limits import Limits
     from .room import RoomSettings
 
     sys.setswitchinterval(0.0005)
-    scene = Scene.load(args.scene or "classic")
-    n = args.server_n or (None if args.scene else 64)
-    if n:
-        scene = scene.with_changes({"cloth": {"n": n}})
+    scene = bench_scene(args)
     scene_name, scene.name = scene.name, "bench"
     cluster: dict[str, Any] = {}
     if getattr(args, "directory", None):  # a host of --load --cluster, or a --workers process
@@ -468,6 +475,12 @@ def load_arg_error(args: argparse.Namespace) -> str | None:
     if args.corner_rate is not None and bad(args.corner_rate, 1.0, 1000.0):
         return (f"--corner-rate must be 1 to 1000 (CORNER messages a second a player asks, "
                 f"as join's corner_rate), got {args.corner_rate:g}")
+    from ..game.sim.scene import SceneError
+
+    try:
+        bench_scene(args)
+    except SceneError as e:
+        return f"--scene, --server-n: {e}"
     if not getattr(args, "load", False):
         return None
     if args.workers < 1:
@@ -571,8 +584,14 @@ def run_load(args: argparse.Namespace) -> int:
     if err is not None:
         print(f"clothball bench: {err}", file=sys.stderr)
         return 2
-    if getattr(args, "cluster", False):
-        return run_load_cluster(args)
+    try:
+        return run_load_cluster(args) if getattr(args, "cluster", False) else _run_load(args)
+    except (OSError, RuntimeError, ValueError) as e:  # a server or client process gone
+        print(f"clothball bench --load: stopped: {e}", file=sys.stderr)
+        return 1
+
+
+def _run_load(args: argparse.Namespace) -> int:
     load_before = os.getloadavg()
     if args.workers > 1:
         with tempfile.TemporaryDirectory(prefix="clothball-bench-workers-") as d:
@@ -715,7 +734,7 @@ def _counts_text(counts: list[int]) -> str:
 
 def _scene_flags(args: argparse.Namespace) -> list[str]:
     out = ["--scene", args.scene] if getattr(args, "scene", None) else []
-    return out + (["--server-n", str(args.server_n)] if args.server_n else [])
+    return out + (["--server-n", str(args.server_n)] if args.server_n is not None else [])
 
 
 def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],

@@ -18,6 +18,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from clothball.game import cli
 from clothball.game.wire import protocol as P
 from clothball.server import leanclient, loadbench
 from clothball.server.room import Room
@@ -173,12 +174,23 @@ def test_load_bench_over_two_processes_on_one_port_spreads_the_rooms(tmp_path) -
     (["--lateness-target", "-2"], "--lateness-target must be a number of milliseconds"),
     (["--steps-past", "-1"], "--steps-past must be 0 or more"),
     (["--client-procs", "0"], "--client-procs must be at least 1"),
+    (["--scene", "nosuch"], "--scene, --server-n: scene 'nosuch': no such scene"),
+    (["--server-n", "1"], "--scene, --server-n: cloth.n: must be >= 2"),
 ])
-def test_load_bench_refuses_bad_flags_in_one_line(flags: list[str], says: str) -> None:
-    out = subprocess.run([*BENCH, *flags], capture_output=True, text=True, timeout=60)
-    lines = out.stderr.strip().splitlines()
-    assert out.returncode == 2 and len(lines) == 1, out.stderr
-    assert lines[0].startswith("clothball bench: ") and says in lines[0]
+def test_load_bench_refuses_bad_flags_in_one_line(flags: list[str], says: str, capsys) -> None:
+    # The command itself, in this process (it refuses before starting anything).
+    assert cli.main(["bench", "--load", *flags]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("clothball bench: ") and says in lines[0]
+
+
+def test_load_bench_refuses_a_bad_flag_from_the_command_line() -> None:
+    out = subprocess.run([*BENCH, "--hip-rate", "-5"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines() == [
+        "clothball bench: --hip-rate must be more than 0 and at most 1000 (HIP messages a "
+        "second per player), got -5"]
 
 
 def test_load_bench_refuses_an_unknown_frame_loop() -> None:
