@@ -66,7 +66,7 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
     assert step["clients_cpu_cores"] >= step["client_process_cores_max"] > 0
     assert step["corner_hz_asked"] == corner_hz
     assert step["corner_delivery"] == pytest.approx(step["corner_hz_received"] / corner_hz)
-    assert 0 < step["corner_hz_min"] <= step["corner_hz_received"]
+    assert 0 < step["corner_hz_min"] <= step["corner_hz_received"] * (1 + 1e-12)  # the mean
     assert step["mesh_hz_asked"] == MESH_HZ
     assert step["mesh_delivery"] == pytest.approx(step["mesh_hz_received"]
                                                   / step["mesh_hz_asked"])
