@@ -9,9 +9,10 @@ spectator joins and receives MESH. What the real clients do with the data is lef
 * MESH is counted from its frame header and first payload byte, never copied or decoded
   (its bytes are skipped as they arrive);
 * CORNER is read only as far as its frame number and the echo of the newest HIP the server
-  applied (seq, client time): the HIP-to-CORNER latency is the receipt time less that echoed
-  send time, on this process's clock, once per HIP (the first CORNER that echoes it), into a
-  fixed histogram (10 µs bins), so the memory does not grow with the run;
+  applied (seq, client time): the HIP-to-CORNER latency is the receipt time less the time
+  that seq was sent (kept by the client, on this process's clock), once per HIP (the first
+  CORNER that echoes it), into a fixed histogram (10 µs bins), so the memory does not grow
+  with the run; an echoed time other than the one sent, or a seq never sent, is counted;
 * HIPs of every player of the process are sent by one pacing task, round robin with the
   players evenly staggered over the HIP period (real clients are not in step), each a
   34-byte frame masked with the zero key (a server unmasks whatever key it is given; a zero
@@ -44,6 +45,7 @@ from ..game.wire import protocol as P
 
 HIST_BIN_S = 1e-5  # latency histogram: 10 µs bins ...
 HIST_BINS = 20_000  # ... to 200 ms; the last bin holds everything later
+SENT_RING = 256  # HIP send times kept a player (2 s at 120 Hz), to match the echoes to
 SETUP_TIMEOUT_S = 15.0
 MAX_REDIRECTS = 3
 FAR_BEHIND_S = 0.05  # the pacer this late: it starts again from now rather than burst
@@ -94,10 +96,13 @@ class Conn(asyncio.Protocol):
         self.last_error = ""
         self.frame = -1  # the newest CORNER's frame
         self.echo_seq = 0  # the newest HIP seq a CORNER echoed
+        self.echo_unknown = 0  # echoes of a seq not among the last SENT_RING sent
+        self.echo_mismatch = 0  # echoes whose time is not the one that HIP was sent with
         self.lost = False
         # players
         self.seq = 0
         self.hips = 0
+        self.sent = [0.0] * SENT_RING  # send times by seq (mod SENT_RING)
         self.hand: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     # --- asyncio.Protocol --------------------------------------------------------------
@@ -181,13 +186,20 @@ class Conn(asyncio.Protocol):
             self._buf = data[pos:]
 
     def _corner(self, data: bytes, start: int) -> None:
-        frame, seq, sent = _CORNER_ECHO.unpack_from(data, start)
+        frame, seq, echoed = _CORNER_ECHO.unpack_from(data, start)
         self.corners += 1
         self.frame = frame
-        if seq != self.echo_seq and seq:  # the first CORNER that echoes this HIP
-            self.echo_seq = seq
-            i = int((time.perf_counter() - sent) / HIST_BIN_S)
-            self.hist[i if 0 <= i < HIST_BINS else (0 if i < 0 else HIST_BINS)] += 1
+        if seq == self.echo_seq or not seq:  # not the first CORNER that echoes a HIP
+            return
+        self.echo_seq = seq
+        if (self.seq - seq) & 0xFFFFFFFF >= SENT_RING:
+            self.echo_unknown += 1  # a seq this client never sent (or long ago)
+            return
+        sent = self.sent[seq & (SENT_RING - 1)]
+        if echoed != sent:  # the server echoed another time than this HIP's
+            self.echo_mismatch += 1
+        i = int((time.perf_counter() - sent) / HIST_BIN_S)
+        self.hist[i if 0 <= i < HIST_BINS else (0 if i < 0 else HIST_BINS)] += 1
 
     def _text(self, raw: bytes) -> None:
         self.texts += 1
@@ -237,10 +249,11 @@ class Conn(asyncio.Protocol):
     def send_hip(self, now: float) -> None:
         """The next HIP: a slow sine up and down the seat's reach, stamped ``now``."""
         cx, cy, cz, hy, phase = self.hand
-        self.seq += 1
+        seq = self.seq = (self.seq + 1) & 0xFFFFFFFF
+        self.sent[seq & (SENT_RING - 1)] = now
         y = cy + 0.3 * math.sin(math.pi * now + phase) * hy
         self._write(_HIP_FRAME.pack(0x82, 0x80 | P.HIP_SIZE, P.HIP, P.PROTOCOL_VERSION, 0,
-                                    self.seq & 0xFFFFFFFF, now, cx, y, cz))
+                                    seq, now, cx, y, cz))
         self.hips += 1
 
 
@@ -366,6 +379,8 @@ class Load:
             "meshes": sum(c.meshes for c in everyone),
             "mesh_hz": self.mesh_hz,
             "frames": {room: max(p.frame for p in ps) for room, ps in self.rooms},
+            "echo_unknown": sum(p.echo_unknown for p in self.players),
+            "echo_mismatch": sum(p.echo_mismatch for p in self.players),
             "errors": sum(c.errors for c in everyone),
             "last_error": next((c.last_error for c in everyone if c.last_error), ""),
             "lost": sum(c.lost for c in everyone),

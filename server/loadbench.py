@@ -641,13 +641,15 @@ def _load_meta(args: argparse.Namespace, info: dict[str, Any], load_before: tupl
 
 
 def _stopped_line(result: dict[str, Any]) -> str:
-    series = result["hosts"].values() if "hosts" in result else [result]
+    """What ended each series: the first step that did not hold, and why."""
+    series = ({f"{n} host{'s' if n != '1' else ''} ": r for n, r in result["hosts"].items()}
+              if "hosts" in result else {"": result})
     lines = []
-    for s in series:
+    for what, s in series.items():
         at = s["stopped_at"]
-        lines.append("stopped: " + (f"at {at['rooms']} rooms by " + "; ".join(at["why"])
-                                    if at is not None else
-                                    "every step held, up to --load-max-rooms"))
+        lines.append(what + "stopped: " + (f"at {at['rooms']} rooms by " + "; ".join(at["why"])
+                                           if at is not None else
+                                           "every step held, up to --load-max-rooms"))
     return "\n".join(lines)
 
 
@@ -792,7 +794,7 @@ def _client_step(c0: list[dict[str, Any]], c1: list[dict[str, Any]], args: argpa
                  ) -> dict[str, Any]:
     """What the clients sent and received between two snapshots of every client process."""
     corner, frames, hist = [], [], Counter()
-    hips = meshes = mesh_clients = errors = lost = behind = 0.0
+    hips = meshes = mesh_clients = errors = lost = behind = unknown = mismatch = 0.0
     last_error, mesh_hz = "", math.nan
     for a, b in zip(c0, c1, strict=True):
         dt = b["wall_s"] - a["wall_s"]
@@ -805,6 +807,8 @@ def _client_step(c0: list[dict[str, Any]], c1: list[dict[str, Any]], args: argpa
         errors += b["errors"] - a["errors"]
         lost += b["lost"]
         behind += b["behind"] - a["behind"]
+        unknown += b["echo_unknown"] - a["echo_unknown"]
+        mismatch += b["echo_mismatch"] - a["echo_mismatch"]
         hist.update({int(k): v for k, v in b["hist"].items()})
         last_error = last_error or b["last_error"]
         mesh_hz = b["mesh_hz"] if math.isfinite(b["mesh_hz"]) else mesh_hz
@@ -815,6 +819,8 @@ def _client_step(c0: list[dict[str, Any]], c1: list[dict[str, Any]], args: argpa
         "hip_to_corner_p50_ms": lat50,
         "hip_to_corner_p99_ms": lat99,
         "hip_to_corner_samples": sum(hist.values()),
+        "hip_echo_unknown": int(unknown),
+        "hip_echo_mismatch": int(mismatch),
         "hip_sent_per_s": hips,
         "corner_hz_asked": args.corner_rate,
         "corner_hz_received": corner_mean,

@@ -14,6 +14,7 @@ import math
 import shutil
 import subprocess
 import sys
+import time
 from collections import Counter
 
 import numpy as np
@@ -38,7 +39,8 @@ STEP_KEYS = {
     "hip_sent_per_s", "load_average", "server_cpu_cores", "server_cpu_per_room",
     "server_cpu_per_added_room", "server_event_loop_cores", "clients_cpu_cores",
     "client_process_cores_max", "hip_to_corner_p50_ms", "hip_to_corner_p99_ms",
-    "hip_to_corner_samples", "corner_hz_asked", "corner_hz_received", "corner_hz_min",
+    "hip_to_corner_samples", "hip_echo_unknown", "hip_echo_mismatch", "corner_hz_asked",
+    "corner_hz_received", "corner_hz_min",
     "corner_delivery", "mesh_hz_asked", "mesh_hz_received", "mesh_delivery", "frames_per_s",
     "frames_per_s_min", "client_errors", "client_last_error", "clients_lost",
     "clients_fell_behind", "held", "stopped_by", "why",
@@ -59,6 +61,8 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
     assert step["hip_sent_per_s"] > 0 and step["frames_per_s"] > 0
     assert step["lateness_p99_ms"] >= step["lateness_p50_ms"] >= 0
     assert step["hip_to_corner_samples"] > 0
+    # every CORNER echoed a HIP this client sent, with the time it was sent with
+    assert step["hip_echo_unknown"] == 0 and step["hip_echo_mismatch"] == 0
     assert step["hip_to_corner_p99_ms"] >= step["hip_to_corner_p50_ms"] > 0
     assert step["server_cpu_cores"] > 0 and step["clients_cpu_cores"] > 0
     assert step["server_cpu_per_room"] == pytest.approx(step["server_cpu_cores"] / rooms)
@@ -231,17 +235,21 @@ def _server_frame(opcode: Opcode, data: bytes) -> bytes:
     return Frame(opcode, data).serialize(mask=False)
 
 
-def _client_frame(data: bytes) -> Frame:
-    """The one frame a client wrote, read back by websockets as a server reads it."""
+def _client_frames(data: bytes) -> list[Frame]:
+    """The frames a client wrote, read back by websockets as a server reads them."""
     reader = StreamReader()
     reader.feed_data(data)
     reader.feed_eof()
-    gen = Frame.parse(reader.read_exact, mask=True)
-    try:
-        next(gen)
-    except StopIteration as e:
-        return e.value
-    raise AssertionError("not one whole frame")
+    frames = []
+    while reader.buffer:  # (at_eof is a generator in websockets)
+        gen = Frame.parse(reader.read_exact, mask=True)
+        try:
+            next(gen)
+        except StopIteration as e:
+            frames.append(e.value)
+        else:
+            raise AssertionError("a frame cut short")
+    return frames
 
 
 class _Transport(asyncio.Transport):
@@ -264,23 +272,12 @@ class _Transport(asyncio.Transport):
 @pytest.mark.parametrize("chunk", [1, 3, 7, 64, 1000, 1 << 20])
 def test_lean_client_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
     """CORNERs, MESHes of every websocket length form (counted, not read), text, a ping,
-    fed in chunks of every size: every message counted once, the latency echo taken once
-    per HIP, the ping answered with a pong websockets reads back."""
+    fed in chunks of every size: every message counted once; a latency sample once per HIP
+    echoed, from the time the client sent that seq; an echo of another time, or of a seq
+    never sent, counted; the ping answered with a pong websockets reads back."""
     mesh_small = bytes([P.MESH]) + bytes(100)  # length < 126
     mesh_mid = bytes([P.MESH]) + bytes(5000)  # 16-bit length
     mesh_big = bytes([P.MESH]) + bytes(70_000)  # 64-bit length
-    stream = b"".join([
-        _server_frame(Opcode.BINARY, _corner(10, 0, math.nan)),  # no HIP applied yet
-        _server_frame(Opcode.BINARY, mesh_mid),
-        _server_frame(Opcode.BINARY, _corner(11, 5, 0.0)),
-        _server_frame(Opcode.TEXT, json.dumps({"type": "error", "code": "x",
-                                               "message": "m"}).encode()),
-        _server_frame(Opcode.BINARY, _corner(12, 5, 0.0)),  # the same HIP: no new sample
-        _server_frame(Opcode.BINARY, mesh_big),
-        _server_frame(Opcode.PING, b"hi"),
-        _server_frame(Opcode.BINARY, mesh_small),
-        _server_frame(Opcode.BINARY, _corner(13, 6, 0.0)),
-    ])
 
     async def feed() -> tuple[leanclient.Conn, _Transport]:
         hist = [0] * (leanclient.HIST_BINS + 1)
@@ -288,16 +285,37 @@ def test_lean_client_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
         t = _Transport()
         conn.connection_made(t)
         conn._upgraded.set_result(None)
+        conn.hand = (0.0, 0.5, 0.0, 0.3, 0.0)
+        t1 = time.perf_counter() - 0.003  # sent 3 ms ago at least
+        conn.send_hip(t1)
+        conn.send_hip(t1 + 1e-4)
+        stream = b"".join([
+            _server_frame(Opcode.BINARY, _corner(10, 0, math.nan)),  # no HIP applied yet
+            _server_frame(Opcode.BINARY, mesh_mid),
+            _server_frame(Opcode.BINARY, _corner(11, 1, t1)),
+            _server_frame(Opcode.TEXT, json.dumps({"type": "error", "code": "x",
+                                                   "message": "m"}).encode()),
+            _server_frame(Opcode.BINARY, _corner(12, 1, t1)),  # the same HIP: no new sample
+            _server_frame(Opcode.BINARY, mesh_big),
+            _server_frame(Opcode.PING, b"hi"),
+            _server_frame(Opcode.BINARY, mesh_small),
+            _server_frame(Opcode.BINARY, _corner(13, 2, t1 + 7.0)),  # not the time sent
+            _server_frame(Opcode.BINARY, _corner(14, 77, 0.0)),  # never sent
+        ])
         for i in range(0, len(stream), chunk):
             conn.data_received(stream[i:i + chunk])
         return conn, t
 
     conn, t = asyncio.run(feed())
-    assert conn.corners == 4 and conn.meshes == 3 and conn.frame == 13
+    assert conn.corners == 5 and conn.meshes == 3 and conn.frame == 14
     assert conn.texts == 1 and conn.errors == 1 and conn.last_error == "x: m"
-    assert sum(conn.hist) == 2  # HIPs 5 and 6, once each
-    pong = _client_frame(bytes(t.out))
-    assert pong.opcode is Opcode.PONG and pong.data == b"hi"
+    assert conn.echo_mismatch == 1 and conn.echo_unknown == 1
+    bins = [i for i, c in enumerate(conn.hist) for _ in range(c)]
+    assert len(bins) == 2  # HIPs 1 and 2, once each, from their send times
+    assert min(bins) * leanclient.HIST_BIN_S >= 0.003 - 1e-4 - leanclient.HIST_BIN_S
+    frames = _client_frames(bytes(t.out))
+    assert [f.opcode for f in frames] == [Opcode.BINARY, Opcode.BINARY, Opcode.PONG]
+    assert frames[2].data == b"hi"
 
 
 def test_lean_client_hip_is_a_masked_frame_the_server_decodes() -> None:
@@ -310,7 +328,7 @@ def test_lean_client_hip_is_a_masked_frame_the_server_decodes() -> None:
         return bytes(t.out)
 
     data = asyncio.run(one())
-    frame = _client_frame(data)
+    (frame,) = _client_frames(data)
     assert frame.opcode is Opcode.BINARY and frame.fin
     hip = P.decode_hip(bytes(frame.data))
     assert hip.seq == 1 and hip.time == 12.5
