@@ -37,7 +37,8 @@ STEP_KEYS = {
     "rooms", "clients", "rooms_per_host", "hosts", "lateness_p50_ms", "lateness_p99_ms",
     "skipped_frames", "messages_in_per_s", "messages_out_per_s", "hip_offered_per_s",
     "hip_sent_per_s", "load_average", "server_cpu_cores", "server_cpu_per_room",
-    "server_cpu_per_added_room", "server_event_loop_cores", "clients_cpu_cores",
+    "server_cpu_per_added_room", "server_event_loop_cores", "server_busiest_thread_cores",
+    "server_busiest_thread", "clients_cpu_cores",
     "client_process_cores_max", "hip_to_corner_p50_ms", "hip_to_corner_p99_ms",
     "hip_to_corner_samples", "hip_echo_unknown", "hip_echo_mismatch", "corner_hz_asked",
     "corner_hz_received", "corner_hz_min",
@@ -66,7 +67,9 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
     assert step["hip_to_corner_p99_ms"] >= step["hip_to_corner_p50_ms"] > 0
     assert step["server_cpu_cores"] > 0 and step["clients_cpu_cores"] > 0
     assert step["server_cpu_per_room"] == pytest.approx(step["server_cpu_cores"] / rooms)
-    assert step["server_cpu_cores"] >= step["server_event_loop_cores"] >= 0
+    assert step["server_busiest_thread_cores"] >= step["server_event_loop_cores"] > 0
+    assert step["server_cpu_cores"] >= step["server_busiest_thread_cores"] - 0.05  # clock ticks
+    assert step["server_busiest_thread"]
     assert step["clients_cpu_cores"] >= step["client_process_cores_max"] > 0
     assert step["corner_hz_asked"] == corner_hz
     assert step["corner_delivery"] == pytest.approx(step["corner_hz_received"] / corner_hz)
