@@ -71,8 +71,9 @@ SETTLE_S = 1.0  # after rooms are added, before a step is measured
 
 
 def configure_server_flags(parser: argparse.ArgumentParser) -> None:
-    """Flags of ``clothball bench --server`` (``--json`` is the bench's own)."""
-    g = parser.add_argument_group("server bench (--server)")
+    """Flags of ``clothball bench --server`` and ``--load`` (``--json`` and ``--scene`` are the
+    bench's own)."""
+    g = parser.add_argument_group("server benches (--server, --load)")
     g.add_argument("--seconds", type=float, default=30.0,
                    help="measured duration of the server bench (default %(default)s)")
     g.add_argument("--spectators", type=int, default=50,
