@@ -8,22 +8,33 @@ deadline each frame's state was ready, from the server's own counters), HIP-to-c
 latency p50/p99 (client clock, send -> receipt of the CORNER that applied it), messages per
 second in and out of the server, spectator mesh rates, and CPU use of each process.
 
-``clothball bench --load``: how many rooms the server holds. Rooms of 4 player clients
-(HIP at 1 kHz, playing a match) plus ``--load-spectators`` spectators each are added one at
-a time (each room's clients in a process of their own) and measured for ``--load-seconds``,
-until a target is missed: frame lateness p99 <= 5 ms in every room, no frame skipped, and
-the server taking in at least 90 % of the HIPs offered. Reported per step: rooms, clients,
-messages a second in and out, lateness, CPU, the load average.
+``clothball bench --load``: how many rooms the server holds. Rooms of 4 players (as the
+desktop client: HIP at ``--hip-rate``, 120 Hz, ``corner_rate`` ``--corner-rate``, 120, MESH
+on) and ``--load-spectators`` spectators each are added a step at a time (1 room, then
+``--rooms-step`` K more each step) and measured for ``--load-seconds``. The clients are the
+lean ones of ``server/leanclient.py``, many rooms to a process (``--client-procs``), so that
+they cost a small part of what they measure; their CPU is reported beside the server's.
+A step holds while every room's frame lateness p99 is within ``--lateness-target`` (2 ms)
+and the players receive at least 90 % of the CORNER rate they asked; the first step that
+does not hold ends the run, saying what stopped it (lateness, delivery, server CPU
+saturated, clients' CPU saturated). Reported per step (``--json``: one row each): rooms,
+frame lateness p50/p99 (the server's counters, the worst room), HIP-to-CORNER latency
+p50/p99 (client clock), server CPU (/proc, every thread of every server process; per room;
+per added room), messages in and out a second, the clients' CPU, CORNER and MESH rates
+received against those asked, frames advanced a second. ``--frame-loop native|python``
+sets ``CLOTHBALL_FRAME_LOOP`` for the server processes it starts.
 
-``clothball bench --load --cluster``: the same with 1, 2 and 3 server processes joined as
-the hosts of a cluster through a Redis the bench starts (``redis-server`` on the PATH, a
-free port of loopback): rooms are created through the first host, which places each on the
-least-loaded one, and their clients connect through it too (redirected to the room's
-host). Every step measures all the hosts; on one machine they share its cores with each
-other and with the clients, which the figures say.
+``clothball bench --load --workers N``: the same with N server processes on one port, as
+``clothball host --workers N`` runs them (rooms asked of the shared port, placed on the
+least-loaded process). ``clothball bench --load --cluster``: with 1, 2 and 3 server
+processes joined as the hosts of a cluster through a Redis the bench starts
+(``redis-server`` on the PATH, a free port of loopback): rooms are created through the first
+host, which places each on the least-loaded one, and their clients connect through it too
+(redirected to the room's host). Every step measures all the hosts; on one machine they
+share its cores with each other and with the clients, which the figures say.
 
-Run ``python -m clothball.server.loadbench --role server|spectators|room-clients ...`` only
-through the bench; ``run(args)`` and ``run_load(args)`` start the others themselves.
+Run ``python -m clothball.server.loadbench --role server|spectators ...`` only through the
+bench; ``run(args)`` and ``run_load(args)`` start the others themselves.
 """
 
 from __future__ import annotations
@@ -38,6 +49,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -45,25 +57,39 @@ import numpy as np
 
 from . import loops
 from .hostproc import free_port, get_json, start_redis
+from .leanclient import HIST_BIN_S, raise_fd_limit
 
 TARGET_LATENCY_P99_MS = 5.0
 TARGET_LATENESS_P99_MS = 5.0
 TARGET_MESH_HZ = 30.0
+LOAD_HIP_HZ = 120.0  # what the desktop client sends (game/client/netthread.py) ...
+LOAD_CORNER_HZ = 120.0  # ... and the corner_rate it asks
+SERVER_HIP_HZ = 1000.0  # --server: players at the most a seat may send
+DELIVERY_MIN = 0.9  # of the CORNER rate asked, for a step to hold
+SATURATED = 0.9  # of a core: a server's event-loop thread, or a client process, this busy
+SETTLE_S = 1.0  # after rooms are added, before a step is measured
 
 
 def configure_server_flags(parser: argparse.ArgumentParser) -> None:
-    """Flags of ``clothball bench --server`` (``--json`` is the bench's own)."""
-    g = parser.add_argument_group("server bench (--server)")
+    """Flags of ``clothball bench --server`` and ``--load`` (``--json`` and ``--scene`` are the
+    bench's own)."""
+    g = parser.add_argument_group("server benches (--server, --load)")
     g.add_argument("--seconds", type=float, default=30.0,
                    help="measured duration of the server bench (default %(default)s)")
     g.add_argument("--spectators", type=int, default=50,
                    help="spectator clients (default %(default)s)")
     g.add_argument("--players", type=int, default=4, choices=range(1, 5),
                    help="player clients (default %(default)s)")
-    g.add_argument("--hip-rate", type=float, default=1000.0,
-                   help="HIP messages a second per player (default %(default)s)")
-    g.add_argument("--server-n", type=int, default=64,
-                   help="cloth nodes per side in the bench room (default %(default)s)")
+    g.add_argument("--hip-rate", type=float, default=None,
+                   help=f"HIP messages a second per player (default {SERVER_HIP_HZ:g} with "
+                        f"--server, {LOAD_HIP_HZ:g} with --load: the desktop client's rate)")
+    g.add_argument("--corner-rate", type=float, default=None,
+                   help=f"the corner_rate each player asks, CORNER messages a second (default "
+                        f"the server's, 1000, with --server; {LOAD_CORNER_HZ:g} with --load: "
+                        "what the desktop client asks)")
+    g.add_argument("--server-n", type=int, default=None,
+                   help="cloth nodes per side in the bench rooms (default 64 on the classic "
+                        "scene the bench uses; with --scene, that scene's own)")
     g.add_argument("--server-backend", default="cpu", choices=("auto", "cpu", "cuda"),
                    help="cloth backend of the bench room (default %(default)s)")
     g.add_argument("--server-loop", default=None, choices=loops.CHOICES,
@@ -75,6 +101,22 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                    help="--load: spectators per room (default %(default)s)")
     g.add_argument("--load-max-rooms", type=int, default=32,
                    help="--load: stop growing at this many rooms (default %(default)s)")
+    g.add_argument("--rooms-step", type=int, default=1, metavar="K",
+                   help="--load: rooms added a step (1 room first, then K, 2K, ...; default "
+                        "%(default)s)")
+    g.add_argument("--lateness-target", type=float, default=2.0, metavar="MS",
+                   help="--load: a step holds while every room's frame lateness p99 is within "
+                        "MS and the players receive 90 %% of the CORNER rate asked (default "
+                        "%(default)s)")
+    g.add_argument("--steps-past", type=int, default=0, metavar="N",
+                   help="--load: steps still measured after the first that did not hold (the "
+                        "curve past it; default %(default)s)")
+    g.add_argument("--frame-loop", default=None, choices=("native", "python"),
+                   help="--load, --server: the server processes' frame loop "
+                        "(CLOTHBALL_FRAME_LOOP; default: the server's own default)")
+    g.add_argument("--client-procs", type=int, default=None, metavar="P",
+                   help="--load: processes of lean clients, rooms given to them in turn "
+                        "(default: a quarter of the CPUs, 1 to 4)")
     g.add_argument("--workers", type=int, default=1, metavar="N",
                    help="--load: N server processes on one port, as `clothball host --workers "
                         "N` runs them (rooms placed on the least-loaded); default %(default)s")
@@ -89,8 +131,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     """Stand-alone use (``python -m clothball.server.loadbench``)."""
     configure_server_flags(parser)
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--scene", default=None, help="scene name or path (default classic)")
     parser.add_argument("--load", action="store_true", help="how many rooms the server holds")
-    parser.add_argument("--role", choices=("bench", "server", "spectators", "room-clients"),
+    parser.add_argument("--role", choices=("bench", "server", "spectators"),
                         default="bench", help=argparse.SUPPRESS)
     parser.add_argument("--url", default="", help=argparse.SUPPRESS)
     parser.add_argument("--no-room", action="store_true", help=argparse.SUPPRESS)
@@ -102,15 +145,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
 # --- the server process ------------------------------------------------------------------------
 
 
-async def _serve(args: argparse.Namespace) -> None:
+def bench_scene(args: argparse.Namespace) -> Any:
+    """The bench rooms' scene: ``--scene`` (default classic) with ``--server-n`` nodes a side
+    (default: 64 on classic, else the scene's own). ``SceneError`` when there is none such."""
     from ..game.sim.scene import Scene
+
+    scene = Scene.load(getattr(args, "scene", None) or "classic")
+    n = args.server_n if args.server_n is not None else (
+        None if getattr(args, "scene", None) else 64)
+    return scene if n is None else scene.with_changes({"cloth": {"n": n}})
+
+
+async def _serve(args: argparse.Namespace) -> None:
     from .app import GameServer
     from .limits import Limits
     from .room import RoomSettings
 
     sys.setswitchinterval(0.0005)
-    scene = Scene.load("classic").with_changes({"cloth": {"n": args.server_n}})
-    scene.name = "bench"
+    scene = bench_scene(args)
+    scene_name, scene.name = scene.name, "bench"
     cluster: dict[str, Any] = {}
     if getattr(args, "directory", None):  # a host of --load --cluster, or a --workers process
         from .directory import RedisDirectory, SqliteDirectory
@@ -120,8 +173,9 @@ async def _serve(args: argparse.Namespace) -> None:
                    "shared_port": getattr(args, "shared_port", None)}
     with tempfile.TemporaryDirectory() as data:
         # Every client comes from 127.0.0.1: the per-address limits would stop the bench.
-        limits = Limits(conns_per_address=100_000, rooms_per_address=100_000, max_rooms=1000,
-                        max_clients=100_000, spectators_per_room=100_000)
+        # Nor may admission control refuse rooms: the bench finds where the server stops.
+        limits = Limits(conns_per_address=100_000, rooms_per_address=100_000, max_rooms=100_000,
+                        max_clients=1_000_000, spectators_per_room=100_000, admit_lateness_ms=0)
         srv = GameServer(data, scenes={"bench": scene}, backend=args.server_backend,
                          host="127.0.0.1", port=0, default_room=not args.no_room,
                          room_settings=RoomSettings(first_to=99, bots_allowed=False,
@@ -136,6 +190,9 @@ async def _serve(args: argparse.Namespace) -> None:
             probe = Cloth(scene, backend=args.server_backend, threads=1)
         print(json.dumps({"port": srv.port, "room": room.id if room is not None else None,
                           "backend": probe.backend, "substeps": probe.substeps,
+                          "scene": scene_name, "n": scene.n,
+                          # what this process was given (the loop itself decides from it)
+                          "frame_loop": os.environ.get("CLOTHBALL_FRAME_LOOP") or "default",
                           "token": srv.host_token, "loop": loops.running()}), flush=True)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -197,12 +254,12 @@ async def _drive(i: int, p: Any, rate: float, stop_at: list[float], sent: list[i
         await asyncio.sleep(max(0.0, delay))
 
 
-async def _play(ws_url: str, room: str, n_players: int, rate: float, seconds: float,
-                reset_stats: Any) -> dict[str, Any]:
+async def _play(ws_url: str, room: str, n_players: int, rate: float,
+                corner_rate: float | None, seconds: float, reset_stats: Any) -> dict[str, Any]:
     from ..game.net.client import NetClient
 
     players = [await NetClient.connect(ws_url, name=f"p{i}", role="player", room=room, seat=i,
-                                       record_latency=True, mesh=False)
+                                       record_latency=True, mesh=False, corner_rate=corner_rate)
                for i in range(n_players)]
     for p in players:
         await p.request("ready", ready=True)
@@ -267,31 +324,34 @@ def run(args: argparse.Namespace) -> int:
     """Run the whole bench (server, spectators and players) and print the figures."""
     role = getattr(args, "role", "bench")
     if role == "server":
+        raise_fd_limit()  # hundreds of rooms' clients
         loops.run(_serve(args), args.server_loop)
         return 0
     if role == "spectators":
         asyncio.run(_spectate(args))
         return 0
-    if role == "room-clients":
-        asyncio.run(_room_clients(args))
-        return 0
     if getattr(args, "load", False):
         return run_load(args)
+    if args.hip_rate is None:
+        args.hip_rate = SERVER_HIP_HZ
+    err = load_arg_error(args)
+    if err is not None:
+        print(f"clothball bench: {err}", file=sys.stderr)
+        return 2
     seconds = float(args.seconds)
-    base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
+    base = [sys.executable, "-m", "clothball.server.loadbench", *_scene_flags(args),
             "--server-backend", args.server_backend, "--seconds", str(seconds),
             "--spectators", str(args.spectators)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     server = subprocess.Popen([*base, "--role", "server", *_loop_flag(args)],
-                              stdout=subprocess.PIPE, text=True,
-                              env=env)
+                              stdout=subprocess.PIPE, text=True, env=_server_env(args))
     spect: subprocess.Popen[str] | None = None
     try:
         info, http, ws = _server_info(server)
         print(f"server bench: {args.players} players x {args.hip_rate:g} Hz HIP, "
-              f"{args.spectators} spectators, {seconds:g} s, n={args.server_n}, "
-              f"backend {info['backend']} ({info['substeps']} substeps/frame), "
-              f"event loop {info['loop']}, "
+              f"{args.spectators} spectators, {seconds:g} s, scene {info['scene']} "
+              f"n={info['n']}, backend {info['backend']} ({info['substeps']} substeps/frame), "
+              f"event loop {info['loop']}, frame loop {info['frame_loop']}, "
               f"{os.cpu_count()} CPUs", file=sys.stderr)
         if args.spectators > 0:
             spect = subprocess.Popen(
@@ -300,7 +360,8 @@ def run(args: argparse.Namespace) -> int:
                 stdout=subprocess.PIPE, text=True, env=env)
             assert spect.stdout is not None
             json.loads(spect.stdout.readline())  # connected
-        players = asyncio.run(_play(ws, info["room"], args.players, args.hip_rate, seconds,
+        players = asyncio.run(_play(ws, info["room"], args.players, args.hip_rate,
+                                    args.corner_rate, seconds,
                                     lambda: get_json(f"{http}/api/stats?reset=1", info["token"])))
         stats0, t0 = players.pop("stats0"), players.pop("t0")
         stats1 = get_json(f"{http}/api/stats")
@@ -322,7 +383,10 @@ def run(args: argparse.Namespace) -> int:
         "players": args.players,
         "spectators": args.spectators,
         "hip_rate_target_hz": args.hip_rate,
-        "n": args.server_n,
+        "scene": info["scene"],
+        "n": info["n"],
+        "frame_loop": info["frame_loop"],
+        "corner_rate_asked_hz": args.corner_rate,
         "backend": info["backend"],
         "substeps": info["substeps"],
         "cpus": os.cpu_count(),
@@ -401,191 +465,492 @@ def main(argv: list[str] | None = None) -> int:
 
 # --- clothball bench --load ---------------------------------------------------------------------
 
+def load_arg_error(args: argparse.Namespace) -> str | None:
+    """What is wrong with the ``--load`` (or ``--server``) flags, in one line; None: fine."""
+    def bad(v: float, lo: float, hi: float, lo_open: bool = False) -> bool:
+        return not math.isfinite(v) or v < lo or (lo_open and v == lo) or v > hi
 
-async def _room_clients(args: argparse.Namespace) -> None:
-    """One room's clients: 4 players (ready, HIP at --hip-rate) and --load-spectators
-    spectators, until stdin closes."""
-    from ..game.net.client import NetClient
+    if args.hip_rate is not None and bad(args.hip_rate, 0.0, 1000.0, lo_open=True):
+        return (f"--hip-rate must be more than 0 and at most 1000 (HIP messages a second "
+                f"per player), got {args.hip_rate:g}")
+    if args.corner_rate is not None and bad(args.corner_rate, 1.0, 1000.0):
+        return (f"--corner-rate must be 1 to 1000 (CORNER messages a second a player asks, "
+                f"as join's corner_rate), got {args.corner_rate:g}")
+    from ..game.sim.scene import SceneError
 
-    where = json.loads(args.url)
-    ws, room = where["ws"], where["room"]
-    players = [await NetClient.connect(ws, name=f"p{i}", role="player", room=room, seat=i,
-                                       mesh=False) for i in range(4)]
-    spectators = [await NetClient.connect(ws, role="spectator", room=room, decode_mesh=False)
-                  for _ in range(args.load_spectators)]
-    for p in players:
-        await p.request("ready", ready=True)
-    sent = [0] * 4
-    stop_at = [math.inf]
-    tasks = [asyncio.create_task(_drive(i, p, args.hip_rate, stop_at, sent))
-             for i, p in enumerate(players)]
-    print(json.dumps({"ready": True}), flush=True)
-    await asyncio.to_thread(sys.stdin.read)
-    stop_at[0] = -math.inf
-    await asyncio.gather(*tasks)
-    for c in [*players, *spectators]:
-        await c.close()
-
-
-async def _create_room(ws: str) -> str:
-    from ..game.net.client import NetClient
-
-    c = await NetClient.connect(ws, name="load")
     try:
-        made = await c.request("create_room", name="load", bots_allowed=False,
-                               unguarded=True, first_to=99)
-    finally:
-        await c.close()
-    return str(made["room"])
+        bench_scene(args)
+    except SceneError as e:
+        return f"--scene, --server-n: {e}"
+    if not getattr(args, "load", False):
+        return None
+    if args.workers < 1:
+        return f"--workers must be at least 1, got {args.workers}"
+    if bad(args.load_seconds, 0.0, math.inf, lo_open=True):
+        return f"--load-seconds must be a number of seconds above 0, got {args.load_seconds:g}"
+    if args.rooms_step < 1:
+        return f"--rooms-step must be at least 1 (rooms added a step), got {args.rooms_step}"
+    if args.load_max_rooms < 1:
+        return f"--load-max-rooms must be at least 1, got {args.load_max_rooms}"
+    if args.load_spectators < 0:
+        return f"--load-spectators must be 0 or more, got {args.load_spectators}"
+    if bad(args.lateness_target, 0.0, math.inf, lo_open=True):
+        return (f"--lateness-target must be a number of milliseconds above 0, got "
+                f"{args.lateness_target:g}")
+    if args.steps_past < 0:
+        return f"--steps-past must be 0 or more, got {args.steps_past}"
+    if args.client_procs is not None and args.client_procs < 1:
+        return f"--client-procs must be at least 1, got {args.client_procs}"
+    return None
 
 
-def _start_room(base: list[str], ws: str, env: dict[str, str]) -> subprocess.Popen[str]:
-    """Creates a room through ``ws`` and starts its players and spectators in a process of
-    their own; returns once they are connected and the room has settled."""
-    room = asyncio.run(_create_room(ws))
-    proc = subprocess.Popen([*base, "--role", "room-clients", "--url",
-                             json.dumps({"ws": ws, "room": room})],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
-    assert proc.stdout is not None
-    if not proc.stdout.readline():
-        proc.kill()
-        raise RuntimeError("a room's clients did not connect")
-    time.sleep(1.0)  # settle
-    return proc
+def room_counts(step: int, most: int) -> list[int]:
+    """The rooms of each step: 1, then every multiple of ``step`` up to ``most`` (and
+    ``most`` itself): one room first, for what a room alone costs."""
+    counts = [1, *range(step, most + 1, step)] if step > 1 else list(range(1, most + 1))
+    if counts[-1] != most:
+        counts.append(most)
+    return sorted(set(counts))
 
 
-def _stop_clients(clients: list[subprocess.Popen[str]]) -> None:
-    """Ends the rooms' client processes (their stdin closing is their signal)."""
-    for proc in clients:
-        if proc.stdin is not None:
-            proc.stdin.close()
-    for proc in clients:
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+def _server_env(args: argparse.Namespace) -> dict[str, str]:
+    """The server processes' environment: ``--frame-loop`` as ``CLOTHBALL_FRAME_LOOP``
+    (unset: theirs, so the server's default)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if getattr(args, "frame_loop", None):
+        env["CLOTHBALL_FRAME_LOOP"] = args.frame_loop
+    return env
+
+
+class _Clients:
+    """The lean client processes (``server/leanclient.py``): rooms are given to them in
+    turn; each answers one JSON line per command."""
+
+    def __init__(self, args: argparse.Namespace, n: int) -> None:
+        cmd = [sys.executable, "-m", "clothball.server.leanclient",
+               "--hip-rate", repr(args.hip_rate), "--corner-rate", repr(args.corner_rate),
+               "--spectators", str(args.load_spectators)]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.procs = [subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                       text=True, env=env) for _ in range(n)]
+        self._turn = 0
+
+    def _ask(self, cmds: list[tuple[subprocess.Popen[str], dict[str, Any]]]
+             ) -> list[dict[str, Any]]:
+        for proc, cmd in cmds:  # every process at once, then every answer
+            assert proc.stdin is not None
+            proc.stdin.write(json.dumps(cmd) + "\n")
+            proc.stdin.flush()
+        out = []
+        for proc, _ in cmds:
+            assert proc.stdout is not None
+            line = proc.stdout.readline()
+            if not line:
+                raise RuntimeError(f"a client process ended (exit status {proc.wait()})")
+            out.append(json.loads(line))
+        return out
+
+    def add(self, ws: str, rooms: int) -> None:
+        share = [0] * len(self.procs)
+        for _ in range(rooms):
+            share[self._turn] += 1
+            self._turn = (self._turn + 1) % len(self.procs)
+        for r in self._ask([(p, {"op": "add", "ws": ws, "rooms": k})
+                            for p, k in zip(self.procs, share, strict=True) if k]):
+            if "error" in r:
+                raise RuntimeError(f"the clients could not join a room: {r['error']}")
+
+    def snap(self, mark: bool) -> list[dict[str, Any]]:
+        return self._ask([(p, {"op": "mark" if mark else "snap"}) for p in self.procs])
+
+    def cpu_seconds(self) -> list[float]:
+        return [_cpu_seconds([p]) for p in self.procs]
+
+    def stop(self) -> None:
+        for proc in self.procs:
+            if proc.stdin is not None:
+                proc.stdin.close()  # their signal to close every client
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
 def run_load(args: argparse.Namespace) -> int:
-    """Add rooms one at a time until a target is missed; print (or --json) every step."""
-    if getattr(args, "cluster", False):
-        return run_load_cluster(args)
-    if getattr(args, "workers", 1) < 1:
-        print(f"clothball bench: --workers must be at least 1, got {args.workers}",
-              file=sys.stderr)
+    """Add rooms step by step until a step does not hold; print (or --json) every step."""
+    _load_defaults(args)
+    err = load_arg_error(args)
+    if err is not None:
+        print(f"clothball bench: {err}", file=sys.stderr)
         return 2
-    if getattr(args, "workers", 1) > 1:
-        return run_load_workers(args)
-    seconds = float(args.load_seconds)
-    base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
-            "--server-backend", args.server_backend, "--hip-rate", str(args.hip_rate),
-            "--load-spectators", str(args.load_spectators)]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    load_before = os.getloadavg()
-    server = subprocess.Popen([*base, "--role", "server", "--no-room", *_loop_flag(args)],
-                              stdout=subprocess.PIPE,
-                              text=True, env=env)
-    clients: list[subprocess.Popen[str]] = []
-    steps: list[dict[str, Any]] = []
     try:
-        info, http, ws = _server_info(server)
-        print(f"load bench: rooms of 4 players x {args.hip_rate:g} Hz HIP + "
-              f"{args.load_spectators} spectators, {seconds:g} s a step, n={args.server_n}, "
-              f"backend {info['backend']} ({info['substeps']} substeps/frame), "
-              f"event loop {info['loop']}, "
-              f"{os.cpu_count()} CPUs, load average {load_before[0]:.2f}", file=sys.stderr)
-        for rooms in range(1, args.load_max_rooms + 1):
-            clients.append(_start_room(base, ws, env))
-            s0 = get_json(f"{http}/api/stats?reset=1", info["token"])
-            c0, w0 = _cpu_seconds(clients), time.perf_counter()
-            time.sleep(seconds)
-            s1 = get_json(f"{http}/api/stats")
-            step = _load_step(rooms, s0, s1, args)
-            # The clients share the machine with the server: what they cost is reported.
-            step["clients_cpu_cores"] = (_cpu_seconds(clients) - c0) / (time.perf_counter() - w0)
-            steps.append(step)
-            print(_load_line(step), file=sys.stderr, flush=True)
-            if not step["met"]:
-                break
-    finally:
-        _stop_clients(clients)
-        _stop_server(server)
-    held = [s for s in steps if s["met"]]
-    result = {
-        "n": args.server_n, "backend": info["backend"], "substeps": info["substeps"],
-        "server_loop": info["loop"],
-        "cpus": os.cpu_count(), "hip_rate_hz": args.hip_rate,
-        "spectators_per_room": args.load_spectators, "seconds_per_step": seconds,
-        "load_average_before": list(load_before),
-        "held": held[-1] if held else None,
-        "first_missed": next((s for s in steps if not s["met"]), None),
-        "steps": steps,
-    }
+        return run_load_cluster(args) if getattr(args, "cluster", False) else _run_load(args)
+    except (OSError, RuntimeError, ValueError) as e:  # a server or client process gone
+        print(f"clothball bench --load: stopped: {e}", file=sys.stderr)
+        return 1
+
+
+def _run_load(args: argparse.Namespace) -> int:
+    load_before = os.getloadavg()
+    if args.workers > 1:
+        with tempfile.TemporaryDirectory(prefix="clothball-bench-workers-") as d:
+            series = _load_series(args, args.workers, str(Path(d) / "rooms.sqlite"),
+                                  free_port())
+    else:
+        series = _load_series(args, 1, None)
+    result = {**_load_meta(args, series.pop("info"), load_before), "workers": args.workers,
+              **series}
     if _write_json(result, getattr(args, "json", None)):
         print(json.dumps(result, indent=2))
+    elif args.workers > 1:
+        print(_held_line(f"{args.workers} processes", result["held"]))
     else:
         h = result["held"]
         print("held: " + (f"{h['rooms']} rooms, {h['clients']} clients, "
                           f"{h['messages_in_per_s']:.0f} msgs/s in, "
                           f"{h['messages_out_per_s']:.0f} out, lateness p99 "
-                          f"{h['lateness_p99_ms']:.2f} ms" if h else "not even one room"))
+                          f"{h['lateness_p99_ms']:.2f} ms, server CPU "
+                          f"{h['server_cpu_cores']:.2f} cores" if h else "not even one room"))
+    if getattr(args, "json", None) is not True:
+        print(_stopped_line(result))
     return 0
 
 
-def _load_step(rooms: int, s0: dict[str, Any], s1: dict[str, Any], args: argparse.Namespace
+def _load_defaults(args: argparse.Namespace) -> None:
+    """The real clients' rates where no flag says otherwise."""
+    if args.hip_rate is None:
+        args.hip_rate = LOAD_HIP_HZ
+    if args.corner_rate is None:
+        args.corner_rate = LOAD_CORNER_HZ
+    if getattr(args, "client_procs", None) is None:
+        args.client_procs = min(4, max(1, (os.cpu_count() or 1) // 4))
+
+
+def _load_meta(args: argparse.Namespace, info: dict[str, Any], load_before: tuple[float, ...]
                ) -> dict[str, Any]:
+    return {
+        "scene": info.get("scene"), "n": info.get("n"), "backend": info.get("backend"),
+        "substeps": info.get("substeps"), "server_loop": info.get("loop"),
+        "frame_loop": info.get("frame_loop"), "cpus": os.cpu_count(),
+        "hip_rate_hz": args.hip_rate, "corner_rate_hz": args.corner_rate,
+        "spectators_per_room": args.load_spectators, "seconds_per_step": args.load_seconds,
+        "rooms_step": args.rooms_step, "lateness_target_ms": args.lateness_target,
+        "client_processes": args.client_procs, "load_average_before": list(load_before),
+    }
+
+
+def _stopped_line(result: dict[str, Any]) -> str:
+    """What ended each series: the first step that did not hold, and why."""
+    series = ({f"{n} host{'s' if n != '1' else ''} ": r for n, r in result["hosts"].items()}
+              if "hosts" in result else {"": result})
+    lines = []
+    for what, s in series.items():
+        at = s["stopped_at"]
+        lines.append(what + "stopped: " + (f"at {at['rooms']} rooms by " + "; ".join(at["why"])
+                                           if at is not None else
+                                           "every step held, up to --load-max-rooms"))
+    return "\n".join(lines)
+
+
+def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
+                 shared_port: int | None = None) -> dict[str, Any]:
+    """Rooms added ``--rooms-step`` at a time to ``n_hosts`` server processes until a step
+    does not hold. ``directory``: the room directory they share (None: one process alone);
+    with ``shared_port`` they are one host's processes on that port, and rooms are asked of
+    it (as clients of `clothball host --workers` reach them), else of the first host."""
+    seconds = float(args.load_seconds)
+    base = [sys.executable, "-m", "clothball.server.loadbench", *_scene_flags(args),
+            "--server-backend", args.server_backend, "--role", "server", "--no-room",
+            *_loop_flag(args)]
+    if directory is not None:
+        base += ["--directory", directory]
+    if shared_port is not None:
+        base += ["--shared-port", str(shared_port)]
+    servers = [subprocess.Popen(base, stdout=subprocess.PIPE, text=True,
+                                env=_server_env(args)) for _ in range(n_hosts)]
+    clients: _Clients | None = None
+    steps: list[dict[str, Any]] = []
+    stopped: dict[str, Any] | None = None
+    past = 0  # steps measured after the stop (--steps-past)
+    try:
+        infos = [_server_info(s) for s in servers]
+        entry = infos[0][2] if shared_port is None else f"ws://127.0.0.1:{shared_port}/ws"
+        if directory is not None:
+            time.sleep(1.5)  # every host has read the others from the directory
+        clients = _Clients(args, args.client_procs)
+        info = infos[0][0]
+        what = ("one server process" if directory is None else
+                f"{n_hosts} server processes on one port" if shared_port is not None else
+                f"{n_hosts} host{'s' if n_hosts > 1 else ''} in a cluster")
+        counts = room_counts(args.rooms_step, args.load_max_rooms)
+        print(f"load bench, {what}: rooms of 4 players (HIP {args.hip_rate:g} Hz, corner_rate "
+              f"{args.corner_rate:g} Hz, MESH) + {args.load_spectators} spectators, "
+              f"{seconds:g} s a step, rooms {_counts_text(counts)}, scene {info['scene']} "
+              f"n={info['n']}, backend {info['backend']} ({info['substeps']} substeps/frame), "
+              f"event loop {info['loop']}, frame loop {info['frame_loop']}, "
+              f"{args.client_procs} client process{'es' if args.client_procs > 1 else ''}, "
+              f"{os.cpu_count()} CPUs shared by servers and clients, load average "
+              f"{os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
+        cpu0, w0 = _cpu_seconds(servers), time.perf_counter()
+        time.sleep(SETTLE_S)
+        idle = (_cpu_seconds(servers) - cpu0) / (time.perf_counter() - w0)
+        prev = (0, idle)
+        tag = "" if directory is None else f"{n_hosts}{'p' if shared_port else 'h'} "
+        for rooms in counts:
+            try:
+                clients.add(entry, rooms - prev[0])
+            except RuntimeError as e:  # a room refused or a client process gone: said, kept
+                if stopped is None:
+                    stopped = {"rooms": rooms, "stopped_by": ["join"], "why": [str(e)]}
+                print(f"{tag}{rooms:3d} rooms  STOP: {e}", file=sys.stderr, flush=True)
+                break
+            time.sleep(SETTLE_S)
+            step = _measure(args, servers, infos, clients, rooms, seconds, prev)
+            step["hosts"] = n_hosts
+            steps.append(step)
+            print(tag + _load_line(step), file=sys.stderr, flush=True)
+            if stopped is None and not step["held"]:
+                stopped, past = step, 0
+            elif stopped is not None:
+                past += 1
+            if stopped is not None and past >= args.steps_past:
+                break
+            prev = (rooms, step["server_cpu_cores"])
+    finally:
+        if clients is not None:
+            clients.stop()
+        for s in servers:
+            _stop_server(s)
+    # The last step that held before the stop (steps past it may hold again: noise).
+    held = [s for s in steps if s["held"] and (stopped is None or s["rooms"] < stopped["rooms"])]
+    return {"info": info, "idle_server_cpu_cores": idle, "held": held[-1] if held else None,
+            "stopped_at": stopped, "stopped_by": stopped["stopped_by"] if stopped else [],
+            "steps": steps}
+
+
+def _counts_text(counts: list[int]) -> str:
+    return ", ".join(map(str, counts)) if len(counts) <= 6 else \
+        f"{', '.join(map(str, counts[:3]))}, ... {counts[-1]}"
+
+
+def _scene_flags(args: argparse.Namespace) -> list[str]:
+    out = ["--scene", args.scene] if getattr(args, "scene", None) else []
+    return out + (["--server-n", str(args.server_n)] if args.server_n is not None else [])
+
+
+def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
+             infos: list[tuple[dict[str, Any], str, str]], clients: _Clients, rooms: int,
+             seconds: float, prev: tuple[int, float]) -> dict[str, Any]:
+    """One step: ``seconds`` of the servers' counters, their CPU from /proc and what the
+    clients received."""
+    c0 = clients.snap(mark=True)
+    s0 = [get_json(f"{http}/api/stats?reset=1", i["token"]) for i, http, _ in infos]
+    srv0, thr0 = _cpu_seconds(servers), _threads_cpu_seconds(servers)
+    cl0, w0 = clients.cpu_seconds(), time.perf_counter()
+    time.sleep(seconds)
+    s1 = [get_json(f"{http}/api/stats") for _, http, _ in infos]
+    srv1, thr1 = _cpu_seconds(servers), _threads_cpu_seconds(servers)
+    cl1, dt = clients.cpu_seconds(), time.perf_counter() - w0
+    c1 = clients.snap(mark=False)
+    step = _server_step(rooms, _merged(s0), _merged(s1), args)
+    step["rooms_per_host"] = [len(s["rooms"]) for s in s1]
+    step["server_cpu_cores"] = (srv1 - srv0) / dt
+    step["server_cpu_per_room"] = step["server_cpu_cores"] / rooms
+    step["server_cpu_per_added_room"] = ((step["server_cpu_cores"] - prev[1])
+                                         / (rooms - prev[0]))
+    # Each thread's share: the event loop (a process's main thread: its network work) and
+    # the busiest of any (a frame loop, a sim worker, or that event loop).
+    threads = {k: (name, (t - thr0[k][1]) / dt) for k, (name, t) in thr1.items() if k in thr0}
+    step["server_event_loop_cores"] = max(
+        (c for (pid, tid), (_, c) in threads.items() if pid == tid), default=0.0)
+    (pid, tid), (name, cores) = max(threads.items(), key=lambda kv: kv[1][1])
+    step["server_busiest_thread_cores"] = cores
+    step["server_busiest_thread"] = f"{name} (event loop)" if pid == tid else name
+    per_client = [(b - a) / dt for a, b in zip(cl0, cl1, strict=True)]
+    step["clients_cpu_cores"] = sum(per_client)
+    step["client_process_cores_max"] = max(per_client)
+    step.update(_client_step(c0, c1, args))
+    _judge(step, args)
+    return step
+
+
+def _server_step(rooms: int, s0: dict[str, Any], s1: dict[str, Any], args: argparse.Namespace
+                 ) -> dict[str, Any]:
     dt = s1["uptime_s"] - s0["uptime_s"]
     per_room = s1["rooms"].values()
     p99 = max((r["lateness_ms"].get("p99", math.inf) for r in per_room), default=math.inf)
     p50 = max((r["lateness_ms"].get("p50", math.inf) for r in per_room), default=math.inf)
     skipped = sum(r["skipped_frames"] - s0["rooms"].get(k, {}).get("skipped_frames", 0)
                   for k, r in s1["rooms"].items())
-    msgs_in = (s1["messages_in"] - s0["messages_in"]) / dt
-    offered = 4 * args.hip_rate * rooms
-    step = {
+    return {
         "rooms": rooms,
         "clients": rooms * (4 + args.load_spectators),
-        "messages_in_per_s": msgs_in,
-        "messages_out_per_s": (s1["messages_out"] - s0["messages_out"]) / dt,
-        "hip_offered_per_s": offered,
         "lateness_p50_ms": p50,
         "lateness_p99_ms": p99,
         "skipped_frames": skipped,
-        "server_cpu_cores": (s1["cpu_s"] - s0["cpu_s"]) / dt,
+        "messages_in_per_s": (s1["messages_in"] - s0["messages_in"]) / dt,
+        "messages_out_per_s": (s1["messages_out"] - s0["messages_out"]) / dt,
+        "hip_offered_per_s": 4 * args.hip_rate * rooms,
         "load_average": os.getloadavg()[0],
     }
-    step["met"] = bool(p99 <= TARGET_LATENESS_P99_MS and skipped == 0
-                       and msgs_in >= 0.9 * offered)
-    return step
+
+
+def _client_step(c0: list[dict[str, Any]], c1: list[dict[str, Any]], args: argparse.Namespace
+                 ) -> dict[str, Any]:
+    """What the clients sent and received between two snapshots of every client process."""
+    corner, frames, hist = [], [], Counter()
+    hips = meshes = mesh_clients = errors = lost = behind = unknown = mismatch = 0.0
+    last_error, mesh_hz = "", math.nan
+    for a, b in zip(c0, c1, strict=True):
+        dt = b["wall_s"] - a["wall_s"]
+        corner += [(y - x) / dt for x, y in zip(a["corners"], b["corners"], strict=True)]
+        frames += [(f - a["frames"][r]) / dt for r, f in b["frames"].items()
+                   if a["frames"].get(r, -1) >= 0]
+        hips += (b["hips"] - a["hips"]) / dt
+        meshes += (b["meshes"] - a["meshes"]) / dt
+        mesh_clients += b["players"] + b["spectators"]
+        errors += b["errors"] - a["errors"]
+        lost += b["lost"]
+        behind += b["behind"] - a["behind"]
+        unknown += b["echo_unknown"] - a["echo_unknown"]
+        mismatch += b["echo_mismatch"] - a["echo_mismatch"]
+        hist.update({int(k): v for k, v in b["hist"].items()})
+        last_error = last_error or b["last_error"]
+        mesh_hz = b["mesh_hz"] if math.isfinite(b["mesh_hz"]) else mesh_hz
+    lat50, lat99 = (_hist_ms(hist, q) for q in (0.5, 0.99))
+    corner_mean = sum(corner) / len(corner) if corner else 0.0
+    mesh_mean = meshes / mesh_clients if mesh_clients else 0.0
+    return {
+        "hip_to_corner_p50_ms": lat50,
+        "hip_to_corner_p99_ms": lat99,
+        "hip_to_corner_samples": sum(hist.values()),
+        "hip_echo_unknown": int(unknown),
+        "hip_echo_mismatch": int(mismatch),
+        "hip_sent_per_s": hips,
+        "corner_hz_asked": args.corner_rate,
+        "corner_hz_received": corner_mean,
+        "corner_hz_min": min(corner, default=0.0),
+        "corner_delivery": corner_mean / args.corner_rate,
+        "mesh_hz_asked": mesh_hz,
+        "mesh_hz_received": mesh_mean,
+        "mesh_delivery": mesh_mean / mesh_hz if mesh_hz > 0 else 0.0,
+        "frames_per_s": sum(frames) / len(frames) if frames else 0.0,
+        "frames_per_s_min": min(frames, default=0.0),
+        "client_errors": int(errors),
+        "client_last_error": last_error,
+        "clients_lost": int(lost),
+        "clients_fell_behind": int(behind),
+    }
+
+
+def _hist_ms(hist: Counter[int], q: float) -> float | None:
+    """The ``q`` quantile (ms) of a latency histogram of ``leanclient.HIST_BIN_S`` bins
+    (the middle of its bin); None without samples."""
+    total = sum(hist.values())
+    if total == 0:
+        return None
+    seen = 0
+    for i in sorted(hist):
+        seen += hist[i]
+        if seen >= q * total:
+            return (i + 0.5) * HIST_BIN_S * 1e3
+    return None
+
+
+def _judge(step: dict[str, Any], args: argparse.Namespace) -> None:
+    """Held: frame lateness p99 within the target and CORNER delivered at 90 % of the rate
+    asked. Whatever else is saturated is said too (a step the clients could not drive
+    measures them, not the server)."""
+    why: list[tuple[str, str]] = []
+    if not step["lateness_p99_ms"] <= args.lateness_target:
+        why.append(("lateness", f"frame lateness p99 {step['lateness_p99_ms']:.2f} ms > "
+                                f"{args.lateness_target:g} ms"))
+    if not step["corner_delivery"] >= DELIVERY_MIN:
+        why.append(("delivery", f"CORNER {step['corner_hz_received']:.0f} Hz of "
+                                f"{args.corner_rate:g} asked ({step['corner_delivery']:.0%}, "
+                                f"under {DELIVERY_MIN:.0%})"))
+    held = not why
+    cpus = os.cpu_count() or 1
+    if step["server_busiest_thread_cores"] >= SATURATED:
+        why.append(("server_cpu", f"server CPU saturated: thread "
+                                  f"{step['server_busiest_thread']} at "
+                                  f"{step['server_busiest_thread_cores']:.2f} core"))
+    elif step["server_cpu_cores"] + step["clients_cpu_cores"] >= SATURATED * cpus:
+        why.append(("server_cpu", f"server CPU saturated: servers and clients use "
+                                  f"{step['server_cpu_cores'] + step['clients_cpu_cores']:.1f}"
+                                  f" of {cpus} cores"))
+    if step["client_process_cores_max"] >= SATURATED:
+        why.append(("clients_cpu", f"clients' CPU saturated: a client process at "
+                                   f"{step['client_process_cores_max']:.2f} core"))
+    elif step["hip_sent_per_s"] < DELIVERY_MIN * step["hip_offered_per_s"]:
+        why.append(("clients_cpu", f"the clients sent {step['hip_sent_per_s']:.0f} HIP/s of "
+                                   f"{step['hip_offered_per_s']:.0f}"))
+    step["held"] = held
+    step["stopped_by"] = [] if held else [k for k, _ in why]
+    step["why"] = [text for _, text in why]
 
 
 def _cpu_seconds(procs: list[subprocess.Popen[str]]) -> float:
-    """User + system CPU seconds of these processes so far (Linux /proc; else NaN)."""
-    total = 0.0
+    """User + system CPU seconds of these processes so far, every thread (Linux /proc;
+    else NaN)."""
+    return sum(_stat_cpu_seconds(f"/proc/{p.pid}/stat") for p in procs)
+
+
+def _threads_cpu_seconds(procs: list[subprocess.Popen[str]]
+                         ) -> dict[tuple[int, int], tuple[str, float]]:
+    """Every thread of these processes: (pid, tid) -> (its name, CPU seconds so far)."""
+    out = {}
     for p in procs:
         try:
-            fields = Path(f"/proc/{p.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            tids = os.listdir(f"/proc/{p.pid}/task")
         except OSError:
-            return math.nan
-        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return total
+            continue
+        for tid in tids:
+            path = f"/proc/{p.pid}/task/{tid}/stat"
+            try:
+                text = Path(path).read_text()
+            except OSError:  # the thread ended
+                continue
+            out[(p.pid, int(tid))] = (text[text.index("(") + 1:text.rindex(")")],
+                                      _stat_cpu_seconds(path, text))
+    return out
+
+
+def _stat_cpu_seconds(path: str, text: str | None = None) -> float:
+    """User + system CPU seconds in a /proc stat file (``text``: already read)."""
+    try:
+        fields = (text or Path(path).read_text()).rsplit(")", 1)[1].split()
+    except OSError:
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _load_line(s: dict[str, Any]) -> str:
-    return (f"{s['rooms']:3d} rooms {s['clients']:4d} clients  in {s['messages_in_per_s']:7.0f}/s"
-            f" (of {s['hip_offered_per_s']:.0f})  out {s['messages_out_per_s']:7.0f}/s  lateness "
-            f"p50 {s['lateness_p50_ms']:.2f} p99 {s['lateness_p99_ms']:.2f} ms  skipped "
-            f"{s['skipped_frames']}  CPU server {s['server_cpu_cores']:.2f} clients "
-            f"{s['clients_cpu_cores']:.2f} cores  load "
-            f"{s['load_average']:.1f}  {'ok' if s['met'] else 'MISSED'}")
+    def ms(v: float | None) -> str:
+        return "-" if v is None else f"{v:.2f}"
+
+    verdict = "held" if s["held"] else "STOP"
+    if s["why"]:
+        verdict += ": " + "; ".join(s["why"])
+    return (f"{s['rooms']:3d} rooms {s['clients']:4d} clients  in {s['messages_in_per_s']:6.0f}/s"
+            f" out {s['messages_out_per_s']:6.0f}/s  lateness p50 {ms(s['lateness_p50_ms'])} "
+            f"p99 {ms(s['lateness_p99_ms'])} ms  HIP->CORNER p50 "
+            f"{ms(s['hip_to_corner_p50_ms'])} p99 {ms(s['hip_to_corner_p99_ms'])} ms  CORNER "
+            f"{s['corner_hz_received']:.0f}/{s['corner_hz_asked']:g} MESH "
+            f"{s['mesh_hz_received']:.1f}/{s['mesh_hz_asked']:g} Hz  frames "
+            f"{s['frames_per_s']:.0f}/s  CPU server {s['server_cpu_cores']:.2f} "
+            f"({s['server_cpu_per_room']:.3f}/room) clients {s['clients_cpu_cores']:.2f} cores"
+            f"  load {s['load_average']:.1f}  {verdict}")
 
 
 # --- clothball bench --load --cluster -----------------------------------------------------------
 
 
 def run_load_cluster(args: argparse.Namespace) -> int:
-    """``run_load`` over 1, 2 and 3 hosts (``--cluster-hosts``) joined through a Redis of
-    the bench's own; print (or --json) every step of each."""
+    """The load series over 1, 2 and 3 hosts (``--cluster-hosts``) joined through a Redis
+    of the bench's own; print (or --json) every step of each."""
     import shutil
 
     redis_bin = shutil.which("redis-server")
@@ -614,11 +979,11 @@ def run_load_cluster(args: argparse.Namespace) -> int:
         finally:
             redis.terminate()
             redis.wait(timeout=20)
+    info = next(iter(series.values()))["info"]
+    for s in series.values():
+        s.pop("info")
     result = {
-        "n": args.server_n, "backend": args.server_backend, "cpus": os.cpu_count(),
-        "hip_rate_hz": args.hip_rate, "spectators_per_room": args.load_spectators,
-        "seconds_per_step": float(args.load_seconds),
-        "load_average_before": list(load_before),
+        **_load_meta(args, info, load_before),
         "note": f"every host, Redis and the clients run on this one machine and share its "
                 f"{os.cpu_count()} cores",
         "hosts": series,
@@ -628,6 +993,7 @@ def run_load_cluster(args: argparse.Namespace) -> int:
     else:
         for n, r in series.items():
             print(_held_line(f"{n} host{'s' if n != '1' else ''}", r["held"]))
+        print(_stopped_line(result))
     return 0
 
 
@@ -640,25 +1006,6 @@ def _held_line(what: str, h: dict[str, Any] | None) -> str:
             f"server CPU {h['server_cpu_cores']:.2f} cores")
 
 
-def run_load_workers(args: argparse.Namespace) -> int:
-    """``run_load`` over ``--workers`` server processes sharing one port and a SQLite room
-    directory, as ``clothball host --workers N`` runs them."""
-    load_before = os.getloadavg()
-    with tempfile.TemporaryDirectory(prefix="clothball-bench-workers-") as d:
-        series = _load_series(args, args.workers, str(Path(d) / "rooms.sqlite"), free_port())
-    result = {
-        "n": args.server_n, "backend": args.server_backend, "cpus": os.cpu_count(),
-        "workers": args.workers, "hip_rate_hz": args.hip_rate,
-        "spectators_per_room": args.load_spectators, "seconds_per_step": float(args.load_seconds),
-        "load_average_before": list(load_before), **series,
-    }
-    if _write_json(result, getattr(args, "json", None)):
-        print(json.dumps(result, indent=2))
-    else:
-        print(_held_line(f"{args.workers} processes", series["held"]))
-    return 0
-
-
 def _redis_flush(url: str) -> None:
     import redis
 
@@ -667,59 +1014,6 @@ def _redis_flush(url: str) -> None:
         r.flushdb()
     finally:
         r.close()
-
-
-def _load_series(args: argparse.Namespace, n_hosts: int, directory: str,
-                 shared_port: int | None = None) -> dict[str, Any]:
-    """Rooms added one at a time to ``n_hosts`` hosts sharing the room ``directory`` until a
-    target is missed; with ``shared_port`` they are one host's processes on that port and
-    rooms are asked of it (as clients of `clothball host --workers` reach them)."""
-    seconds = float(args.load_seconds)
-    base = [sys.executable, "-m", "clothball.server.loadbench", "--server-n", str(args.server_n),
-            "--server-backend", args.server_backend, "--hip-rate", str(args.hip_rate),
-            "--load-spectators", str(args.load_spectators)]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    shared = ["--shared-port", str(shared_port)] if shared_port is not None else []
-    servers = [subprocess.Popen([*base, "--role", "server", "--no-room", "--directory",
-                                 directory, *shared, *_loop_flag(args)],
-                                stdout=subprocess.PIPE, text=True, env=env)
-               for _ in range(n_hosts)]
-    clients: list[subprocess.Popen[str]] = []
-    steps: list[dict[str, Any]] = []
-    try:
-        infos = [_server_info(s) for s in servers]
-        # Rooms are asked of the first host (or the shared port), which places them.
-        entry = infos[0][2] if shared_port is None else f"ws://127.0.0.1:{shared_port}/ws"
-        time.sleep(1.5)  # every host has read the others from the directory
-        what = (f"{n_hosts} server processes on one port" if shared_port is not None
-                else f"{n_hosts} host{'s' if n_hosts > 1 else ''} in a cluster")
-        print(f"load bench, {what}: rooms "
-              f"of 4 players x {args.hip_rate:g} Hz HIP + {args.load_spectators} spectators, "
-              f"{seconds:g} s a step, n={args.server_n}, backend {infos[0][0]['backend']}, "
-              f"event loop {infos[0][0].get('loop')}, {os.cpu_count()} CPUs shared by hosts "
-              "and clients", file=sys.stderr)
-        for rooms in range(1, args.load_max_rooms + 1):
-            clients.append(_start_room(base, entry, env))
-            s0 = [get_json(f"{http}/api/stats?reset=1", info["token"]) for info, http, _ in infos]
-            c0, w0 = _cpu_seconds(clients), time.perf_counter()
-            time.sleep(seconds)
-            s1 = [get_json(f"{http}/api/stats") for _, http, _ in infos]
-            step = _load_step(rooms, _merged(s0), _merged(s1), args)
-            step["hosts"] = n_hosts
-            step["rooms_per_host"] = [len(s["rooms"]) for s in s1]
-            step["clients_cpu_cores"] = (_cpu_seconds(clients) - c0) / (time.perf_counter() - w0)
-            steps.append(step)
-            tag = "p" if shared_port is not None else "h"  # processes of one host, or hosts
-            print(f"{n_hosts}{tag} " + _load_line(step), file=sys.stderr, flush=True)
-            if not step["met"]:
-                break
-    finally:
-        _stop_clients(clients)
-        for s in servers:
-            _stop_server(s)
-    held = [s for s in steps if s["met"]]
-    return {"server_loop": infos[0][0].get("loop"), "held": held[-1] if held else None,
-            "first_missed": next((s for s in steps if not s["met"]), None), "steps": steps}
 
 
 def _merged(stats: list[dict[str, Any]]) -> dict[str, Any]:

@@ -1,38 +1,133 @@
 """``clothball bench --load`` runs end to end (a tiny, short configuration): it grows rooms,
-measures each step from the server's own counters and reports them. Speed is not asserted
-here (docs/benchmarks/load.md has the figures)."""
+measures each step from the server's own counters, /proc and its lean clients, and reports
+them. Speed is not asserted here (docs/benchmarks/load.md has the figures).
+
+The lean client's wire handling is checked against websockets' own frame codec (an
+independent implementation of RFC 6455), its latency quantiles against NumPy's."""
 
 from __future__ import annotations
 
+import asyncio
+import inspect
 import json
+import math
 import shutil
 import subprocess
 import sys
+import time
+from collections import Counter
 
+import numpy as np
 import pytest
+from clothball.game import cli
+from clothball.game.wire import protocol as P
+from clothball.server import leanclient, loadbench
+from clothball.server.room import Room
+from websockets.frames import Frame, Opcode
+from websockets.streams import StreamReader
+
+MESH_HZ = inspect.signature(Room).parameters["mesh_hz"].default  # what the rooms send
+
+BENCH = [sys.executable, "-m", "clothball.game.cli", "bench", "--load"]
+# Tiny and short: two steps of a second, whatever they measure (--steps-past 1 measures the
+# second step even when the first does not hold on a busy machine).
+TINY = ["--load-seconds", "1", "--load-max-rooms", "2", "--server-n", "12",
+        "--load-spectators", "1", "--steps-past", "1"]
+STEP_KEYS = {
+    "rooms", "clients", "rooms_per_host", "hosts", "lateness_p50_ms", "lateness_p99_ms",
+    "skipped_frames", "messages_in_per_s", "messages_out_per_s", "hip_offered_per_s",
+    "hip_sent_per_s", "load_average", "server_cpu_cores", "server_cpu_per_room",
+    "server_cpu_per_added_room", "server_event_loop_cores", "server_busiest_thread_cores",
+    "server_busiest_thread", "clients_cpu_cores",
+    "client_process_cores_max", "hip_to_corner_p50_ms", "hip_to_corner_p99_ms",
+    "hip_to_corner_samples", "hip_echo_unknown", "hip_echo_mismatch", "corner_hz_asked",
+    "corner_hz_received", "corner_hz_min",
+    "corner_delivery", "mesh_hz_asked", "mesh_hz_received", "mesh_delivery", "frames_per_s",
+    "frames_per_s_min", "client_errors", "client_last_error", "clients_lost",
+    "clients_fell_behind", "held", "stopped_by", "why",
+}
+REASONS = {"lateness", "delivery", "server_cpu", "clients_cpu"}
+
+
+def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
+                corner_hz: float) -> None:
+    assert set(step) == STEP_KEYS, set(step) ^ STEP_KEYS
+    for k, v in step.items():
+        if isinstance(v, float):
+            assert math.isfinite(v), (i, k, v)
+    assert step["rooms"] == rooms and sum(step["rooms_per_host"]) == rooms
+    assert step["clients"] == rooms * (4 + spectators)
+    assert step["hip_offered_per_s"] == 4 * hip_hz * rooms
+    assert step["messages_in_per_s"] > 0 and step["messages_out_per_s"] > 0
+    assert step["hip_sent_per_s"] > 0 and step["frames_per_s"] > 0
+    assert step["lateness_p99_ms"] >= step["lateness_p50_ms"] >= 0
+    assert step["hip_to_corner_samples"] > 0
+    # every CORNER echoed a HIP this client sent, with the time it was sent with
+    assert step["hip_echo_unknown"] == 0 and step["hip_echo_mismatch"] == 0
+    assert step["hip_to_corner_p99_ms"] >= step["hip_to_corner_p50_ms"] > 0
+    assert step["server_cpu_cores"] > 0 and step["clients_cpu_cores"] > 0
+    assert step["server_cpu_per_room"] == pytest.approx(step["server_cpu_cores"] / rooms)
+    assert step["server_busiest_thread_cores"] >= step["server_event_loop_cores"] > 0
+    assert step["server_cpu_cores"] >= step["server_busiest_thread_cores"] - 0.05  # clock ticks
+    assert step["server_busiest_thread"]
+    assert step["clients_cpu_cores"] >= step["client_process_cores_max"] > 0
+    assert step["corner_hz_asked"] == corner_hz
+    assert step["corner_delivery"] == pytest.approx(step["corner_hz_received"] / corner_hz)
+    assert 0 < step["corner_hz_min"] <= step["corner_hz_received"] * (1 + 1e-12)  # the mean
+    assert step["mesh_hz_asked"] == MESH_HZ
+    assert step["mesh_delivery"] == pytest.approx(step["mesh_hz_received"]
+                                                  / step["mesh_hz_asked"])
+    assert step["client_errors"] == 0 and step["clients_lost"] == 0, step["client_last_error"]
+    assert isinstance(step["held"], bool)
+    assert set(step["stopped_by"]) <= REASONS
+    assert step["held"] == (not step["stopped_by"])
+    if not step["held"]:  # what stopped it is said
+        assert step["why"]
+    assert (step["lateness_p99_ms"] > 2.0) == ("lateness" in step["stopped_by"])
 
 
 @pytest.mark.slow
 def test_load_bench_runs_and_reports_every_step(tmp_path) -> None:
     dest = tmp_path / "load.json"
-    out = subprocess.run(
-        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--load-seconds", "1",
-         "--load-max-rooms", "2", "--server-n", "12", "--hip-rate", "50",
-         "--load-spectators", "1", "--json", str(dest)],
-        capture_output=True, text=True, timeout=180, check=True,
-    )
+    out = subprocess.run([*BENCH, *TINY, "--frame-loop", "python", "--json", str(dest)],
+                         capture_output=True, text=True, timeout=180, check=True)
     r = json.loads(dest.read_text())
-    assert r["n"] == 12 and r["spectators_per_room"] == 1 and r["cpus"] >= 1
-    assert 1 <= len(r["steps"]) <= 2
+    assert r["n"] == 12 and r["scene"] == "classic" and r["spectators_per_room"] == 1
+    assert r["hip_rate_hz"] == 120 and r["corner_rate_hz"] == 120  # the desktop client's
+    assert r["cpus"] >= 1 and r["client_processes"] >= 1 and r["workers"] == 1
+    # --frame-loop reached the server process as CLOTHBALL_FRAME_LOOP (it says what it got)
+    assert r["frame_loop"] == "python" and "frame loop python" in out.stderr
+    assert [s["rooms"] for s in r["steps"]] == [1, 2]
     for i, step in enumerate(r["steps"], start=1):
-        assert step["rooms"] == i and step["clients"] == 5 * i
-        assert step["hip_offered_per_s"] == 200 * i
-        assert step["messages_in_per_s"] > 0 and step["messages_out_per_s"] > 0
-        assert step["lateness_p99_ms"] >= step["lateness_p50_ms"] >= 0
-        assert isinstance(step["met"], bool)
-    held = r["held"]
-    assert held is None or held["met"]
+        _check_step(step, i, i, 1, 120.0, 120.0)
+    assert r["idle_server_cpu_cores"] >= 0
+    # The summary: the last step held before the stop, and the stop with its reasons.
+    stop = r["stopped_at"]
+    if stop is None:
+        assert all(s["held"] for s in r["steps"]) and r["held"] == r["steps"][-1]
+        assert "every step held" in out.stdout
+    else:
+        assert not stop["held"] and r["stopped_by"] == stop["stopped_by"]
+        assert r["held"] is None or r["held"]["rooms"] < stop["rooms"]
+        assert f"stopped: at {stop['rooms']} rooms by" in out.stdout
     assert "load average" in out.stderr and "held:" in out.stdout
+
+
+@pytest.mark.slow
+def test_load_bench_rates_and_rooms_step_are_the_flags(tmp_path) -> None:
+    dest = tmp_path / "load.json"
+    subprocess.run([*BENCH, "--load-seconds", "1", "--load-max-rooms", "3", "--rooms-step", "3",
+                    "--server-n", "12", "--load-spectators", "0", "--steps-past", "1",
+                    "--hip-rate", "50", "--corner-rate", "40", "--client-procs", "2",
+                    "--json", str(dest)],
+                   capture_output=True, text=True, timeout=180, check=True)
+    r = json.loads(dest.read_text())
+    assert r["client_processes"] == 2 and r["rooms_step"] == 3
+    assert [s["rooms"] for s in r["steps"]] == [1, 3]
+    for i, step in enumerate(r["steps"], start=1):
+        _check_step(step, i, step["rooms"], 0, 50.0, 40.0)
+    # No client asked for more than 40 CORNERs a second (the server's limit per connection).
+    assert max(s["corner_hz_received"] for s in r["steps"]) <= 40 * 1.1
 
 
 @pytest.mark.slow
@@ -41,49 +136,205 @@ def test_load_bench_runs_and_reports_every_step(tmp_path) -> None:
 def test_load_bench_over_a_cluster_places_rooms_on_every_host(tmp_path) -> None:
     dest = tmp_path / "cluster.json"
     out = subprocess.run(
-        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--cluster",
-         "--cluster-hosts", "1,2", "--load-seconds", "1", "--load-max-rooms", "2",
-         "--server-n", "12", "--hip-rate", "50", "--load-spectators", "1", "--json", str(dest)],
+        [*BENCH, "--cluster", "--cluster-hosts", "1,2", *TINY, "--json", str(dest)],
         capture_output=True, text=True, timeout=240, check=True,
     )
     r = json.loads(dest.read_text())
     assert set(r["hosts"]) == {"1", "2"} and "share" in r["note"]
     for n, series in r["hosts"].items():
+        assert [s["rooms"] for s in series["steps"]] == [1, 2]
         for i, step in enumerate(series["steps"], start=1):
-            assert step["hosts"] == int(n) and step["rooms"] == i
-            assert len(step["rooms_per_host"]) == int(n) and sum(step["rooms_per_host"]) == i
-            assert step["messages_in_per_s"] > 0
+            assert step["hosts"] == int(n) and len(step["rooms_per_host"]) == int(n)
+            _check_step(step, i, i, 1, 120.0, 120.0)
     # The first host, asked for every room, places each on the least-loaded host.
-    two = r["hosts"]["2"]["steps"]
-    if len(two) == 2:
-        assert sorted(two[1]["rooms_per_host"]) == [1, 1]
+    assert sorted(r["hosts"]["2"]["steps"][1]["rooms_per_host"]) == [1, 1]
     assert "2 hosts: held" in out.stdout
 
 
 @pytest.mark.slow
 def test_load_bench_over_two_processes_on_one_port_spreads_the_rooms(tmp_path) -> None:
     dest = tmp_path / "workers.json"
-    out = subprocess.run(
-        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--workers", "2",
-         "--load-seconds", "1", "--load-max-rooms", "2", "--server-n", "12", "--hip-rate", "50",
-         "--load-spectators", "1", "--json", str(dest)],
-        capture_output=True, text=True, timeout=240, check=True,
-    )
+    out = subprocess.run([*BENCH, "--workers", "2", *TINY, "--json", str(dest)],
+                         capture_output=True, text=True, timeout=240, check=True)
     r = json.loads(dest.read_text())
     assert r["workers"] == 2 and r["n"] == 12
+    assert [s["rooms"] for s in r["steps"]] == [1, 2]
     for i, step in enumerate(r["steps"], start=1):
-        assert step["rooms"] == i and step["clients"] == 5 * i
-        assert len(step["rooms_per_host"]) == 2 and sum(step["rooms_per_host"]) == i
-        assert step["messages_in_per_s"] > 0
+        assert len(step["rooms_per_host"]) == 2
+        _check_step(step, i, i, 1, 120.0, 120.0)
     # Rooms asked through the shared port go to the least-loaded process.
-    if len(r["steps"]) == 2:
-        assert sorted(r["steps"][1]["rooms_per_host"]) == [1, 1]
+    assert sorted(r["steps"][1]["rooms_per_host"]) == [1, 1]
     assert "2 server processes on one port" in out.stderr
 
 
-def test_load_bench_refuses_fewer_than_one_worker() -> None:
-    out = subprocess.run(
-        [sys.executable, "-m", "clothball.game.cli", "bench", "--load", "--workers", "0"],
-        capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2 and "--workers must be at least 1" in out.stderr
-    assert "Traceback" not in out.stderr
+@pytest.mark.parametrize(("flags", "says"), [
+    (["--workers", "0"], "--workers must be at least 1"),
+    (["--hip-rate", "0"], "--hip-rate must be more than 0 and at most 1000"),
+    (["--hip-rate", "nan"], "--hip-rate must be more than 0 and at most 1000"),
+    (["--hip-rate", "1001"], "--hip-rate must be more than 0 and at most 1000"),
+    (["--corner-rate", "0.5"], "--corner-rate must be 1 to 1000"),
+    (["--corner-rate", "inf"], "--corner-rate must be 1 to 1000"),
+    (["--rooms-step", "0"], "--rooms-step must be at least 1"),
+    (["--load-max-rooms", "0"], "--load-max-rooms must be at least 1"),
+    (["--load-seconds", "0"], "--load-seconds must be a number of seconds above 0"),
+    (["--load-spectators", "-1"], "--load-spectators must be 0 or more"),
+    (["--lateness-target", "-2"], "--lateness-target must be a number of milliseconds"),
+    (["--steps-past", "-1"], "--steps-past must be 0 or more"),
+    (["--client-procs", "0"], "--client-procs must be at least 1"),
+    (["--scene", "nosuch"], "--scene, --server-n: scene 'nosuch': no such scene"),
+    (["--server-n", "1"], "--scene, --server-n: cloth.n: must be >= 2"),
+])
+def test_load_bench_refuses_bad_flags_in_one_line(flags: list[str], says: str, capsys) -> None:
+    # The command itself, in this process (it refuses before starting anything).
+    assert cli.main(["bench", "--load", *flags]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("clothball bench: ") and says in lines[0]
+
+
+def test_load_bench_refuses_a_bad_flag_from_the_command_line() -> None:
+    out = subprocess.run([*BENCH, "--hip-rate", "-5"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines() == [
+        "clothball bench: --hip-rate must be more than 0 and at most 1000 (HIP messages a "
+        "second per player), got -5"]
+
+
+def test_load_bench_refuses_an_unknown_frame_loop() -> None:
+    out = subprocess.run([*BENCH, "--frame-loop", "fast"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "--frame-loop" in out.stderr and "invalid choice" in out.stderr
+
+
+def test_room_counts_start_with_one_room_then_add_k_a_step() -> None:
+    assert loadbench.room_counts(1, 3) == [1, 2, 3]
+    assert loadbench.room_counts(8, 20) == [1, 8, 16, 20]
+    assert loadbench.room_counts(4, 4) == [1, 4]
+    assert loadbench.room_counts(5, 1) == [1]
+
+
+def test_latency_quantiles_match_numpy_within_a_bin() -> None:
+    rng = np.random.default_rng(7)
+    x = rng.lognormal(np.log(4e-3), 0.6, 20_000)  # seconds, a few ms like HIP -> CORNER
+    hist: dict[int, int] = {}
+    for v in x:  # binned as the lean client bins them
+        i = min(int(v / leanclient.HIST_BIN_S), leanclient.HIST_BINS)
+        hist[i] = hist.get(i, 0) + 1
+    for q in (0.5, 0.99):
+        want = float(np.percentile(x, q * 100, method="inverted_cdf")) * 1e3
+        got = loadbench._hist_ms(Counter(hist), q)
+        assert got is not None and abs(got - want) <= leanclient.HIST_BIN_S * 1e3 / 2 + 1e-12
+    assert loadbench._hist_ms(Counter(), 0.5) is None
+
+
+def _corner(frame: int, seq: int, sent: float) -> bytes:
+    return P.CORNER_MSG.pack(P.CORNER, P.PROTOCOL_VERSION, 0, frame & 0xFFFFFFFF, 1.0, frame, 0,
+                             *([0.0] * 9), 100.0, *([0.0] * 6), seq, sent)
+
+
+def _server_frame(opcode: Opcode, data: bytes) -> bytes:
+    """A frame as a server sends it (unmasked), by websockets' own codec."""
+    return Frame(opcode, data).serialize(mask=False)
+
+
+def _client_frames(data: bytes) -> list[Frame]:
+    """The frames a client wrote, read back by websockets as a server reads them."""
+    reader = StreamReader()
+    reader.feed_data(data)
+    reader.feed_eof()
+    frames = []
+    while reader.buffer:  # (at_eof is a generator in websockets)
+        gen = Frame.parse(reader.read_exact, mask=True)
+        try:
+            next(gen)
+        except StopIteration as e:
+            frames.append(e.value)
+        else:
+            raise AssertionError("a frame cut short")
+    return frames
+
+
+class _Transport(asyncio.Transport):
+    """What a client writes, kept."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.out = bytearray()
+
+    def write(self, data: bytes) -> None:
+        self.out += data
+
+    def is_closing(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 7, 64, 1000, 1 << 20])
+def test_lean_client_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
+    """CORNERs, MESHes of every websocket length form (counted, not read), text, a ping,
+    fed in chunks of every size: every message counted once; a latency sample once per HIP
+    echoed, from the time the client sent that seq; an echo of another time, or of a seq
+    never sent, counted; the ping answered with a pong websockets reads back."""
+    mesh_small = bytes([P.MESH]) + bytes(100)  # length < 126
+    mesh_mid = bytes([P.MESH]) + bytes(5000)  # 16-bit length
+    mesh_big = bytes([P.MESH]) + bytes(70_000)  # 64-bit length
+
+    async def feed() -> tuple[leanclient.Conn, _Transport]:
+        hist = [0] * (leanclient.HIST_BINS + 1)
+        conn = leanclient.Conn(hist)
+        t = _Transport()
+        conn.connection_made(t)
+        conn._upgraded.set_result(None)
+        conn.hand = (0.0, 0.5, 0.0, 0.3, 0.0)
+        t1 = time.perf_counter() - 0.003  # sent 3 ms ago at least
+        conn.send_hip(t1)
+        conn.send_hip(t1 + 1e-4)
+        stream = b"".join([
+            _server_frame(Opcode.BINARY, _corner(10, 0, math.nan)),  # no HIP applied yet
+            _server_frame(Opcode.BINARY, mesh_mid),
+            _server_frame(Opcode.BINARY, _corner(11, 1, t1)),
+            _server_frame(Opcode.TEXT, json.dumps({"type": "error", "code": "x",
+                                                   "message": "m"}).encode()),
+            _server_frame(Opcode.BINARY, _corner(12, 1, t1)),  # the same HIP: no new sample
+            _server_frame(Opcode.BINARY, mesh_big),
+            _server_frame(Opcode.PING, b"hi"),
+            _server_frame(Opcode.BINARY, mesh_small),
+            _server_frame(Opcode.BINARY, _corner(13, 2, t1 + 7.0)),  # not the time sent
+            _server_frame(Opcode.BINARY, _corner(14, 77, 0.0)),  # never sent
+        ])
+        for i in range(0, len(stream), chunk):
+            conn.data_received(stream[i:i + chunk])
+        return conn, t
+
+    conn, t = asyncio.run(feed())
+    assert conn.corners == 5 and conn.meshes == 3 and conn.frame == 14
+    assert conn.texts == 1 and conn.errors == 1 and conn.last_error == "x: m"
+    assert conn.echo_mismatch == 1 and conn.echo_unknown == 1
+    bins = [i for i, c in enumerate(conn.hist) for _ in range(c)]
+    assert len(bins) == 2  # HIPs 1 and 2, once each, from their send times
+    assert min(bins) * leanclient.HIST_BIN_S >= 0.003 - 1e-4 - leanclient.HIST_BIN_S
+    frames = _client_frames(bytes(t.out))
+    assert [f.opcode for f in frames] == [Opcode.BINARY, Opcode.BINARY, Opcode.PONG]
+    assert frames[2].data == b"hi"
+
+
+def test_lean_client_hip_is_a_masked_frame_the_server_decodes() -> None:
+    async def one() -> bytes:
+        conn = leanclient.Conn([0] * (leanclient.HIST_BINS + 1))
+        t = _Transport()
+        conn.connection_made(t)
+        conn.hand = (0.1, 0.5, -0.2, 0.3, 0.0)
+        conn.send_hip(12.5)
+        return bytes(t.out)
+
+    data = asyncio.run(one())
+    (frame,) = _client_frames(data)
+    assert frame.opcode is Opcode.BINARY and frame.fin
+    hip = P.decode_hip(bytes(frame.data))
+    assert hip.seq == 1 and hip.time == 12.5
+    y = 0.5 + 0.3 * math.sin(math.pi * 12.5) * 0.3
+    np.testing.assert_allclose(hip.position, [0.1, y, -0.2], rtol=1e-6)
+    assert 6 + P.HIP_SIZE == len(data)  # 2 header bytes, the mask key, the HIP
