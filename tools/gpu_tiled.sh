@@ -11,7 +11,7 @@ cd /tmp  # import the installed package, not the source tree
 OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout 200 python3 -m pytest -q -p no:cacheprovider \
   -p no:benchmark -n 8 -c "$root/setup.cfg" --rootdir "$root" \
   "$root/tests/engine/test_engine_vs_oracle.py" "$root/tests/engine/test_tiled_plan.py" \
-  "$root/tests/engine/test_batch_gpu.py" -k "cuda or gpu or tiled" 2>&1 | tee "$OUT/tests.txt" | tail -4
+  "$root/tests/engine/test_batch_gpu.py" -k "${TESTK:-cuda or gpu or tiled}" 2>&1 | tee "$OUT/tests.txt" | tail -4
 tests_rc=${PIPESTATUS[0]}
 cd "$root"
 bench=(python3 -m clothball.game.cli bench --backends cuda)
@@ -22,7 +22,7 @@ for scene in classic default; do
       --json "$OUT/table_${scene}_tiled$tiled.json" >"$OUT/table_${scene}_tiled$tiled.txt" 2>>"$OUT/bench.err"
   done
 done
-timeout 150 "${bench[@]}" --largest --json "$OUT/largest.json" 2>>"$OUT/bench.err" | tee "$OUT/largest.txt" >/dev/null
+timeout "${LARGEST_S:-150}" "${bench[@]}" --largest --largest-frames "${LARGEST_FRAMES:-300}" --json "$OUT/largest.json" 2>>"$OUT/bench.err" | tee "$OUT/largest.txt" >/dev/null
 [ "${ROOMS:-0}" = 1 ] && timeout 120 "${bench[@]}" --rooms --sizes 60 --rooms-frames 200 \
   --json "$OUT/rooms.json" 2>>"$OUT/bench.err" >"$OUT/rooms.txt"
 python3 - "$OUT" <<'PY'
