@@ -42,9 +42,11 @@ def test_tiles_cover_the_cloth_within_the_device(scene: str, dbl: bool, n: int) 
 
 def test_the_issue_sizes_fit_an_h100() -> None:
     """Issue 29's targets: classic n = 1024 float32 and n = 720 float64, default n = 768
-    float32 run tiled (132 tiles of at most 86 x 94 nodes at 1024)."""
+    float32 run tiled, on the whole device, no tile larger than those of the even 12 x 11
+    cut of n = 1024 (86 x 94 nodes)."""
     t = plan(config("classic", 1024))
-    assert (t["tiles_y"] * t["tiles_x"], t["th"] * t["tw"]) == (132, 86 * 94)
+    assert t["tiles_y"] * t["tiles_x"] == 132
+    assert t["th"] * t["tw"] <= 86 * 94
     assert plan(config("classic", 720), dbl=True)["chosen"]
     assert plan(config("default", 768))["chosen"]
     assert plan(config("classic", 1024))["chosen"]
