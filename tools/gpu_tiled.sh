@@ -14,6 +14,7 @@ OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout 200 python3 -m pytest -q -p no
   "$root/tests/engine/test_batch_gpu.py" -k "${TESTK:-cuda or gpu or tiled}" 2>&1 | tee "$OUT/tests.txt" | tail -4
 tests_rc=${PIPESTATUS[0]}
 cd "$root"
+python3 -c "import clothball.game.cli.bench" 2>&1 | tail -3  # says why, if bench cannot load
 bench=(python3 -m clothball.game.cli bench --backends cuda)
 for scene in classic default; do
   for tiled in 0 1; do
