@@ -8,7 +8,7 @@ OUT=${OUT:-gpu-results}
 source "$(dirname "$0")/gpu_build.sh"
 root=$PWD
 cd /tmp  # import the installed package, not the source tree
-OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout 200 python3 -m pytest -q -p no:cacheprovider \
+OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout "${TESTS_S:-200}" python3 -m pytest -q -p no:cacheprovider \
   -p no:benchmark -n 8 -c "$root/setup.cfg" --rootdir "$root" \
   "$root/tests/engine/test_engine_vs_oracle.py" "$root/tests/engine/test_tiled_plan.py" \
   "$root/tests/engine/test_batch_gpu.py" -k "${TESTK:-cuda or gpu or tiled}" 2>&1 | tee "$OUT/tests.txt" | tail -4
@@ -16,16 +16,16 @@ tests_rc=${PIPESTATUS[0]}
 cd "$root"
 python3 -c "import clothball.game.cli.bench" 2>&1 | tail -3  # says why, if bench cannot load
 bench=(python3 -m clothball.game.cli bench --backends cuda)
+timeout "${LARGEST_S:-150}" "${bench[@]}" --largest --largest-frames "${LARGEST_FRAMES:-300}" --json "$OUT/largest.json" 2>>"$OUT/bench.err" | tee "$OUT/largest.txt" >/dev/null
 for scene in classic default; do
   for tiled in 0 1; do
-    CLOTHBALL_CUDA_TILED=$tiled timeout 120 "${bench[@]}" --scene $scene --repeats 3 \
+    CLOTHBALL_CUDA_TILED=$tiled timeout "${TABLE_S:-120}" "${bench[@]}" --scene $scene --repeats 3 \
       --sizes "${SIZES:-128,256,384,512,640,768,896,1024}" \
       --json "$OUT/table_${scene}_tiled$tiled.json" >"$OUT/table_${scene}_tiled$tiled.txt" 2>>"$OUT/bench.err"
   done
 done
-timeout "${LARGEST_S:-150}" "${bench[@]}" --largest --largest-frames "${LARGEST_FRAMES:-300}" --json "$OUT/largest.json" 2>>"$OUT/bench.err" | tee "$OUT/largest.txt" >/dev/null
 # Table 1's small rows (a launch a substep there), against the record in docs/benchmarks.
-timeout 60 "${bench[@]}" --quick --precisions float32 --json "$OUT/table1_quick.json" \
+timeout "${TABLE_S:-60}" "${bench[@]}" --quick --precisions float32 --json "$OUT/table1_quick.json" \
   2>>"$OUT/bench.err" >"$OUT/table1_quick.txt"
 [ "${ROOMS:-0}" = 1 ] && timeout 120 "${bench[@]}" --rooms --sizes 60 --rooms-frames 200 \
   --json "$OUT/rooms.json" 2>>"$OUT/bench.err" >"$OUT/rooms.txt"
