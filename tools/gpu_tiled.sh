@@ -50,6 +50,6 @@ tail -12 "$OUT/largest.txt"
 grep -E "^[0-9]+ (passed|failed)|FAILED" "$OUT/tests.txt" | tail -8
 tail -6 "$OUT/table1_quick.txt"
 # What comes back is a few files: everything in one archive, the tests' log beside it.
-(cd "$OUT" && tar czf all.tgz --exclude all.tgz --exclude tests.txt . \
-  && find . -type f ! -name all.tgz ! -name tests.txt -delete)
+tar czf /tmp/all.tgz -C "$OUT" --exclude tests.txt . \
+  && find "$OUT" -type f ! -name tests.txt -delete && mv /tmp/all.tgz "$OUT/"
 exit "$tests_rc"

@@ -22,10 +22,12 @@ namespace cb {
 // update takes (128; float32's: 56).
 constexpr int tiled_threads(size_t real_bytes) { return real_bytes == 4 ? 1024 : 512; }
 
-// The smallest n at which the tiled frame is taken by default: below it a launch a
-// substep over a state that stays in L2 is as fast (measured on an H100; see
-// docs/benchmarks and tiled_wanted).
-constexpr int kTiledMinN = 384;
+// The smallest n at which the tiled frame is taken by default. Below it a launch a
+// substep, over a state that stays in L2, is about as fast: on an H100 (µs a substep, a
+// launch a substep against tiled) classic float32 4.67 / 5.50 at n = 384, 5.40 / 5.54 at
+// 512, 10.32 / 9.02 at 768, 22.11 / 14.43 at 1024; classic float64 7.30 / 7.79 at 384,
+// 10.46 / 9.88 at 512; default float32 7.28 / 6.89 at 384, 9.03 / 8.25 at 512.
+constexpr int kTiledMinN = 512;
 
 struct TiledPlan {
   int tiles_y = 0, tiles_x = 0;  // 0: no tiling fits
