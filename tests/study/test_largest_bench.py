@@ -4,8 +4,6 @@ measures is reported, not asserted)."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 from clothball.game.study.largest import largest_held, traffic
@@ -34,13 +32,11 @@ def test_traffic_counts_twelve_planes_a_pass() -> None:
     assert t["pass_a_frame_of_copy"] == pytest.approx(t["pass_a_frame_gbs"] / 3000.0)
 
 
-def test_bench_largest_writes_its_rows(tmp_path) -> None:
+def test_bench_largest_writes_its_rows(tmp_path, clothball_cli) -> None:
     out = tmp_path / "largest.json"
-    r = subprocess.run(
-        [sys.executable, "-m", "clothball.game.cli", "bench", "--largest", "--backends", "cpu",
-         "--scene", "classic", "--precisions", "float32", "--largest-max", "16",
-         "--largest-frames", "10", "--json", str(out)],
-        capture_output=True, text=True, timeout=300)
+    r = clothball_cli("bench", "--largest", "--backends", "cpu", "--scene", "classic",
+                      "--precisions", "float32", "--largest-max", "16", "--largest-frames",
+                      "10", "--json", str(out), timeout=300)
     assert r.returncode == 0, r.stderr
     rows = json.loads(out.read_text())["rows"]
     assert rows and sum(row["largest"] for row in rows) <= 1
@@ -51,8 +47,6 @@ def test_bench_largest_writes_its_rows(tmp_path) -> None:
     assert "largest n held at 1 kHz" in r.stdout
 
 
-def test_bench_largest_refuses_bad_options() -> None:
-    r = subprocess.run([sys.executable, "-m", "clothball.game.cli", "bench", "--largest",
-                        "--backends", "cpu", "--largest-max", "1"],
-                       capture_output=True, text=True, timeout=60)
+def test_bench_largest_refuses_bad_options(clothball_cli) -> None:
+    r = clothball_cli("bench", "--largest", "--backends", "cpu", "--largest-max", "1")
     assert r.returncode == 2 and "--largest-max" in r.stderr and "Traceback" not in r.stderr
