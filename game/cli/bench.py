@@ -1,6 +1,7 @@
 """``clothball bench``: time per substep (the paper's Table 1 re-measured, ``--effects``),
-the game server under load (``--server``, ``--load``), or its replay index's HTTP queries
-at scale (``--index``)."""
+the rooms and the largest cloth one engine steps at 1 kHz (``--rooms``, ``--largest``), the
+game server under load (``--server``, ``--load``), or its replay index's HTTP queries at
+scale (``--index``)."""
 
 from __future__ import annotations
 
