@@ -9,6 +9,9 @@ the engine tests without the server's dependencies).
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+from collections.abc import Callable
 
 import pytest
 from clothball.game import cuda_unavailable_reason
@@ -41,3 +44,14 @@ def cuda() -> str:
 @pytest.fixture(params=["float32", "float64"])
 def precision(request: pytest.FixtureRequest) -> str:
     return request.param
+
+
+@pytest.fixture
+def clothball_cli() -> Callable[..., subprocess.CompletedProcess[str]]:
+    """Runs ``clothball ARGS`` in a subprocess of this interpreter, output captured."""
+
+    def run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "clothball.game.cli", *args],
+                              capture_output=True, text=True, timeout=timeout)
+
+    return run

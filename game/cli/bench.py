@@ -1,6 +1,7 @@
 """``clothball bench``: time per substep (the paper's Table 1 re-measured, ``--effects``),
-the game server under load (``--server``, ``--load``), or its replay index's HTTP queries
-at scale (``--index``)."""
+the rooms and the largest cloth one engine steps at 1 kHz (``--rooms``, ``--largest``), the
+game server under load (``--server``, ``--load``), or its replay index's HTTP queries at
+scale (``--index``)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from ...server.room import RoomSettings
 from ...server.thread import ServerThread
 from ..rules import EDGE_NAMES
 from ..sim.scene import Scene, SceneError
-from ..study import rooms, rounds
+from ..study import largest, rooms, rounds
 from ..study.bench import (
     csv_list,
     gpu_target_verdicts,
@@ -28,6 +29,7 @@ from ..study.bench import (
 )
 
 GAME_SCENE = "default"  # the shipped game's scene (classic is the paper's set-up)
+LARGEST_SCENE = "classic"  # --largest: the paper's scene, then the game's
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -49,6 +51,16 @@ def configure(p: argparse.ArgumentParser) -> None:
         help="how many rooms (batched cloths, hands in and corners out, no network) one "
              "engine steps at 1 kHz, per backend and n (--sizes; default 16,60)",
     )
+    p.add_argument(
+        "--largest", action="store_true",
+        help="the largest n one cloth steps at 1 kHz (frame p99 <= 1 ms, corners read each "
+             "frame), bisected per scene (--scene; default classic and default) and precision, "
+             "with the bytes a frame moves against the copy bandwidth",
+    )
+    p.add_argument("--largest-frames", type=int, default=300, metavar="F",
+                   help="--largest: frames timed per size (default %(default)s)")
+    p.add_argument("--largest-max", type=int, default=largest.MAX_N, metavar="N",
+                   help="--largest: the largest n tried (default %(default)s)")
     p.add_argument("--rooms-frames", type=int, default=300, metavar="F",
                    help="--rooms: frames timed per room count (default %(default)s)")
     p.add_argument("--max-rooms", type=int, default=4096, metavar="K",
@@ -80,6 +92,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.rounds is not None:
         return run_rounds_cmd(args)
+    if args.largest:
+        return run_largest_cmd(args)
     if args.server or args.load:  # their scene: classic at n = 64 unless --scene says
         return loadbench.run_load(args) if args.load else loadbench.run(args)
     if args.scene is None:
@@ -157,6 +171,41 @@ def run_rooms_cmd(args: argparse.Namespace) -> int:
     rooms.print_rooms(rows)
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def run_largest_cmd(args: argparse.Namespace) -> int:
+    """The largest cloth held at 1 kHz per scene and precision (``game.study.largest``)."""
+    from tqdm import tqdm  # noqa: PLC0415
+
+    try:
+        scenes = [Scene.load(name) for name in (
+            [args.scene] if args.scene else [LARGEST_SCENE, GAME_SCENE])]
+        backends = select_backends(args)
+        if args.backends == "auto":
+            backends = backends[-1:]  # the GPU where there is one
+        precisions = csv_list(args.precisions, "precisions", ("float32", "float64"))
+        if not 10 <= args.largest_frames <= 100_000:
+            raise ValueError("--largest-frames: must be in 10..100000")
+        if not largest.STEP_N <= args.largest_max <= 8192:
+            raise ValueError(f"--largest-max: must be in {largest.STEP_N}..8192")
+    except (ValueError, SceneError) as e:
+        print(f"clothball bench: {e}", file=sys.stderr)
+        return 2
+    copy_gbs = _native.cuda_copy_bandwidth_gbs(1 << 30) if "cuda" in backends else None
+    cases = [(sc, b, p) for sc in scenes for b in backends for p in precisions]
+    with tqdm(desc="largest", unit="size", file=sys.stderr) as bar:
+        def progress(label: str) -> None:
+            bar.set_postfix_str(label[:70])
+            bar.update(1)
+
+        rows = largest.run_largest(cases, args.largest_frames, args.largest_max, copy_gbs,
+                                   progress)
+    largest.print_largest(rows, copy_gbs)
+    if args.json:
+        out = {"rows": rows, "copy_gbs": copy_gbs, "argv": sys.argv[1:]}
+        Path(args.json).write_text(json.dumps(out, indent=2))
         print(f"wrote {args.json}")
     return 0
 

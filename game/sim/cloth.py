@@ -267,6 +267,13 @@ class Cloth:
         effects) and the run-time ones (gravity, damping, coupling; docs/effects.md)."""
         return effect_names(self._engine.compiled_effects())
 
+    @property
+    def engine_path(self) -> str:
+        """How the engine steps a frame: "cpu"; on CUDA "tiled" (the whole frame in one
+        launch, the state on chip: large cloths), "substeps" (a launch a substep) or
+        "node_a_thread" (the largest cloths); README.md, Building, says when each is taken."""
+        return self._engine.path()
+
     # --- stepping -------------------------------------------------------------------------
     def _refresh_substeps(self) -> None:
         if self._fixed_substeps is not None:

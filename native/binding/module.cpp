@@ -7,6 +7,7 @@
 #include "binding/arrays.hpp"
 #include "binding/falcon.hpp"
 #include "core/backend.hpp"
+#include "core/tiled_plan.hpp"
 
 namespace py = pybind11;
 void bind_batch(py::module_& m);  // binding/batch.cpp
@@ -24,6 +25,7 @@ class Engine {
   bool state_finite() { return impl_->state_finite(); }
   bool ball_contact_on() { return impl_->ball_contact_on(); }
   unsigned compiled_effects() const { return impl_->compiled_effects(); }
+  std::string path() const { return impl_->path(); }
   void set_state(Array p, Array v) { io().set_state(p, v); }
   Array positions() { return io().positions(); }
   Array velocities() { return io().velocities(); }
@@ -85,6 +87,7 @@ PYBIND11_MODULE(_native, m) {
       .def("state_finite", &Engine::state_finite)
       .def("ball_contact_on", &Engine::ball_contact_on)
       .def("compiled_effects", &Engine::compiled_effects)
+      .def("path", &Engine::path)
       .def("set_state", &Engine::set_state)
       .def("positions", &Engine::positions)
       .def("velocities", &Engine::velocities)
@@ -124,6 +127,27 @@ PYBIND11_MODULE(_native, m) {
         return cb::strain_sweeps(c);
       },
       "Strain-limiting passes (rows, then columns) a substep for strain_limit.iterations.");
+  m.def(
+      "tiled_plan",
+      [](const cb::Config& c, bool dbl, int blocks, size_t shared_max) -> py::object {
+        const size_t real = dbl ? sizeof(double) : sizeof(float);
+        const cb::TiledPlan t = cb::tiled_plan_for(c, real, blocks, shared_max);
+        if (!t.ok()) return py::none();
+        py::dict d;
+        d["tiles_y"] = t.tiles_y;
+        d["tiles_x"] = t.tiles_x;
+        d["th"] = t.th;
+        d["tw"] = t.tw;
+        d["reach"] = t.reach;
+        d["shared_bytes"] = t.shared_bytes;
+        d["chosen"] = cb::tiled_wanted(t, c.n);
+        return d;
+      },
+      py::arg("config"), py::arg("double_precision"), py::arg("blocks"), py::arg("shared_max"),
+      "The CUDA tiled frame's tiles for a configuration on a device of `blocks` "
+      "multiprocessors and `shared_max` bytes of shared memory a block (None: it cannot run "
+      "tiled there), and whether a cloth would take it (core/tiled_plan.hpp).");
+  m.attr("TILED_MIN_N") = cb::kTiledMinN;
   m.def("cuda_copy_bandwidth_gbs", &cb::cuda_copy_bandwidth_gbs, py::arg("bytes"),
         py::arg("reps") = 20, py::call_guard<py::gil_scoped_release>());
   clothball_falcon::bind(m);

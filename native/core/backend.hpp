@@ -35,6 +35,10 @@ class Backend {
   // Whether the next substep computes ball contact: false while no node can touch the
   // ball, when the sweep runs compiled without it (forces.hpp, contact_possible).
   virtual bool ball_contact_on() = 0;
+  // How a frame is stepped: "cpu"; on CUDA "tiled" (the whole frame in one launch, the
+  // state on chip: core/tiled_plan.hpp), "substeps" (a launch a substep) or
+  // "node_a_thread" (the same, one node a thread: the largest cloths).
+  virtual std::string path() const = 0;
 };
 
 // Each backend is compiled once per real type, in its own translation units (the effect-set

@@ -97,33 +97,33 @@ CB_HD int corner_node(int c, int n) {
 // at the node itself, or with p.ball_edges its shares of its (up to) 4 structural edges'.
 // Interior = true promises that every neighbour up to two nodes away exists and that the
 // node is no corner, so the bounds tests vanish (the CPU loop then vectorises).
-template <class R, unsigned E, bool Interior = false>
-CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>& vel, V3<R> pi,
-                       V3<R> vi, int i, int j, const FrameInputs<R>& fin, V3<R> ball_p,
-                       V3<R>& contact) {
+// `pos` and `vel` are views of the grid (Planes, or a window of it: TilePlanes; vec.hpp).
+template <class R, unsigned E, bool Interior = false, class G = Planes<R>>
+CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi, V3<R> vi,
+                       int i, int j, const FrameInputs<R>& fin, V3<R> ball_p, V3<R>& contact) {
   const int n = p.n;
-  const int q = i * n + j;
+  const int q = node_at(pos, n, i, j), s = row_step(pos, n);
   V3<R> f{R(0), R(0), R(0)};
   if constexpr ((E & STRUCTURAL) != 0) {
     const R k = p.k_struct, L = p.L, c = p.struct_compress;
     if (Interior || j > 0) f += spring_force(pi, pos.get(q - 1), k, L, c);
     if (Interior || j < n - 1) f += spring_force(pi, pos.get(q + 1), k, L, c);
-    if (Interior || i > 0) f += spring_force(pi, pos.get(q - n), k, L, c);
-    if (Interior || i < n - 1) f += spring_force(pi, pos.get(q + n), k, L, c);
+    if (Interior || i > 0) f += spring_force(pi, pos.get(q - s), k, L, c);
+    if (Interior || i < n - 1) f += spring_force(pi, pos.get(q + s), k, L, c);
   }
   if constexpr ((E & SHEAR) != 0) {
     const R k = p.k_shear, L = p.L_diag;
-    if (Interior || (i > 0 && j > 0)) f += spring_force(pi, pos.get(q - n - 1), k, L, R(1));
-    if (Interior || (i > 0 && j < n - 1)) f += spring_force(pi, pos.get(q - n + 1), k, L, R(1));
-    if (Interior || (i < n - 1 && j > 0)) f += spring_force(pi, pos.get(q + n - 1), k, L, R(1));
-    if (Interior || (i < n - 1 && j < n - 1)) f += spring_force(pi, pos.get(q + n + 1), k, L, R(1));
+    if (Interior || (i > 0 && j > 0)) f += spring_force(pi, pos.get(q - s - 1), k, L, R(1));
+    if (Interior || (i > 0 && j < n - 1)) f += spring_force(pi, pos.get(q - s + 1), k, L, R(1));
+    if (Interior || (i < n - 1 && j > 0)) f += spring_force(pi, pos.get(q + s - 1), k, L, R(1));
+    if (Interior || (i < n - 1 && j < n - 1)) f += spring_force(pi, pos.get(q + s + 1), k, L, R(1));
   }
   if constexpr ((E & BEND) != 0) {
     const R k = p.k_bend, L = p.L_bend;
     if (Interior || j > 1) f += spring_force(pi, pos.get(q - 2), k, L, R(1));
     if (Interior || j < n - 2) f += spring_force(pi, pos.get(q + 2), k, L, R(1));
-    if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * n), k, L, R(1));
-    if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * n), k, L, R(1));
+    if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * s), k, L, R(1));
+    if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * s), k, L, R(1));
   }
   // Run-time effects (params.hpp): both terms are zero when the scene lacks them.
   f += p.gravity_force;
@@ -138,8 +138,8 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>
       V3<R> c{R(0), R(0), R(0)};
       if (Interior || j > 0) c += edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k);
       if (Interior || j < n - 1) c += edge_contact_share(pi, pos.get(q + 1), ball_p, rad, k);
-      if (Interior || i > 0) c += edge_contact_share(pi, pos.get(q - n), ball_p, rad, k);
-      if (Interior || i < n - 1) c += edge_contact_share(pi, pos.get(q + n), ball_p, rad, k);
+      if (Interior || i > 0) c += edge_contact_share(pi, pos.get(q - s), ball_p, rad, k);
+      if (Interior || i < n - 1) c += edge_contact_share(pi, pos.get(q + s), ball_p, rad, k);
       contact = c;
     } else {
       contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k);
@@ -155,8 +155,8 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>
   if constexpr ((E & WIND) != 0) {
     // The (up to) six triangles around the node; quad (a, b, c, d) = ((i,j), (i,j+1),
     // (i+1,j+1), (i+1,j)) is split into (a, b, c) and (a, c, d).
-    auto P = [&](int a, int b) { return pos.get(a * n + b); };
-    auto V = [&](int a, int b) { return vel.get(a * n + b); };
+    auto P = [&](int a, int b) { return pos.get(node_at(pos, n, a, b)); };
+    auto V = [&](int a, int b) { return vel.get(node_at(vel, n, a, b)); };
     const V3<R> w = fin.wind;
     const R kd = p.wind_drag, kl = p.wind_lift;
     if (Interior || (i < n - 1 && j < n - 1)) {  // node is a of quad (i, j)
@@ -175,32 +175,67 @@ CB_HD V3<R> node_force(const Params<R>& p, const Planes<R>& pos, const Planes<R>
   return f;
 }
 
-// Eq. (3): semi-implicit Euler.
+// Eq. (3): semi-implicit Euler, the velocity's kick and then the position's drift with the
+// new velocity.
 template <class R>
-CB_HD void euler_update(V3<R>& x, V3<R>& v, V3<R> f, R inv_mass, R dt) {
+CB_HD void euler_kick(V3<R>& v, V3<R> f, R inv_mass, R dt) {
   v += f * (inv_mass * dt);
+}
+
+template <class R>
+CB_HD void euler_drift(V3<R>& x, V3<R> v, R dt) {
   x += v * dt;
 }
 
-// One node's semi-implicit Euler substep from buffer (P, V) into (P2, V2). Returns the
-// node's ball contact force, for the ball's sum.
-// `check` accumulates t - t of the new state: 0 while every value is finite, NaN after.
-// `new_x`, if given, receives the node's new position (the GPU's nearest-node tracking
-// would otherwise read it back from memory).
+template <class R>
+CB_HD void euler_update(V3<R>& x, V3<R>& v, V3<R> f, R inv_mass, R dt) {
+  euler_kick(v, f, inv_mass, dt);
+  euler_drift(x, v, dt);
+}
+
+// t - t accumulates 0 while every value is finite, NaN after.
+template <class R>
+CB_HD void check_finite(R& check, V3<R> x, V3<R> v) {
+  R t = x.x + x.y + x.z + v.x + v.y + v.z;
+  check += t - t;
+}
+
+// The first half of a node's semi-implicit Euler substep from the views (P, V) of the
+// substep's start: its position there in x and its new velocity (the kick) in v. Returns
+// the node's ball contact force, for the ball's sum.
+template <class R, unsigned E, bool Interior = false, class G = Planes<R>>
+CB_HD V3<R> se_node_kick(const Params<R>& p, const G& P, const G& V, const FrameInputs<R>& fin,
+                         V3<R> ball_p, int i, int j, R dt, V3<R>& x, V3<R>& v) {
+  const int q = node_at(P, p.n, i, j);
+  x = P.get(q);
+  v = V.get(q);
+  V3<R> contact{R(0), R(0), R(0)};
+  const V3<R> f = node_force<R, E, Interior>(p, P, V, x, v, i, j, fin, ball_p, contact);
+  euler_kick(v, f, p.inv_mass, dt);
+  return contact;
+}
+
+// One node's whole substep: the kick, then the drift; the new state in (x, v). `check`
+// accumulates check_finite of it.
+template <class R, unsigned E, bool Interior = false, class G = Planes<R>>
+CB_HD V3<R> se_node_step(const Params<R>& p, const G& P, const G& V, const FrameInputs<R>& fin,
+                         V3<R> ball_p, int i, int j, R dt, R& check, V3<R>& x, V3<R>& v) {
+  const V3<R> contact = se_node_kick<R, E, Interior>(p, P, V, fin, ball_p, i, j, dt, x, v);
+  euler_drift(x, v, dt);
+  check_finite(check, x, v);
+  return contact;
+}
+
+// se_node_step from buffer (P, V) into (P2, V2).
 template <class R, unsigned E, bool Interior = false>
 CB_HD V3<R> se_node_update(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
                            const Planes<R>& P2, const Planes<R>& V2, const FrameInputs<R>& fin,
-                           V3<R> ball_p, int i, int j, R dt, R& check,
-                           V3<R>* new_x = nullptr) {
+                           V3<R> ball_p, int i, int j, R dt, R& check) {
   const int q = i * p.n + j;
-  V3<R> x = P.get(q), v = V.get(q), contact{R(0), R(0), R(0)};
-  V3<R> f = node_force<R, E, Interior>(p, P, V, x, v, i, j, fin, ball_p, contact);
-  euler_update(x, v, f, p.inv_mass, dt);
+  V3<R> x, v;
+  const V3<R> contact = se_node_step<R, E, Interior>(p, P, V, fin, ball_p, i, j, dt, check, x, v);
   P2.set(q, x);
   V2.set(q, v);
-  if (new_x) *new_x = x;
-  R t = x.x + x.y + x.z + v.x + v.y + v.z;
-  check += t - t;
   return contact;
 }
 

@@ -133,13 +133,6 @@ CB_HD V3<R> node_neg_diag(const Params<R>& p, const Planes<R>& pos, V3<R> xi, in
   return out;
 }
 
-// t - t accumulates 0 while every value is finite, NaN after (see se_node_update).
-template <class R>
-CB_HD void check_finite(R& check, V3<R> x, V3<R> v) {
-  R t = x.x + x.y + x.z + v.x + v.y + v.z;
-  check += t - t;
-}
-
 // --- velocity Verlet ---------------------------------------------------------------------
 // Kick-drift-kick. F is every force but damping, and is kept per node from one substep to
 // the next (one force evaluation a substep). gamma = c / m; damping is implicit in the

@@ -40,4 +40,25 @@ struct Planes {
   CB_HD void set(int q, V3<R> v) const { x[q] = v.x; y[q] = v.y; z[q] = v.z; }
 };
 
+// A window of the n x n grid, as Planes: row `stride` apart, its element 0 the grid's node
+// (i0, j0). The CUDA tiled frame (cuda/tiled.cu) keeps a tile and its halo so, on chip.
+template <class R>
+struct TilePlanes : Planes<R> {
+  int stride, i0, j0;
+};
+
+// Where node (i, j) of the n x n grid is in a view, and the step from a node to the one a
+// row below it: the per-node physics (forces.hpp) indexes its neighbours through these, so
+// it runs alike on the whole grid (Planes) and on a window of it (TilePlanes).
+template <class R>
+CB_HD int node_at(const Planes<R>&, int n, int i, int j) { return i * n + j; }
+template <class R>
+CB_HD int row_step(const Planes<R>&, int n) { return n; }
+template <class R>
+CB_HD int node_at(const TilePlanes<R>& t, int, int i, int j) {
+  return (i - t.i0) * t.stride + (j - t.j0);
+}
+template <class R>
+CB_HD int row_step(const TilePlanes<R>& t, int) { return t.stride; }
+
 }  // namespace cb

@@ -109,6 +109,7 @@ class CpuCloth final : public Backend {
   }
   bool state_finite() override { return finite_; }
   bool ball_contact_on() override { return (cfg_.effects & BALL) != 0 && contact_on_; }
+  std::string path() const override { return "cpu"; }
   void step(int frames, int substeps, double dt) override {
     if (alt_) {
       CpuView<R> v{p_, {pos_(0), pos_(1)}, {vel_(0), vel_(1)}, &cur_, &ball_, fin_, threads_, &finite_};

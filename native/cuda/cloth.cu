@@ -167,6 +167,7 @@ class CudaCloth final : public Backend {
     resident_blocks_ = std::max(1, per_sm) * sms_;
     effects_ = compiled_effect_set(c);
     strain_sweeps_ = strain_sweeps(c);
+    configure_tiled(c);
     drop_graphs();
     reset_contact();
     alt_ = make_cuda_integrator<R>(c);  // velocity Verlet, implicit Euler (their own units)
@@ -250,10 +251,16 @@ class CudaCloth final : public Backend {
 
   // Capture one frame starting from buffer `start`: hips in, substeps, corners and ball out.
   cudaGraphExec_t capture(int start, int substeps, R dt) {
-    cudaGraph_t graph;
     CB_CUDA(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeThreadLocal));
     load_inputs<R><<<1, 32, 0, stream_>>>(fin_mapped_, fin_dev_);
     int b = start;
+    if (tiled_fn_ != nullptr) {  // the whole frame in one launch (cuda/tiled.cu)
+      launch_tiled(start, substeps, dt);
+      b = substeps % 2 ? 1 - start : start;
+      launch(kernels_.finish, 1, 32, p_, dev(b), substep_ball(substeps, b),
+             static_cast<const int*>(nonfinite_), dt, readback_mapped_);
+      return instantiate();
+    }
     // A node a thread for the largest cloths, where a grid-stride loop leaves each thread's
     // loads waiting on its previous node's; the ball's update, which every block would
     // then repeat, becomes a launch of its own. The crossover was measured on an H100
@@ -289,6 +296,12 @@ class CudaCloth final : public Backend {
     const bool due = !alt_ && (effects_ & BALL) != 0;
     launch(kernels_.finish, 1, 32, p_, dev(b), due ? substep_ball(substeps, b) : substep_ball(0, b),
            static_cast<const int*>(nonfinite_), dt, readback_mapped_);
+    return instantiate();
+  }
+
+  // Ends the stream's capture (capture) and instantiates its graph.
+  cudaGraphExec_t instantiate() {
+    cudaGraph_t graph;
     CB_CUDA(cudaStreamEndCapture(stream_, &graph));
     cudaGraphExec_t exec;
     CB_CUDA(cudaGraphInstantiate(&exec, graph, 0));
@@ -296,8 +309,48 @@ class CudaCloth final : public Backend {
     return exec;
   }
 
+  // The tiled frame's plan and kernel where this configuration takes it (tiled_wanted:
+  // it fits the device and n is large enough), else none.
+  void configure_tiled(const Config& c) {
+    tiled_fn_ = nullptr;
+    int optin = 0;
+    CB_CUDA(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, 0));
+    tiled_ = tiled_plan_for(c, sizeof(R), sms_, size_t(optin));
+    const TiledFrameFn<R> fn = tiled_kernel_table<R>()[c.effects & (kNumEffectSets - 1)];
+    if (fn == nullptr || !tiled_wanted(tiled_, c.n)) return;
+    CB_CUDA(cudaFuncSetAttribute(fn, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                 int(tiled_.shared_bytes)));
+    int per_sm = 0;  // a cooperative launch needs every block resident at once
+    CB_CUDA(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, fn, tiled_threads(sizeof(R)),
+                                                          tiled_.shared_bytes));
+    if (per_sm * sms_ >= tiled_.tiles()) tiled_fn_ = fn;
+  }
+
+  // The tiled frame from buffer `start`: one cooperative launch, a tile a block.
+  void launch_tiled(int start, int substeps, R dt) {
+    const TiledArgs<R> a{p_, tiled_.tiles_x, tiled_.th, tiled_.tw, tiled_.reach, state_, ball_,
+                         ring_, ctl_, fin_dev_, nonfinite_, substeps, start, dt};
+    cudaLaunchConfig_t cfg{};
+    cfg.gridDim = dim3(unsigned(tiled_.tiles()));
+    cfg.blockDim = dim3(unsigned(tiled_threads(sizeof(R))));
+    cfg.dynamicSmemBytes = tiled_.shared_bytes;
+    cfg.stream = stream_;
+    cudaLaunchAttribute attr{};
+    attr.id = cudaLaunchAttributeCooperative;
+    attr.val.cooperative = 1;
+    cfg.attrs = &attr;
+    cfg.numAttrs = 1;
+    CB_CUDA(cudaLaunchKernelEx(&cfg, tiled_fn_, a));
+  }
+
   // (make_cuda_batch_stepper_t asks.)
  public:
+  // How a frame is stepped (Backend::path).
+  std::string path() const override {
+    if (tiled_fn_ != nullptr) return "tiled";
+    return !alt_ && node_a_thread() ? "node_a_thread" : "substeps";
+  }
+
   bool node_a_thread() const {
     const int node_blocks = (N_ + kBlock - 1) / kBlock;
     return force_wide_ >= 0 ? force_wide_ == 1 : node_blocks > 64 * resident_blocks_;
@@ -405,6 +458,8 @@ class CudaCloth final : public Backend {
   int resident_blocks_ = 1;  // the substep kernel's grid: as many blocks as fit at once
   bool overlap_launches_ = false;  // programmatic dependent launch (compute capability >= 9)
   int force_wide_ = -1;            // CLOTHBALL_CUDA_NODE_A_THREAD: 1 always, 0 never, -1 auto
+  TiledPlan tiled_{};                   // the tiled frame's layout (where it fits)
+  TiledFrameFn<R> tiled_fn_ = nullptr;  // set: frames run tiled (configure_tiled)
   int cur_ = 0;
   using GraphKey = std::tuple<int, R, int>;
   std::map<GraphKey, cudaGraphExec_t> graphs_;

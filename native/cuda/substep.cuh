@@ -13,6 +13,7 @@
 
 #include "core/forces.hpp"
 #include "core/params.hpp"
+#include "core/tiled_plan.hpp"
 #include "cuda/check.hpp"
 #include "cuda/reduce.cuh"
 
@@ -107,7 +108,7 @@ __host__ __device__ inline SubstepBall<R> substep_ball_at(Ball<R>* cur, Ball<R>*
 template <class R>
 struct BallNow {
   Ball<R> b;
-  bool contact;
+  bool touch;
 };
 
 // The ball's update for the previous substep, deferred to here (eqs. 5-6): every block of a
@@ -141,63 +142,66 @@ __device__ R warp_min(R v) {
   return v;
 }
 
-// One semi-implicit Euler substep for the nodes of one cloth, by its `blocks` blocks of
-// which this thread's is `block` (a grid-stride loop over them). With the ball on, each
-// thread first brings the ball up to this substep (ball_now; at large n a launch of its own
-// did), then each warp adds its nodes' contact forces and nearest distance to this
-// substep's sums (`acc`), which the next launch reads; block 0 stores the ball and clears
-// the sums the launch after next will use (`acc_next`).
+// A substep's ball, before its nodes: the ball brought up to this substep (ball_now; at
+// large n a launch of its own did) and whether contact is on. The `leader` thread (one in
+// the whole grid) stores the ball and clears the sums the launch after next will use
+// (`acc_next`).
 template <class R, unsigned E>
-__device__ __forceinline__ void se_substep_body(Params<R> p, DevBuf<R> in,
-                                                DevBuf<R> out,
-                                                const FrameInputs<R>* __restrict__ fin,
-                                                SubstepBall<R> sb, int* nonfinite, R dt,
-                                                int block, int blocks) {
-  const int n = p.n;
-  const int first = block * blockDim.x + threadIdx.x;
-  V3<R> contact{R(0), R(0), R(0)};
-  V3<R> ball_p{R(0), R(0), R(0)};
-  bool touch = false;
+__device__ __forceinline__ BallNow<R> substep_ball_begin(const Params<R>& p,
+                                                         const SubstepBall<R>& sb, R dt,
+                                                         bool leader) {
+  BallNow<R> now{{{R(0), R(0), R(0)}, {R(0), R(0), R(0)}}, false};
   if constexpr ((E & BALL) != 0) {
-    const BallNow<R> now = ball_now<R>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
-    ball_p = now.b.p;
-    touch = now.contact;
-    if (block == 0 && threadIdx.x == 0) {
+    now = ball_now<R>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
+    if (leader) {
       if (sb.prev != nullptr) *sb.cur = now.b;
       *sb.acc_next = BallAcc<R>::zero(p);
     }
   }
-  // A grid-stride loop over the resident blocks (each thread then pays the ball's update
-  // once), or one node a thread for the largest cloths (see CudaCloth::capture).
-  R check = 0;
-  // While no node can touch the ball the sweep runs compiled without contact (the same
-  // decision for the whole grid), still tracking the node nearest the ball.
-  R near2 = std::numeric_limits<R>::infinity();
-  for (int q = first; q < n * n; q += blocks * blockDim.x) {
-    const int i = q / n, j = q - i * n;
-    if constexpr ((E & BALL) != 0) {
-      V3<R> x;
-      if (touch)
-        contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
-                                        dt, check, &x);
-      else
-        se_node_update<R, (E & ~BALL)>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
-                                       dt, check, &x);
-      const V3<R> d = x - ball_p;
-      near2 = fmin(near2, dot(d, d));
-    } else {
-      contact += se_node_update<R, E>(p, in.pos, in.vel, out.pos, out.vel, *fin, ball_p, i, j,
-                                      dt, check);
-    }
-  }
-  if (check != R(0)) *nonfinite = 1;  // sticky until the host resets the state
-  if constexpr ((E & BALL) == 0) {
-    if (first == 0) *sb.next = *sb.cur;  // no ball in this scene: carry its state unchanged
-  }
+  return now;
+}
+
+// The kick of one node's substep (se_node_kick) from the views (P, V): its position at the
+// substep's start in x, its new velocity in v. While no node can touch the ball (`touch`
+// false, the same decision for the whole grid) it runs compiled without contact. Returns
+// the node's contact force.
+template <class R, unsigned E, class G>
+__device__ __forceinline__ V3<R> se_kick_touch(const Params<R>& p, const G& P, const G& V,
+                                               const FrameInputs<R>& fin, const BallNow<R>& now,
+                                               int i, int j, R dt, V3<R>& x, V3<R>& v) {
   if constexpr ((E & BALL) != 0) {
-    // Each warp adds to the sums directly: only the few warps at the ball have anything to
-    // add, and the others skip the shuffles too (whole warps reach here: the loop exits
-    // per lane, but every lane of a launched warp arrives).
+    if (now.touch) return se_node_kick<R, E>(p, P, V, fin, now.b.p, i, j, dt, x, v);
+    se_node_kick<R, (E & ~BALL)>(p, P, V, fin, now.b.p, i, j, dt, x, v);
+    return {R(0), R(0), R(0)};
+  } else {
+    return se_node_kick<R, E>(p, P, V, fin, now.b.p, i, j, dt, x, v);
+  }
+}
+
+// The drift of the node's substep (x to its new position), with its finite check and the
+// squared distance of the node nearest the ball (`near2`, for contact_possible).
+template <class R, unsigned E>
+__device__ __forceinline__ void se_drift_tracked(const BallNow<R>& now, V3<R>& x, V3<R> v, R dt,
+                                                 R& check, R& near2) {
+  euler_drift(x, v, dt);
+  check_finite(check, x, v);
+  if constexpr ((E & BALL) != 0) {
+    const V3<R> d = x - now.b.p;
+    near2 = fmin(near2, dot(d, d));
+  }
+}
+
+// A substep's ball, after its nodes: each warp adds its nodes' contact forces and nearest
+// distance to this substep's sums (`acc`), which the next substep reads; with no ball in
+// the scene the `leader` carries its state unchanged. Whole warps must arrive.
+template <class R, unsigned E>
+__device__ __forceinline__ void substep_ball_end(const Params<R>& p, const SubstepBall<R>& sb,
+                                                 V3<R> contact, R near2, bool leader) {
+  if constexpr ((E & BALL) == 0) {
+    if (leader) *sb.next = *sb.cur;  // no ball in this scene: carry its state unchanged
+  } else {
+    // Only the few warps at the ball have anything to add; the others skip the shuffles
+    // too (the loops exit per lane, but every lane of a launched warp arrives).
     const unsigned all = 0xffffffffu;
     const bool lead = (threadIdx.x & 31) == 0;
     if (__any_sync(all, contact.x != R(0) || contact.y != R(0) || contact.z != R(0))) {
@@ -211,6 +215,33 @@ __device__ __forceinline__ void se_substep_body(Params<R> p, DevBuf<R> in,
       if (lead) atomicMin(&sb.acc->nearest2, RealBits<R>::of(near2));
     }
   }
+}
+
+// One semi-implicit Euler substep for the nodes of one cloth, by its `blocks` blocks of
+// which this thread's is `block` (a grid-stride loop over them, or one node a thread for
+// the largest cloths, see CudaCloth::capture; each thread pays the ball's update once).
+template <class R, unsigned E>
+__device__ __forceinline__ void se_substep_body(Params<R> p, DevBuf<R> in,
+                                                DevBuf<R> out,
+                                                const FrameInputs<R>* __restrict__ fin,
+                                                SubstepBall<R> sb, int* nonfinite, R dt,
+                                                int block, int blocks) {
+  const int n = p.n;
+  const int first = block * blockDim.x + threadIdx.x;
+  const BallNow<R> now = substep_ball_begin<R, E>(p, sb, dt, first == 0);
+  V3<R> contact{R(0), R(0), R(0)};
+  R check = 0;
+  R near2 = std::numeric_limits<R>::infinity();
+  for (int q = first; q < n * n; q += blocks * blockDim.x) {
+    const int i = q / n, j = q - i * n;
+    V3<R> x, v;
+    contact += se_kick_touch<R, E>(p, in.pos, in.vel, *fin, now, i, j, dt, x, v);
+    se_drift_tracked<R, E>(now, x, v, dt, check, near2);
+    out.pos.set(q, x);
+    out.vel.set(q, v);
+  }
+  if (check != R(0)) *nonfinite = 1;  // sticky until the host resets the state
+  substep_ball_end<R, E>(p, sb, contact, near2, first == 0);
 }
 
 // The end of a frame for one cloth, thread t of a block of 32: the last substep's deferred
@@ -233,7 +264,7 @@ __device__ __forceinline__ void finish_body(const Params<R>& p, const DevBuf<R>&
         const BallNow<R> now = ball_now<R>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
         b = now.b;
         *sb.cur = b;
-        sb.ctl->contact_on = now.contact ? 1 : 0;
+        sb.ctl->contact_on = now.touch ? 1 : 0;
         for (int k = 0; k < 3; ++k) sb.ring[k] = BallAcc<R>::zero(p);
       }
     }
@@ -308,5 +339,34 @@ template <>
 const std::array<BatchKernels<float>, kNumEffectSets>& batch_kernel_table<float>();
 template <>
 const std::array<BatchKernels<double>, kNumEffectSets>& batch_kernel_table<double>();
+
+// --- The tiled frame: a lone large cloth's frame in one cooperative launch (cuda/tiled.cu) -
+
+// Its arguments: the plan (core/tiled_plan.hpp) and the cloth's device state, as a launch
+// a substep has it (the buffer the frame starts from, b0, goes with ball[b0]).
+template <class R>
+struct TiledArgs {
+  Params<R> p;
+  int tiles_x, th, tw, reach;  // TiledPlan's
+  R* state;                    // two buffers of 6 planes
+  Ball<R>* ball;               // two
+  BallAcc<R>* ring;
+  BallCtl* ctl;
+  const FrameInputs<R>* fin;
+  int* nonfinite;
+  int substeps, b0;
+  R dt;
+};
+
+template <class R>
+using TiledFrameFn = void (*)(TiledArgs<R>);
+
+// One entry per effect set; null where the set cannot run tiled (wind: tiled_capable).
+template <class R>
+const std::array<TiledFrameFn<R>, kNumEffectSets>& tiled_kernel_table();
+template <>
+const std::array<TiledFrameFn<float>, kNumEffectSets>& tiled_kernel_table<float>();
+template <>
+const std::array<TiledFrameFn<double>, kNumEffectSets>& tiled_kernel_table<double>();
 
 }  // namespace cb

@@ -45,8 +45,6 @@ def test_bench_rooms_writes_its_rows(tmp_path) -> None:
     assert "rooms held at 1 kHz" in r.stdout
 
 
-def test_bench_rooms_refuses_bad_sizes() -> None:
-    r = subprocess.run([sys.executable, "-m", "clothball.game.cli", "bench", "--rooms",
-                        "--backends", "cpu", "--sizes", "1000"],
-                       capture_output=True, text=True, timeout=60)
+def test_bench_rooms_refuses_bad_sizes(clothball_cli) -> None:
+    r = clothball_cli("bench", "--rooms", "--backends", "cpu", "--sizes", "1000")
     assert r.returncode == 2 and "--sizes" in r.stderr and "Traceback" not in r.stderr
