@@ -27,6 +27,8 @@ class Config:
     ball_k: float
     ball_damping: float
     ball_edges: bool
+    damping_rate: float  # 1/s; negative: not given (damping holds)
+    ball_k_area: float  # N/m^3; negative: not given (ball_k holds)
     coupling_k: float
     air_density: float
     drag: float
@@ -63,6 +65,7 @@ class Engine:
 def cuda_unavailable_reason() -> str: ...
 def cpu_threads() -> int: ...
 def strain_sweeps(iterations: int) -> int: ...
+def per_node(config: Config) -> Config: ...
 def cuda_copy_bandwidth_gbs(bytes: int, reps: int = 20) -> float: ...
 TILED_MIN_N: int
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from ... import _native  # type: ignore[attr-defined]
 from ..sim.cloth import cuda_unavailable_reason
 from ..sim.scene import Scene, SceneError
+from ..study import grid
 from ..study.accuracy import (
     PRECISIONS,
     Plan,
@@ -28,17 +29,20 @@ from ..study.accuracy import (
     run_study,
     table,
 )
-from ..study.bench import csv_list
+from ..study.bench import csv_ints, csv_list
 from ..study.integrators_ref import INTEGRATORS
 
 DEFAULT_SIZES = (20, 40)
+GRID_SIZES = (13, 17, 25, 33)
+GRID_REFERENCE_SIZES = (13, 25, 49)  # CPU-sized; on a GPU 129, 257, 513
 QUICK_SIZES = (16,)
 # The classic ball reaches the cloth at ~0.37 s and the corner force peaks at ~0.47 s.
 QUICK_DURATION_S = 0.6
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scene", default="classic", help="scene name or path (default classic)")
+    p.add_argument("--scene", default=None,
+                   help="scene name or path (default classic; --grid: default)")
     p.add_argument("--sizes", help=f"comma-separated n (default {DEFAULT_SIZES})")
     p.add_argument("--integrators", default=",".join(INTEGRATORS), help="comma-separated")
     p.add_argument("--precisions", default="float32,float64", help="comma-separated")
@@ -57,23 +61,32 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true",
                    help=f"a short run through the impact: n = {QUICK_SIZES[0]}, "
                         f"{QUICK_DURATION_S:g} s, 3 step sizes")
+    g = p.add_argument_group(
+        "the grid (--grid)", "n and the step together: each candidate's error against a "
+        "Richardson-extrapolated high-n reference (game.study.grid, docs/accuracy.md)")
+    g.add_argument("--grid", action="store_true",
+                   help="run the grid study instead (default scene: default)")
+    g.add_argument("--grid-sizes", default=None,
+                   help=f"candidate n (default {','.join(map(str, GRID_SIZES))})")
+    g.add_argument("--reference-sizes", default=None,
+                   help="n of the reference, spacings halving (default "
+                        f"{','.join(map(str, GRID_REFERENCE_SIZES))}; a GPU: e.g. 129,257,513)")
+    g.add_argument("--steps", default="1,2,4",
+                   help="substeps per frame as multiples of the stability bound's (default 1,2,4)")
+    g.add_argument("--per-node", action="store_true",
+                   help="also run the scene in per-node units (its per-node values at its n, "
+                        "fixed on every grid): how much of the grid's error is the units")
     p.add_argument("--json", metavar="FILE", help="write the rows as JSON")
     p.add_argument("--plot", metavar="FILE.png", help="error against cost, log-log")
     p.add_argument("--fig4", metavar="FILE.png", help="the paper's Fig. 4")
 
 
 def _ints(text: str, what: str) -> list[int]:
-    try:
-        vals = [int(t) for t in csv_list(text, what)]
-    except ValueError as e:
-        raise ValueError(f"--{what}: expected whole numbers: {e}") from None
-    if any(not 3 <= v <= 4096 for v in vals):
-        raise ValueError(f"--{what}: each n must be in 3..4096")
-    return vals
+    return csv_ints(text, what, 3, 4096)
 
 
 def make_plan(args: argparse.Namespace) -> Plan:
-    scene = Scene.load(args.scene)
+    scene = Scene.load(args.scene or "classic")
     backend = args.backend
     why = cuda_unavailable_reason()
     if backend == "auto":
@@ -102,7 +115,51 @@ def make_plan(args: argparse.Namespace) -> Plan:
         energy=not args.no_energy, sag=not args.no_sag, decorrelation=True, threads=threads)
 
 
+def run_grid(args: argparse.Namespace) -> int:
+    """``--grid``: the grid study (``game.study.grid``), and with ``--per-node`` the same in
+    per-node units."""
+    from tqdm import tqdm  # noqa: PLC0415
+
+    try:
+        scene = Scene.load(args.scene or "default")
+        sizes = _ints(args.grid_sizes, "grid-sizes") if args.grid_sizes else list(GRID_SIZES)
+        refs = (_ints(args.reference_sizes, "reference-sizes") if args.reference_sizes
+                else list(GRID_REFERENCE_SIZES))
+        steps = csv_ints(args.steps, "steps", 1, 1024, "each multiple")
+        if len(refs) < 2:
+            raise ValueError("--reference-sizes: at least 2 (3 whose spacings halve fit the order)")
+        backend = args.backend if args.backend != "auto" else (
+            "cpu" if cuda_unavailable_reason() else "cuda")
+        if backend == "cuda" and cuda_unavailable_reason():
+            raise ValueError(f"--backend: cuda requested but {cuda_unavailable_reason()}")
+        duration = args.duration if args.duration is not None else 1.5
+        if not 0.0 < duration <= 60.0:
+            raise ValueError("--duration: must be in (0, 60] seconds")
+    except (ValueError, SceneError) as e:
+        print(f"clothball accuracy: {e}", file=sys.stderr)
+        return 2
+    scenes = [scene] + ([grid.per_node_twin(scene)] if args.per_node else [])
+    out = []
+    total = len(scenes) * (len(refs) + len(sizes) * len(steps))
+    with tqdm(total=total, desc="grid", unit="run", file=sys.stderr) as bar:
+        def tick(label: str) -> None:
+            bar.set_postfix_str(label[:60])
+            bar.update(1)
+
+        for s in scenes:
+            study = grid.grid_study(s, sizes, refs, steps, backend=backend,
+                                    duration_s=duration, threads=args.threads, progress=tick)
+            print(f"scene {s.name}, {backend}, float64\n{grid.table(study)}\n")
+            out.append(study.to_json())
+    if args.json:
+        Path(args.json).write_text(json.dumps({"argv": sys.argv[1:], "studies": out}, indent=1))
+        print(f"wrote {args.json}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.grid:
+        return run_grid(args)
     from tqdm import tqdm  # noqa: PLC0415
 
     if args.plot or args.fig4:

@@ -1,14 +1,38 @@
-"""``clothball scenes``: list the shipped scenes."""
+"""``clothball scenes``: list the shipped scenes, their material values and what the engine
+derives from them per node."""
 
 from __future__ import annotations
 
 import argparse
 
-from ..sim.scene import Scene, available, schema_markdown
+from ..sim.config import node_values
+from ..sim.scene import MATERIAL_KEYS, Scene, available, schema_markdown
+
+UNITS = {"damping": "N s/m per node", "stiffness": "N/m per node"}
+MATERIAL_UNITS = {"damping_rate": "1/s", "stiffness_per_area": "N/m^3"}
 
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--markdown", action="store_true", help="print the scene key reference")
+
+
+def describe(s: Scene) -> list[str]:
+    """A scene's line and, for each per-node value it has, where it comes from."""
+    lines = [f"{s.name:12} n={s.n:<5} effects: {', '.join(sorted(s.effects))}"]
+    derived = node_values(s)
+    values = {"damping": derived.damping, "stiffness": derived.ball_k}
+    needs = {"damping": "damping", "stiffness": "ball"}
+    for (section, material), per_node in MATERIAL_KEYS.items():
+        if needs[per_node] not in s.effects:
+            continue
+        got = f"{section}.{per_node} {values[per_node]:.6g} {UNITS[per_node]}"
+        given = s[section][material]
+        if given is None:
+            lines.append(f"{'':14}{got} (a per-node key: the material changes with n)")
+        else:
+            lines.append(f"{'':14}{section}.{material} = {given:.6g} "
+                         f"{MATERIAL_UNITS[material]} -> {got} at n = {s.n}")
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
@@ -16,6 +40,5 @@ def run(args: argparse.Namespace) -> int:
         print(schema_markdown())
         return 0
     for name in available():
-        s = Scene.load(name)
-        print(f"{name:12} n={s.n:<5} effects: {', '.join(sorted(s.effects))}")
+        print("\n".join(describe(Scene.load(name))))
     return 0

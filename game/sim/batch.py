@@ -23,11 +23,11 @@ from .cloth import (
     check_frames,
     corners_of,
     frame_chunk,
-    native_config,
     resolve_backend,
     rest_positions,
     wind_at,
 )
+from .config import native_config
 from .scene import Scene
 from .stability import auto_substeps, auto_substeps_all
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 import logging
 import math
 import warnings
-from collections.abc import Sequence
 
 import numpy as np
 
 from ... import _native  # type: ignore[attr-defined]
-from .scene import EFFECTS, Scene, SceneError
+from .config import effect_names, native_config
+from .scene import Scene, SceneError
 from .stability import auto_substeps, stable_dt
 
 log = logging.getLogger("clothball")
@@ -38,52 +38,6 @@ class UnstableSceneWarning(UserWarning):
 def cuda_unavailable_reason() -> str:
     """Empty when the CUDA backend can run here, else why not."""
     return _native.cuda_unavailable_reason()
-
-
-def native_config(scene: Scene, threads: int = 0) -> _native.Config:
-    """The native engine's view of a scene."""
-    c = _native.Config()
-    cloth, ball = scene["cloth"], scene["ball"]
-    c.n = scene.n
-    c.rest_len = scene.rest_length
-    c.node_mass = scene.node_mass
-    c.k_struct = cloth["k_structural"]
-    c.k_shear = cloth["k_shear"]
-    c.k_bend = cloth["k_bend"]
-    c.struct_compress = 1.0 if cloth["structural_two_sided"] else 0.0
-    c.gravity = list(scene["sim"]["gravity"])
-    c.damping = cloth["damping"]
-    c.ball_radius = ball["radius"]
-    c.ball_mass = ball["mass"]
-    c.ball_k = ball["stiffness"]
-    c.ball_damping = ball["damping"]
-    c.ball_edges = ball["contact"] == "edges"
-    c.coupling_k = scene["coupling"]["stiffness"]
-    wind = scene["wind"]
-    c.air_density = wind["air_density"]
-    c.drag = wind["drag"]
-    c.lift = wind["lift"]
-    c.max_strain = scene["strain_limit"]["max_strain"]
-    c.strain_iterations = scene["strain_limit"]["iterations"]
-    c.threads = threads
-    c.integrator = _native.INTEGRATOR_IDS[scene["sim"]["integrator"]]
-    c.cg_max_iterations = scene["sim"]["cg_max_iterations"]
-    c.cg_tolerance = scene["sim"]["cg_tolerance"]
-    c.effects = effect_bits(scene.effects)
-    return c
-
-
-def effect_bits(effects: frozenset[str] | Sequence[str]) -> int:
-    """The native bit mask of an effect set."""
-    bits = 0
-    for e in effects:
-        bits |= _native.EFFECT_BITS[e]
-    return bits
-
-
-def effect_names(bits: int) -> frozenset[str]:
-    """The effect names of a native bit mask."""
-    return frozenset(e for e in EFFECTS if bits & _native.EFFECT_BITS[e])
 
 
 def rest_positions(scene: Scene) -> np.ndarray:

@@ -55,6 +55,13 @@ class Key:
     doc: str = ""
 
 
+# Material keys (independent of n) and the per-node keys they replace: a scene gives one of
+# each pair; the other reads None. The engine derives the per-node value (native per_node).
+MATERIAL_KEYS = {
+    ("cloth", "damping_rate"): "damping",
+    ("ball", "stiffness_per_area"): "stiffness",
+}
+
 # The schema: section -> key -> Key. Defaults give the paper's set-up ("classic").
 SCHEMA: dict[str, dict[str, Key]] = {
     "cloth": {
@@ -69,13 +76,28 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "k_shear": Key(200.0, "float", 0.0, 1e9, effect="shear", doc="shear spring stiffness, N/m"),
         "k_bend": Key(50.0, "float", 0.0, 1e9, effect="bend", doc="bending spring stiffness, N/m"),
         "damping": Key(
-            0.002, "float", 0.0, 1e3, effect="damping", doc="velocity damping beta1 per node, N s/m"
+            0.002, "float", 0.0, 1e3, effect="damping",
+            doc="velocity damping beta1 per node, N s/m (per node: its effect grows as n^2)",
+        ),
+        "damping_rate": Key(
+            None, "float", 0.0, 1e6, effect="damping",
+            doc="instead of damping: velocity damping per unit mass, 1/s (material: beta1 = "
+            "this x node mass, independent of n)",
         ),
     },
     "ball": {
         "radius": Key(0.08, "float", 0.0, 100.0, lo_open=True, effect="ball", doc="m"),
         "mass": Key(0.2, "float", 0.0, 1e5, lo_open=True, effect="ball", doc="kg"),
-        "stiffness": Key(5000.0, "float", 0.0, 1e9, effect="ball", doc="contact k_b, N/m"),
+        "stiffness": Key(
+            5000.0, "float", 0.0, 1e9, effect="ball",
+            doc="contact k_b per node (or per edge), N/m (per node: the ball's total contact "
+            "stiffness grows with the nodes it covers, as n^2)",
+        ),
+        "stiffness_per_area": Key(
+            None, "float", 0.0, 1e13, effect="ball",
+            doc="instead of stiffness: contact stiffness per contact area, N/m^3 (material: "
+            "k_b = this x L^2 on nodes, this x L^2 / 2 on edges, independent of n)",
+        ),
         "damping": Key(0.01, "float", 0.0, 1e3, effect="ball", doc="beta2, N s/m"),
         "position": Key(
             None, "vec3", -1e3, 1e3, effect="ball", doc="start, m (default: 0.4 m above the centre)"
@@ -217,6 +239,15 @@ class Scene:
         values = {s: {k: key.default for k, key in keys.items()} for s, keys in SCHEMA.items()}
         for section, table in explicit.items():
             values[section].update(table)
+        for (section, material), per_node in MATERIAL_KEYS.items():
+            given = explicit.get(section, {})
+            if material in given and per_node in given:
+                raise SceneError(
+                    f"{section}.{material}: set together with {section}.{per_node}; give one "
+                    f"(the material value, independent of n, or the per-node value)"
+                )
+            if material in given:
+                values[section][per_node] = None
         if values["ball"]["position"] is None:
             values["ball"]["position"] = (0.0, values["cloth"]["height"] + 0.4, 0.0)
         self._values = values
@@ -301,6 +332,11 @@ class Scene:
         return self._values["cloth"]["mass"] / (self.n * self.n)
 
     @property
+    def material_keys(self) -> list[str]:
+        """The material keys (independent of n) this scene gives, as "section.key"."""
+        return [f"{s}.{k}" for (s, k) in MATERIAL_KEYS if k in self.explicit.get(s, {})]
+
+    @property
     def effects(self) -> frozenset[str]:
         return frozenset(self._values["sim"]["effects"])
 
@@ -311,6 +347,55 @@ class Scene:
 def available() -> list[str]:
     """Names of the scenes shipped in ``assets/scenes``."""
     return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
+# docs/scenes.md's section on units and the grid (schema_markdown).
+GRID_MARKDOWN = (
+    "## Units, and what depends on the grid",
+    "",
+    "A cloth of n x n nodes stands for one sheet: refining n should change the accuracy, not",
+    "the material. Most keys are already values of the sheet; two of the paper's are per",
+    "node, and their effect grows as n^2. Each of those has a material key to give instead",
+    "(one of the pair, never both); the engine derives the per-node value from it and n in",
+    "one place, `per_node` in `native/core/params.hpp`, when it is configured (both",
+    "backends; the kernels see per-node values only). `clothball scenes` shows each scene's",
+    "derived values. L = size / (n - 1) is the spacing; a node stands for L^2 of sheet.",
+    "",
+    "| key | unit | as a sheet (independent of n?) | per node or spring |",
+    "| --- | --- | --- | --- |",
+    "| `cloth.mass` | kg | total mass: yes | node mass m = mass / n^2 |",
+    "| `cloth.size`, `cloth.height` | m | yes | L = size / (n - 1) |",
+    "| `cloth.k_structural` | N/m per spring | stretch modulus (force per width per strain) "
+    "k_structural: yes (a spring pulls k e L, one per L of width) | as given |",
+    "| `cloth.k_shear` | N/m per spring | adds k_shear to the stretch modulus: yes | as given |",
+    "| `cloth.k_bend` | N/m per spring | adds 4 k_bend to the stretch and compression modulus "
+    "(two cross each cut a row): yes. Its resistance to bending proper is geometric (a bend "
+    "of curvature c shortens a spring by c^2 L^3 / 3, a quartic energy) and shrinks as the "
+    "grid refines; one k a spring cannot make both n-independent, so there is no bending "
+    "stiffness key (that needs a hinge force, a new effect) | as given |",
+    "| `cloth.damping` | N s/m per node | no: total damping n^2 damping, rate n^2 damping / "
+    "mass | beta1 as given |",
+    "| `cloth.damping_rate` | 1/s | yes: every node loses velocity at this rate per unit "
+    "mass | beta1 = damping_rate x m |",
+    "| `ball.stiffness` | N/m per node (per edge) | no: the ball's total contact stiffness "
+    "grows with the nodes it covers, as n^2 | k_b as given |",
+    "| `ball.stiffness_per_area` | N/m^3 (pressure per metre of penetration) | yes: a ball "
+    "of radius R whose centre is h above a flat sheet feels pi kappa h (R - h)^2 | k_b = "
+    "kappa L^2 (nodes), kappa L^2 / 2 (edges: a node inside the ball meets about one edge "
+    "contact per grid direction; each row and column adds one more at its segment nearest "
+    "the centre, so the edges' total exceeds the sheet's by O(L / R), halving as L does: "
+    "+9 % at R = 13 L, pressed in 3/8 R) |",
+    "| `ball.radius`, `mass`, `damping`, `position`, `velocity` | m, kg, N s/m, m, m/s | "
+    "the ball's own: yes | - |",
+    "| `coupling.stiffness` | N/m | one spring at each corner node: yes | as given |",
+    "| `[wind]` | m/s, kg/m^3, 1 | on each triangle's area: yes | - |",
+    "| `strain_limit.max_strain` | 1 | a strain: yes | (1 + max_strain) L |",
+    "| `sim.*` | s, m/s^2 | - | - |",
+    "",
+    "The paper's per-node keys stay: `classic` (the paper's set-up) uses them; `default` (the",
+    "game's) gives `damping_rate` and `stiffness_per_area`, chosen so that at its n = 48 they",
+    "derive the per-node values it had before (0.02 N s/m, 5000 N/m).",
+)
 
 
 def schema_markdown() -> str:
@@ -327,6 +412,8 @@ def schema_markdown() -> str:
         "Effects: " + ", ".join(f"`{e}`" for e in EFFECTS) + ".",
         "",
         "Regenerate this file with `clothball scenes --markdown > docs/scenes.md`.",
+        "",
+        *GRID_MARKDOWN,
         "",
     ]
     for section, keys in SCHEMA.items():

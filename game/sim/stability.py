@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .config import node_values
+
 if TYPE_CHECKING:
     from .scene import Scene
 
@@ -53,7 +55,7 @@ def node_stiffness(scene: Scene) -> float:
     if "ball" in fx:
         # Nodes: the contact's k_b on the diagonal and -k_b in the ball's column. Edges: each
         # of the 4 structural edges adds at most 2 k_b (docs/stability.md).
-        k += (8 if scene["ball"]["contact"] == "edges" else 2) * scene["ball"]["stiffness"]
+        k += (8 if scene["ball"]["contact"] == "edges" else 2) * node_values(scene).ball_k
     if "coupling" in fx:
         k += scene["coupling"]["stiffness"]
     return k
@@ -83,7 +85,7 @@ def stable_dts(scene: Scene, ball_speeds: np.ndarray) -> np.ndarray:
     explicit_damping = integrator == "semi_implicit_euler"
     m = scene.node_mass
     damped = "damping" in scene.effects and explicit_damping
-    gamma = scene["cloth"]["damping"] / m if damped else 0.0
+    gamma = node_values(scene).damping / m if damped else 0.0
     if "wind" in scene.effects:
         # Drag is a damping force: d|F|/d|v| <= rho Cd A |u| on a node's share A = L^2 of
         # area, with |u| bounded by the wind's peak speed plus a generous node speed.
@@ -97,7 +99,7 @@ def stable_dts(scene: Scene, ball_speeds: np.ndarray) -> np.ndarray:
     if "ball" in scene.effects:
         ball = scene["ball"]
         if integrator != "implicit_euler":
-            kb = 2.0 * max_ball_contacts(scene) * ball["stiffness"]
+            kb = 2.0 * max_ball_contacts(scene) * node_values(scene).ball_k
             gb = ball["damping"] / ball["mass"] if explicit_damping else 0.0
             dts = np.minimum(dts, euler_dt_bound(kb / ball["mass"], gb))
         frame = scene["sim"]["frame_dt"]

@@ -61,6 +61,17 @@ def csv_list(text: str, what: str, allowed: tuple[str, ...] | None = None) -> li
     return items
 
 
+def csv_ints(text: str, what: str, lo: int, hi: int, each: str = "each n") -> list[int]:
+    """A comma-separated list of whole numbers in lo..hi, else a ValueError naming --what."""
+    try:
+        vals = [int(t) for t in csv_list(text, what)]
+    except ValueError as e:
+        raise ValueError(f"--{what}: expected whole numbers: {e}") from None
+    if any(not lo <= v <= hi for v in vals):
+        raise ValueError(f"--{what}: {each} must be in {lo}..{hi}")
+    return vals
+
+
 def time_substep(cloth: Cloth, repeats: int, min_time: float = 0.02) -> float:
     """Median seconds per substep over ``repeats`` timed runs, after warm-up."""
     cloth.step(2)  # warm-up: first launch, graph capture, caches
@@ -96,12 +107,7 @@ def plan(args: argparse.Namespace) -> list[tuple[str, str, int]]:
     backends = select_backends(args)
     precisions = csv_list(args.precisions, "precisions", ("float32", "float64"))
     if args.sizes:
-        try:
-            sizes = [int(s) for s in csv_list(args.sizes, "sizes")]
-        except ValueError as e:
-            raise ValueError(f"--sizes: expected whole numbers: {e}") from None
-        if any(not 2 <= s <= 8192 for s in sizes):
-            raise ValueError("--sizes: each n must be in 2..8192")
+        sizes = csv_ints(args.sizes, "sizes", 2, 8192)
     else:
         sizes = list(QUICK_SIZES if args.quick else SIZES)
     cases = []

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..sim.oracle import BEND_DIRS, CORNERS, STRUCTURAL_DIRS
+from ..sim.oracle import BEND_DIRS, CORNERS, STRUCTURAL_DIRS, node_contact_stiffness
 from ..sim.scene import Scene
 
 
@@ -72,7 +72,7 @@ def total_energy(
         else:
             r = np.linalg.norm(pos - ball_pos, axis=-1).ravel()
         pen = np.maximum(ball["radius"] - r, 0.0)
-        e += 0.5 * ball["stiffness"] * float(np.sum(pen * pen))
+        e += 0.5 * node_contact_stiffness(scene) * float(np.sum(pen * pen))
     return e
 
 

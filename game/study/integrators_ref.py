@@ -54,7 +54,14 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
-from ..sim.oracle import BEND_DIRS, CORNERS, SHEAR_DIRS, STRUCTURAL_DIRS, ReferenceCloth
+from ..sim.oracle import (
+    BEND_DIRS,
+    CORNERS,
+    SHEAR_DIRS,
+    STRUCTURAL_DIRS,
+    ReferenceCloth,
+    node_contact_stiffness,
+)
 from ..sim.scene import SCHEMA, Scene
 
 INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "implicit_euler")
@@ -144,7 +151,7 @@ class Linearization:
             inside = contact_mask(pos, ball_pos, ball["radius"])
             if inside.any():
                 self.inside = inside
-                self.contact = pair_terms(ball_pos - pos[inside], ball["stiffness"],
+                self.contact = pair_terms(ball_pos - pos[inside], node_contact_stiffness(scene),
                                           ball["radius"], 1.0, definite)
         self.coupling = scene["coupling"]["stiffness"] if "coupling" in scene.effects else 0.0
 
@@ -216,7 +223,7 @@ def potential_energy(scene: Scene, pos: np.ndarray, ball_pos: np.ndarray,
         ball = scene["ball"]
         r = np.linalg.norm(pos - ball_pos, axis=-1)
         pen = np.maximum(ball["radius"] - r, 0.0)
-        energy += 0.5 * ball["stiffness"] * float(np.sum(pen * pen))
+        energy += 0.5 * node_contact_stiffness(scene) * float(np.sum(pen * pen))
         energy -= ball["mass"] * float(ball_pos @ g)
     if "coupling" in fx:
         K = scene["coupling"]["stiffness"]
@@ -296,7 +303,7 @@ class IntegratingCloth(ReferenceCloth):
     def _gamma(self) -> tuple[float, float]:
         """Damping rates c / m of the nodes and of the ball."""
         s = self.scene
-        g = s["cloth"]["damping"] / s.node_mass if "damping" in self.fx else 0.0
+        g = self.damping / s.node_mass if "damping" in self.fx else 0.0
         gb = s["ball"]["damping"] / s["ball"]["mass"] if "ball" in self.fx else 0.0
         return g, gb
 
@@ -373,7 +380,7 @@ class IntegratingCloth(ReferenceCloth):
         m = s.node_mass
         has_ball = "ball" in self.fx
         mb = s["ball"]["mass"] if has_ball else 1.0
-        c = s["cloth"]["damping"] if "damping" in self.fx else 0.0
+        c = self.damping if "damping" in self.fx else 0.0
         cb = s["ball"]["damping"] if has_ball else 0.0
         pos, bpos = self.pos, self.ball_pos
         f, fb = self.all_forces(pos, self.vel, bpos, self.ball_vel)

@@ -19,7 +19,7 @@ class Engine {
  public:
   Engine(const std::string& backend, bool dbl, const cb::Config& c)
       : n_(c.n), impl_(cbind::backend_factory(backend, dbl)(c)) {}
-  void configure(const cb::Config& c) { impl_->configure(c); }
+  void configure(const cb::Config& c) { impl_->configure(cb::per_node(c)); }
   void set_hips(Array h) { io().set_hips(h); }
   void set_wind(Array w) { io().set_wind(w); }
   bool state_finite() { return impl_->state_finite(); }
@@ -66,6 +66,8 @@ PYBIND11_MODULE(_native, m) {
       .def_readwrite("ball_k", &cb::Config::ball_k)
       .def_readwrite("ball_damping", &cb::Config::ball_damping)
       .def_readwrite("ball_edges", &cb::Config::ball_edges)
+      .def_readwrite("damping_rate", &cb::Config::damping_rate)
+      .def_readwrite("ball_k_area", &cb::Config::ball_k_area)
       .def_readwrite("coupling_k", &cb::Config::coupling_k)
       .def_readwrite("air_density", &cb::Config::air_density)
       .def_readwrite("drag", &cb::Config::drag)
@@ -148,6 +150,9 @@ PYBIND11_MODULE(_native, m) {
       "multiprocessors and `shared_max` bytes of shared memory a block (None: it cannot run "
       "tiled there), and whether a cloth would take it (core/tiled_plan.hpp).");
   m.attr("TILED_MIN_N") = cb::kTiledMinN;
+  m.def("per_node", &cb::per_node, py::arg("config"),
+        "The configuration with its material values turned into per-node ones, as the "
+        "backends see it (damping from damping_rate, ball_k from ball_k_area).");
   m.def("cuda_copy_bandwidth_gbs", &cb::cuda_copy_bandwidth_gbs, py::arg("bytes"),
         py::arg("reps") = 20, py::call_guard<py::gil_scoped_release>());
   clothball_falcon::bind(m);

@@ -56,11 +56,14 @@ std::unique_ptr<Backend> make_cuda_backend_t<float>(const Config& c);
 template <>
 std::unique_ptr<Backend> make_cuda_backend_t<double>(const Config& c);
 
+// Both take the scene's configuration, material values and all (per_node in params.hpp).
 inline std::unique_ptr<Backend> make_cpu_backend(const Config& c, bool dbl) {
-  return dbl ? make_cpu_backend_t<double>(c) : make_cpu_backend_t<float>(c);
+  const Config p = per_node(c);
+  return dbl ? make_cpu_backend_t<double>(p) : make_cpu_backend_t<float>(p);
 }
 inline std::unique_ptr<Backend> make_cuda_backend(const Config& c, bool dbl) {
-  return dbl ? make_cuda_backend_t<double>(c) : make_cuda_backend_t<float>(c);
+  const Config p = per_node(c);
+  return dbl ? make_cuda_backend_t<double>(p) : make_cuda_backend_t<float>(p);
 }
 // Empty when a CUDA device can be used, else why not.
 std::string cuda_unavailable_reason();

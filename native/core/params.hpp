@@ -51,6 +51,10 @@ struct Config {
   double damping = 0;       // beta1, N s/m per node (eq. 1)
   double ball_radius = 0, ball_mass = 1, ball_k = 0, ball_damping = 0;
   bool ball_edges = false;  // ball contact on the structural edges, not only the nodes (eq. 4)
+  // Material values, independent of n (docs/scenes.md); negative: not given, and the
+  // per-node value above holds. per_node() below turns them into per-node values.
+  double damping_rate = -1;  // 1/s: damping force per unit mass and unit velocity
+  double ball_k_area = -1;   // N/m^3: contact force per unit penetration and contact area
   double coupling_k = 0;    // K of eq. (7)
   double air_density = 1.2, drag = 1.0, lift = 0.3;  // wind on each triangle
   double max_strain = 0.1;  // strain limiting: longest spring is (1 + max_strain) L
@@ -61,6 +65,25 @@ struct Config {
   double cg_tolerance = 1e-5;   // implicit Euler: stop when |r| <= this |rhs|
   unsigned effects = 0;     // Effect bits, plus STRAIN_LIMIT
 };
+
+// The per-node values of a configuration whose scene gives material values (independent of
+// n): the one place they are derived, at configuration time (make_cpu_backend,
+// make_cuda_backend, Engine::configure), so the kernels see per-node values only.
+// Idempotent: what it derived is no longer marked as material.
+//  * damping: the rate gamma (1/s) per unit mass, so beta1 = gamma m_node, and a uniformly
+//    moving cloth loses momentum at gamma whatever n (beta1 fixed made it grow as n^2).
+//  * contact: a stiffness per contact area kappa (N/m^3), each node standing for its area
+//    L^2 of the grid (or each structural edge for half of it: a node inside the ball gets
+//    about one edge contact per direction, see edge_contact_share), so the ball's total
+//    stiffness no longer grows with the nodes it covers.
+inline Config per_node(Config c) {
+  if (c.damping_rate >= 0) c.damping = c.damping_rate * c.node_mass;
+  if (c.ball_k_area >= 0)
+    c.ball_k = c.ball_k_area * c.rest_len * c.rest_len * (c.ball_edges ? 0.5 : 1.0);
+  c.damping_rate = -1;
+  c.ball_k_area = -1;
+  return c;
+}
 
 // Strain-limiting passes a substep: the scene's iterations (at least 1); 0 without the
 // effect. A pass limits every row, then every column (strain_limit_line in forces.hpp).

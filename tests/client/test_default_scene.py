@@ -12,8 +12,11 @@ the sign alternating from node to node.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from clothball.game import Cloth, Scene
 from clothball.game.sim.cloth import corners_of, rest_positions
+from clothball.game.sim.config import node_values
+from clothball.game.sim.oracle import node_contact_stiffness, node_damping
 from clothball.game.sim.scene import DEFAULT_EFFECTS
 
 # A kink: a node further off its neighbours' midpoint than this many rest spacings turns
@@ -79,3 +82,15 @@ def test_the_default_scene_and_classic() -> None:
     assert {"shear", "bend", "ball", "coupling"} <= default.effects
     assert classic.effects == set(DEFAULT_EFFECTS)  # the paper's set-up, unchanged
     assert classic["cloth"]["structural_two_sided"] is False and classic.n == 60
+
+
+def test_default_scene_keeps_its_per_node_values_at_n48() -> None:
+    """The default scene gives material values derived from the per-node ones it had at
+    n = 48 (damping 0.02 N s/m, contact 5000 N/m): at n = 48 they come back to rounding."""
+    s = Scene.load("default")
+    assert s.n == 48 and s.material_keys == ["cloth.damping_rate", "ball.stiffness_per_area"]
+    engine = node_values(s)
+    for damping, k in ((engine.damping, engine.ball_k), (node_damping(s),
+                                                          node_contact_stiffness(s))):
+        assert damping == pytest.approx(0.02, rel=1e-12)
+        assert k == pytest.approx(5000.0, rel=1e-12)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from clothball import _native
 from clothball.game import Cloth, Scene
-from clothball.game.sim.cloth import native_config, rest_positions
+from clothball.game.sim.cloth import rest_positions
+from clothball.game.sim.config import native_config
 from clothball.game.sim.scene import available
 
 

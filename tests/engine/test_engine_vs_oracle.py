@@ -63,6 +63,20 @@ CASES = {
         ["structural", "gravity", "coupling", "strain_limit"],
         {"strain_limit": {"max_strain": 0.002, "iterations": 4}},
     ),
+    # Material values (independent of n): the engine derives beta1 and k_b from them
+    # (native per_node), the oracle on its own (oracle.node_damping, node_contact_stiffness).
+    "material_damping": (["structural", "gravity", "damping"], {"cloth": {"damping_rate": 4.0}}),
+    "material_ball": (
+        ["structural", "gravity", "damping", "ball"],
+        {"cloth": {"damping_rate": 4.0}, "ball": {
+            "stiffness_per_area": 3.4e6, "position": [0.03, 1.085, -0.02],
+            "velocity": [0.0, -0.3, 0.0]}},
+    ),
+    "material_ball_edges": (
+        ["structural", "gravity", "ball"],
+        {"ball": {"stiffness_per_area": 3.4e6, "position": [0.03, 1.085, -0.02],
+                  "velocity": [0.0, -0.3, 0.0], "contact": "edges"}},
+    ),
     # 1600 nodes: several GPU blocks, so the cross-block ball force sum is exercised.
     "all_large": (
         ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],

@@ -6,7 +6,7 @@ import math
 
 import pytest
 from clothball.game import Scene, SceneError
-from clothball.game.sim.scene import SCHEMA, available
+from clothball.game.sim.scene import MATERIAL_KEYS, SCHEMA, available
 
 
 def test_shipped_scenes_load() -> None:
@@ -34,8 +34,24 @@ def test_every_key_but_n_has_a_default() -> None:
         for key, spec in keys.items():
             if (section, key) in (("cloth", "n"), ("sim", "substeps"), ("ball", "position")):
                 continue
+            if (section, key) in MATERIAL_KEYS:  # given instead of a per-node key, or None
+                assert spec.default is None and s[section][key] is None
+                continue
             assert spec.default is not None, f"{section}.{key} has no default"
             assert s[section][key] is not None
+
+
+def test_a_material_key_replaces_its_per_node_key() -> None:
+    """Given, a material key leaves the per-node key it replaces None (so no code reads a
+    stale per-node default); not given, it reads None and the per-node key holds."""
+    s = Scene.from_dict({"cloth": {"n": 9, "damping_rate": 4.0},
+                         "ball": {"stiffness_per_area": 2e6}})
+    assert s["cloth"]["damping"] is None and s["cloth"]["damping_rate"] == 4.0
+    assert s["ball"]["stiffness"] is None and s["ball"]["stiffness_per_area"] == 2e6
+    assert s.material_keys == ["cloth.damping_rate", "ball.stiffness_per_area"]
+    plain = Scene.from_dict({"cloth": {"n": 9}})
+    assert plain["cloth"]["damping"] == 0.002 and plain["cloth"]["damping_rate"] is None
+    assert plain.material_keys == []
 
 
 def test_load_by_path(tmp_path) -> None:
@@ -70,6 +86,14 @@ def test_load_by_path(tmp_path) -> None:
             {"cloth": {"n": 5}, "ball": {"radius": 0.1}, "sim": {"effects": ["structural"]}},
             "ball.radius",
         ),
+        # A material key and the per-node key it replaces: one of the two.
+        ({"cloth": {"n": 5, "damping": 0.01, "damping_rate": 3.0}}, "cloth.damping_rate"),
+        ({"cloth": {"n": 5}, "ball": {"stiffness": 1e3, "stiffness_per_area": 1e6}},
+         "ball.stiffness_per_area"),
+        ({"cloth": {"n": 5, "damping_rate": -1.0}}, "cloth.damping_rate"),
+        ({"cloth": {"n": 5}, "ball": {"stiffness_per_area": math.inf}}, "ball.stiffness_per_area"),
+        ({"cloth": {"n": 5, "damping_rate": 1.0}, "sim": {"effects": ["structural"]}},
+         "cloth.damping_rate"),
     ],
 )
 def test_bad_scenes_name_the_key(data: dict, key: str) -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 
 from clothball.game import Cloth, Scene
-from clothball.game.sim.cloth import native_config
+from clothball.game.sim.config import native_config
 
 SIZES = (25, 50, 85, 100, 135, 150, 200, 250, 300, 400, 500, 1024, 2048, 4096)
 FIELDS = (

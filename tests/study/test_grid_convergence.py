@@ -1,0 +1,142 @@
+"""The physics converges as the grid refines when the scene is in material units.
+
+The game's default scene (material values) and a lightly damped variant of it (so that the
+ball rebounds and the cloth rings) are measured on grids whose spacing halves (n - 1 = 12,
+24, 48 here; 96 on the GPU), each quantity against the same quantity on the other grids
+(no reference values are hard-coded). Where the physics converges, successive differences
+must shrink; the observed orders are printed (``-s``) and recorded as test properties. The
+static sag and what rides on it (the ball's lowest point, landing) drift by a constant few
+mm per halving instead: the hands hold the cloth by single nodes, point supports, whose
+membrane displacement grows as log(1 / L) (``test_point_supports_drift_logarithmically``).
+
+The same scene in the paper's per-node units (``per_node_twin``: the per-node values the
+default derives at n = 48, fixed on every grid) is measured too, as documentation of the
+drift issue 30 reports (its table): there the ball's lowest point, rebound and landing do
+not converge; the test asserts only that the drift is that large, not that it is absent.
+
+GPU (the larger range, ``gpu`` marker, CUDA float64):
+    CLOTHBALL_REQUIRE_GPU=1 python3 -m pytest -q -s -m gpu tests/study/test_grid_convergence.py
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import pytest
+from clothball.game import Scene
+from clothball.game.study.grid import (
+    QUANTITIES,
+    GridRun,
+    convergence,
+    measure,
+    per_node_twin,
+    sized,
+)
+
+CPU_SIZES = (13, 25, 49)  # spacing 1/12, 1/24, 1/48
+GPU_SIZES = (13, 25, 49, 97)
+LIGHT_DAMPING = 10.0  # 1/s: what the default's per-node damping was at n = 16
+
+
+def scenario(name: str) -> Scene:
+    default = Scene.load("default")
+    if name == "default":
+        return default
+    if name == "light":
+        return default.with_changes({"cloth": {"damping_rate": LIGHT_DAMPING}})
+    if name == "per_node":
+        return per_node_twin(default)
+    raise ValueError(name)
+
+
+@functools.cache
+def run(name: str, n: int, backend: str) -> GridRun:
+    r = measure(sized(scenario(name), n), backend=backend, precision="float64")
+    assert not r.failed, r.failed
+    return r
+
+
+# What converges in material units (successive differences shrink as the spacing halves).
+# The default is overdamped (92 /s per unit mass): its ball rebounds a little and its corner
+# force does not ring; the lightly damped variant rings.
+CONVERGING = {
+    "default": ("rebound_m", "natural_hz"),
+    "light": ("lowest_y_m", "ring_hz", "natural_hz"),
+}
+# What drifts at the rate the point supports set: a hand holds the cloth by one node, and a
+# membrane held at a point stretches without bound near it (the strain falls as 1 / r, the
+# displacement grows as log(1 / L)), so the whole cloth hangs lower by about the same
+# length at every halving of the spacing, in either units (the static sag is the same in
+# both). Issue 30's table saw this as the sag's slow growth; it is not the damping.
+LOGARITHMIC = ("sag_m", "lowest_y_m")
+
+
+def line_of(name: str, c) -> str:
+    unit = QUANTITIES[c.name][0]
+    return (f"{name:8} {c.name:20} " + "  ".join(f"n={n}: {v:.6g}" for n, v in zip(
+        c.ns, c.values, strict=True)) + f" {unit}; differences "
+        + ", ".join(f"{d:.3g}" for d in c.differences)
+        + "; observed order " + ", ".join(f"{p:.2f}" for p in c.orders))
+
+
+def check_converges(name: str, sizes: tuple[int, ...], backend: str, record) -> None:
+    runs = [run(name, n, backend) for n in sizes]
+    for q in CONVERGING[name]:
+        c = convergence(runs, q)
+        assert all(math.isfinite(v) for v in c.values), (q, c.values)
+        line = line_of(name, c)
+        print(line)
+        record(f"{name}.{q}", line)
+        assert c.shrinking(), line
+
+
+def test_default_scene_converges(record_property) -> None:
+    check_converges("default", CPU_SIZES, "cpu", record_property)
+
+
+def test_lightly_damped_scene_converges(record_property) -> None:
+    check_converges("light", CPU_SIZES, "cpu", record_property)
+
+
+def test_point_supports_drift_logarithmically(record_property) -> None:
+    """Documentation: the sag and the ball's lowest point (default scene) change by about
+    the same length at each halving of the spacing (a log(1 / L) drift, the point
+    supports'), and that length is a few mm: a tenth of what the per-node units moved the
+    ball's rebound by."""
+    runs = [run("default", n, "cpu") for n in CPU_SIZES]
+    for q in LOGARITHMIC:
+        c = convergence(runs, q)
+        line = line_of("default", c)
+        print(line)
+        record_property(q, line)
+        a, b = (abs(d) for d in c.differences)
+        assert 0.6 < b / a < 1.4, line
+    rebound = convergence([run("per_node", n, "cpu") for n in CPU_SIZES], "rebound_m")
+    sag = convergence(runs, "sag_m")
+    assert min(abs(d) for d in rebound.differences) > 10 * max(abs(d) for d in sag.differences)
+
+
+def test_per_node_parameters_drift(record_property) -> None:
+    """Documentation of issue 30's table: with the per-node values fixed, the ball's rebound
+    changes between grids by several times what it does in material units (the damping
+    rate grows as n^2 and the contact stiffness with the nodes covered)."""
+    change = {}
+    for name in ("per_node", "default"):
+        c = convergence([run(name, n, "cpu") for n in CPU_SIZES], "rebound_m")
+        line = line_of(name, c)
+        print(line)
+        record_property(name, line)
+        change[name] = abs(c.differences[-1])
+    assert change["per_node"] > 5 * change["default"], change
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name", ["default", "light"])
+def test_converges_on_the_larger_range(name: str, cuda: str, record_property) -> None:
+    check_converges(name, GPU_SIZES, cuda, record_property)
+    runs = [run(name, n, cuda) for n in GPU_SIZES]
+    for q in QUANTITIES:  # every quantity's values and orders, for the record
+        line = line_of(name, convergence(runs, q))
+        print(line)
+        record_property(f"{name}.{q}", line)
