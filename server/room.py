@@ -266,9 +266,7 @@ class Room:
                                     "corner is held by a player)")
             target = open_seats[0]
         else:
-            if not 0 <= seat < SEATS:
-                raise ProtocolError("bad_seat", f"seat must be 0..{SEATS - 1}, got {seat}")
-            target = self.seats[seat]
+            target = self._seat(seat)
             if target.kind == "human":
                 raise ProtocolError("bad_seat", f"seat {seat} is taken by a player")
         replaced = target.kind == "bot"
@@ -287,6 +285,12 @@ class Room:
             self.event("seat", seat=target.index, kind="human", name=name)
         self.broadcast_state()
         return self._joined(target)
+
+    def _seat(self, index: int) -> Seat:
+        """Seat ``index``, or ``bad_seat`` for a number that names none."""
+        if not 0 <= index < SEATS:
+            raise ProtocolError("bad_seat", f"seat must be 0..{SEATS - 1}, got {index}")
+        return self.seats[index]
 
     def _new_token(self) -> str:
         """A seat's reconnect key: this room's id, a dot, a secret. The id lets any process
@@ -416,7 +420,7 @@ class Room:
             if not free:
                 raise ProtocolError("room_full", f"room {self.id} has no free seat")
             index = free[0]
-        seat = self.seats[index]
+        seat = self._seat(index)
         if seat.kind != "empty" and not (reason == "grace_over" and seat.conn is None):
             raise ProtocolError("bad_seat", f"seat {index} is taken ({seat.kind})")
         seat.kind, seat.name, seat.ready = "bot", f"bot-{index}", True
@@ -428,7 +432,7 @@ class Room:
         return index
 
     def remove_bot(self, index: int) -> None:
-        seat = self.seats[index]
+        seat = self._seat(index)
         if seat.kind != "bot":
             raise ProtocolError("bad_seat", f"seat {index} holds no bot")
         conn = seat.conn
