@@ -110,7 +110,16 @@ class RoundRecord:
     id: str
     round: int
     started_at: float
-    players: list[dict[str, Any]] = field(default_factory=list)
+    # Per seat, everyone who held it during the round, in order ({kind, name}): a player who
+    # takes a seat mid-round played the round too, and its replay must say so.
+    held: list[list[dict[str, str]]] = field(default_factory=list)
+
+    def note(self, seat: Seat) -> None:
+        """``seat``'s occupant now (a new one is appended; empty seats hold no one)."""
+        who = {"kind": seat.kind, "name": seat.name}
+        if seat.kind != "empty" and (not self.held[seat.index]
+                                     or self.held[seat.index][-1] != who):
+            self.held[seat.index].append(who)
 
 
 class Room:
@@ -278,6 +287,8 @@ class Room:
         target.kind, target.name, target.ready = "human", name, False
         target.token = self._new_token()
         self._attach(target, conn)
+        if self._recording is not None:
+            self._recording.note(target)
         if replaced:
             self.event("seat", seat=target.index, kind="human", name=name,
                        reason="replaced_bot")
@@ -426,6 +437,8 @@ class Room:
         seat.kind, seat.name, seat.ready = "bot", f"bot-{index}", True
         seat.difficulty = difficulty
         seat.token = self._new_token()
+        if self._recording is not None:
+            self._recording.note(seat)
         self.event("seat", seat=index, kind="bot", name=seat.name, reason=reason)
         self.broadcast_state()
         self.host.spawn_bot(self, index, seat.token, difficulty)
@@ -532,10 +545,10 @@ class Room:
         pos, vel = self._reset_ball()
         rnd = self.match.begin_round()
         self.sim.command("reset_ball", (pos, vel))
-        self._recording = RoundRecord(
-            id=new_round_id(), round=rnd, started_at=time.time(),
-            players=[s.info() for s in self.seats],
-        )
+        self._recording = RoundRecord(id=new_round_id(), round=rnd, started_at=time.time(),
+                                      held=[[] for _ in self.seats])
+        for s in self.seats:
+            self._recording.note(s)
         self.sim.command("record_start", (self._recording.id, self.settings.record_cap_s))
         self.event("round_start", round=rnd, ball=pos.tolist(), ball_velocity=vel.tolist())
         self.sim.command("arm")
@@ -669,7 +682,10 @@ class Room:
             "scene_data": self.scene.to_dict(),
             "geometry": self.geometry(),
             "round": rec.round,
-            "players": rec.players,
+            # The seats when the round was decided, each with everyone who held it in the
+            # round (``conceded_by`` names a seat of this list).
+            "players": [{**s.info(), "held_by": held} for s, held in zip(self.seats, rec.held,
+                                                                           strict=True)],
             "conceded_edge": edge,
             "conceded_by": conceded_by,
             "scorers": scorers,
