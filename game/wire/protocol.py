@@ -71,6 +71,7 @@ ERROR_CODES = (
     "bad_token",  # reconnect token unknown or expired
     "room_full",
     "illegal_move",  # the game rules refuse it (e.g. start while playing)
+    "cannot_start",  # start with empty seats in a room that allows neither bots nor unguarded
     "server_busy",  # too many rooms on the server
     "too_many_rooms",  # too many open rooms created from this address
     "room_stopped",  # the room's simulation failed; it is closed, the client is back in the lobby
