@@ -1000,6 +1000,38 @@ def _room_stopped(s: Session, row: D.Row, edge: Edge) -> None:
     err(edge.got["room_stopped_error"], "room_stopped")
 
 
+# the replay file's header -----------------------------------------------------------------
+
+
+@check("replay_header:*")
+def _replay_header_field(s: Session, row: D.Row) -> None:
+    status, body, _ = s.got["replay_file"]
+    h = _replay_header(body)  # a private room's round, cut by its 1 s cap: every field
+    assert row.key in h, row.key
+    score = s.got["score"]
+    want = {"format": "clothball-replay", "replay_version": 1, "protocol_version": 1,
+            "id": s.got["replay_saved"]["id"], "room_id": s.got["created"]["room"],
+            "room_name": CONF_ROOM["name"], "scene": "tiny", "round": score["round"],
+            "conceded_edge": score["edge"], "conceded_by": score["conceded_by"],
+            "scorers": score["scorers"], "scores": score["scores"],
+            "first_to": CONF_ROOM["first_to"], "tail_s": 1.0, "track_hz": 100.0,
+            "geometry": s.got["joined_host"]["geometry"]}
+    if row.key in want:
+        assert h[row.key] == want[row.key], (row.key, h[row.key])
+    if row.key == "players":
+        assert [p["seat"] for p in h["players"]] == [0, 1, 2, 3]
+        assert h["players"][0]["held_by"] == [{"kind": "human", "name": "host"}]
+    if row.key in ("started_at", "ended_at"):
+        assert abs(h[row.key] - time.time()) < 3600
+    if row.key == "duration_s":
+        assert 0 < h["duration_s"] <= h["ended_at"] - h["started_at"] + h["tail_s"]
+    if row.key == "access":
+        assert re.fullmatch(r"[0-9a-f]{64}", h["access"])
+        assert s.got["created"]["code"] not in json.dumps(h)
+    if row.key == "scene_data":
+        assert h["scene_data"]["cloth"]["n"] == TINY.n
+
+
 # binary ---------------------------------------------------------------------------------------
 
 
@@ -1274,6 +1306,11 @@ def test_nothing_undocumented_is_sent(session: Session) -> None:
         assert set(m) - {"type"} <= allowed, (m["type"], set(m) - {"type"} - allowed)
         if m["type"] == "joined":
             assert set(m["geometry"]) <= set(_table_keys("geometry"))
+    header = _replay_header(session.got["replay_file"][1])
+    assert set(header) <= set(_table_keys("replay_header")), \
+        set(header) - set(_table_keys("replay_header"))
+    for p in header["players"]:
+        assert set(p) <= set(_table_keys("seat_info")) | {"held_by"}
     for info, _ in _room_infos(session):
         assert set(info) <= room_info, set(info) - room_info
         for x in info["seats"]:
