@@ -514,8 +514,7 @@ class Room:
             # during the wait found this task pending and must not be lost).
             self._maybe_start()
         elif self._bot_seats() and self.match.state in ("waiting", "over"):
-            self._guard_edges()  # as any match start: bots take the empty seats (bots sit,
-            self._start_match()  # so bots are allowed: it cannot refuse)
+            self._start_match()
 
     def _start_match(self) -> None:
         try:

@@ -365,7 +365,8 @@ async def scenario(s: Session, ws_url: str, own_urls: list[str]) -> None:
                              "reset_speed": 3.0})
     await h4.request({"type": "join", "room": made["room"], "role": "spectator",
                       "mesh": False})
-    await h4.request({"type": "add_bot", "seat": 0})
+    await h4.request({"type": "add_bot", "seat": 0})  # autoplay starts a match: with...
+    await h4.request({"type": "add_bot", "seat": 1})  # ...this one too, rounds are scored
     await h4.event("match_end", timeout=60)
     got["autoplay_restart"] = await h4.event("match_start", timeout=60,
                                              since=len(h4.msgs) - 1)
@@ -695,10 +696,10 @@ def _cr_grace(s: Session, row: D.Row) -> None:
 
 @check("requests:create_room.autoplay", "requests:create_room.restart_delay")
 def _cr_autoplay(s: Session, row: D.Row) -> None:
-    # nobody asked: the bots' match started, ended and (no delay) started again, bots in
-    # the empty seats (bots_allowed) as for any match
+    # nobody asked: the bots' match started, ended and (no delay) started again, with the
+    # seats as they are (no bot added)
     assert s.got["autoplay_restart"]["event"] == "match_start"
-    assert s.got["autoplay_restart"]["seats"] == [0, 1, 2, 3]
+    assert s.got["autoplay_restart"]["seats"] == [0, 1]
     err(s.got[row.id], "bad_message")
 
 
@@ -1334,6 +1335,8 @@ def test_what_the_server_can_send_is_documented() -> None:
     assert codes <= set(P.ERROR_CODES), codes - set(P.ERROR_CODES)
     events = set(re.findall(r'\.event\(\s*"([a-z_]+)"', src))
     assert events <= set(_table_keys("events")), events - set(_table_keys("events"))
+    closes = {int(c) for c in re.findall(r"close\((\d{4}),", src)}
+    assert closes and closes <= {int(k) for k in _table_keys("closes")}, closes
     types = set(re.findall(r'"type": "([a-z_]+)"', src)) - {"join"}  # hello carries a join
     replies = {r.key for r in ROWS.values() if r.table == "replies" and r.field is None}
     assert types <= replies, types - replies
