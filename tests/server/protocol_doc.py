@@ -146,11 +146,5 @@ def rows(text: str | None = None) -> list[Row]:
     return out
 
 
-def documented_fields(table: str, key: str, text: str | None = None) -> set[str]:
-    """The fields the doc names for message ``key`` of a message table."""
-    return {r.field for r in rows(text) if r.table == table and r.key == key
-            and r.field is not None}
-
-
 if __name__ == "__main__":
     print(json.dumps([asdict(r) for r in rows()], indent=1, ensure_ascii=False))

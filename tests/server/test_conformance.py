@@ -15,6 +15,7 @@ limits).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gzip
 import json
 import math
@@ -24,7 +25,7 @@ import time
 import urllib.error
 import urllib.request
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -473,21 +474,19 @@ async def edge_scenario(tmp: Path) -> Edge:
     return e
 
 
-def _edge_server(data: Path, limits: Limits, settings: RoomSettings) -> Any:
+@contextlib.asynccontextmanager
+async def _edge_server(data: Path, limits: Limits, settings: RoomSettings
+                       ) -> AsyncIterator[Any]:
+    """One process, whatever the session's kind: what it shows is the same in both."""
     from clothball.server.app import GameServer
 
-    class Started:
-        async def __aenter__(self) -> GameServer:
-            self.srv = GameServer(data, scenes={"tiny": TINY, "unstable": unstable_scene()},
-                                  backend="cpu", host="127.0.0.1", port=0, bots=4,
-                                  room_settings=settings, limits=limits)
-            await self.srv.start()
-            return self.srv
-
-        async def __aexit__(self, *exc: object) -> None:
-            await self.srv.stop()
-
-    return Started()
+    srv = GameServer(data, scenes={"tiny": TINY, "unstable": unstable_scene()}, backend="cpu",
+                     host="127.0.0.1", port=0, bots=4, room_settings=settings, limits=limits)
+    await srv.start()
+    try:
+        yield srv
+    finally:
+        await srv.stop()
 
 
 # --- fixtures ----------------------------------------------------------------------------------
@@ -1342,7 +1341,7 @@ def test_what_the_server_can_send_is_documented() -> None:
     assert types <= replies, types - replies
 
 
-def test_the_handler_table_is_the_documented_requests(tmp_path) -> None:
+def test_the_handler_table_is_the_documented_requests() -> None:
     class Srv:  # WsEndpoint needs nothing of its server to build its table
         pass
 
