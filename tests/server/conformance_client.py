@@ -12,12 +12,15 @@ import json
 import os
 import socket
 import struct
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
+
+from tests.server.conftest import recv_all
 
 HELLO: dict[str, Any] = {"type": "hello", "version": 1}
 
@@ -187,17 +190,9 @@ def raw_ws_close_code(host: str, port: int, hello: bytes, wait_s: float) -> int 
         body = bytes(b ^ mask[i % 4] for i, b in enumerate(hello))
         assert len(hello) < 126
         s.sendall(bytes([0x81, 0x80 | len(hello)]) + mask + body)
-        import time
         time.sleep(wait_s)
         s.settimeout(5)
-        while True:
-            try:
-                chunk = s.recv(65536)
-            except (TimeoutError, ConnectionResetError):
-                break
-            if not chunk:
-                break
-            buf += chunk
+        buf += recv_all(s)
     # the server's frames, unmasked: find the close frame (opcode 8)
     off = 0
     while off + 2 <= len(buf):

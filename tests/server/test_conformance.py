@@ -22,8 +22,6 @@ import math
 import re
 import struct
 import time
-import urllib.error
-import urllib.request
 import zlib
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
@@ -41,7 +39,7 @@ from clothball.server.ws import WsEndpoint
 from tests.server import protocol_doc as D
 from tests.server import workers
 from tests.server.conformance_client import HELLO, Transcript, Wire, raw_ws_close_code
-from tests.server.conftest import FAST, TINY, live_server, run
+from tests.server.conftest import FAST, TINY, http_get_url, live_server, run
 
 # The edge server's room is unstable on purpose (its simulation must fail).
 pytestmark = pytest.mark.filterwarnings(
@@ -57,18 +55,6 @@ def _doc_fields(table: str, key: str) -> set[str]:
 
 def _table_keys(table: str) -> list[str]:
     return [r.key for r in ROWS.values() if r.table == table and r.field is None]
-
-
-# --- HTTP ------------------------------------------------------------------------------------
-
-
-def http(url: str) -> tuple[int, bytes, dict[str, str]]:
-    try:
-        with urllib.request.urlopen(url, timeout=10) as r:
-            return r.status, r.read(), dict(r.headers)
-    except urllib.error.HTTPError as e:
-        with e:
-            return e.code, e.read(), dict(e.headers)
 
 
 # --- the binary layouts, read from the doc's tables -----------------------------------------
@@ -321,13 +307,13 @@ async def scenario(s: Session, ws_url: str, own_urls: list[str]) -> None:
     got["score"] = await spec.event("score")
     got["match_end"] = await spec.event("match_end")
     got["replay_saved"] = saved = await spec.event("replay_saved")
-    got["replay_file"] = http(f"{s.http_url}api/replays/{saved['id']}?code={code}")
-    got["replay_no_code"] = http(f"{s.http_url}api/replays/{saved['id']}")
-    got["replays_room"] = http(f"{s.http_url}api/replays?room={rid}&code={code}")
-    got["replays_room_no_code"] = http(f"{s.http_url}api/replays?room={rid}")
-    got["replays_player"] = http(f"{s.http_url}api/replays?player=host&room={rid}"
+    got["replay_file"] = http_get_url(f"{s.http_url}api/replays/{saved['id']}?code={code}")
+    got["replay_no_code"] = http_get_url(f"{s.http_url}api/replays/{saved['id']}")
+    got["replays_room"] = http_get_url(f"{s.http_url}api/replays?room={rid}&code={code}")
+    got["replays_room_no_code"] = http_get_url(f"{s.http_url}api/replays?room={rid}")
+    got["replays_player"] = http_get_url(f"{s.http_url}api/replays?player=host&room={rid}"
                                  f"&code={code}")
-    got["replays_bad_limit"] = http(f"{s.http_url}api/replays?limit=many")
+    got["replays_bad_limit"] = http_get_url(f"{s.http_url}api/replays?limit=many")
     got["spec_binary"] = len(spec.binary)  # mesh: false, and no seat: nothing binary
     got["left"] = await host.request({"type": "leave"})
     got["left_event"] = await spec.event("seat", seat=0, reason="left")
@@ -502,7 +488,7 @@ def session(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFac
         s = Session(mode, ls.srv.http_url.rstrip("/") + "/")
         own = [p.http_url.replace("http://", "ws://") + "ws" for p in workers.processes(ls.srv)]
         run(scenario(s, ls.srv.ws_url, own), timeout=300)
-        s.got["stats"] = [json.loads(http(p.http_url + "api/stats")[1])
+        s.got["stats"] = [json.loads(http_get_url(p.http_url + "api/stats")[1])
                           for p in workers.processes(ls.srv)]
         s.got["errors_logged"] = ls.errors.texts()
         yield s
@@ -1199,27 +1185,27 @@ def _close_4000(s: Session, row: D.Row) -> None:
 
 @check("http:/")
 def _http_root(s: Session, row: D.Row) -> None:
-    status, body, headers = http(s.http_url)
+    status, body, headers = http_get_url(s.http_url)
     assert status == 200 and "text/html" in headers["Content-Type"] and b"<html" in body.lower()
 
 
 @check("http:/static/<path>")
 def _http_static(s: Session, row: D.Row) -> None:
-    status, body, _ = http(s.http_url + "static/protocol.js")
+    status, body, _ = http_get_url(s.http_url + "static/protocol.js")
     web = Path(__file__).resolve().parents[2] / "assets" / "web" / "protocol.js"
     assert status == 200 and body == web.read_bytes()
-    assert http(s.http_url + "static/%2e%2e/%2e%2e/pyproject.toml")[0] == 404
+    assert http_get_url(s.http_url + "static/%2e%2e/%2e%2e/pyproject.toml")[0] == 404
 
 
 @check("http:/healthz")
 def _http_healthz(s: Session, row: D.Row) -> None:
-    status, body, _ = http(s.http_url + "healthz")
+    status, body, _ = http_get_url(s.http_url + "healthz")
     assert status == 200 and body.strip() == b"ok"
 
 
 @check("http:/api/rooms")
 def _http_rooms(s: Session, row: D.Row) -> None:
-    status, body, _ = http(s.http_url + "api/rooms")
+    status, body, _ = http_get_url(s.http_url + "api/rooms")
     rooms = json.loads(body)["rooms"]
     ids = {r["id"] for r in rooms}
     assert status == 200 and "main" in ids and s.got["created"]["room"] not in ids
