@@ -314,7 +314,7 @@ async def scenario(s: Session, ws_url: str, own_urls: list[str]) -> None:
     got["replays_room"] = http_get_url(f"{s.http_url}api/replays?room={rid}&code={code}")
     got["replays_room_no_code"] = http_get_url(f"{s.http_url}api/replays?room={rid}")
     got["replays_player"] = http_get_url(f"{s.http_url}api/replays?player=host&room={rid}"
-                                 f"&code={code}")
+                                         f"&code={code}")
     got["replays_bad_limit"] = http_get_url(f"{s.http_url}api/replays?limit=many")
     got["spec_binary"] = len(spec.binary)  # mesh: false, and no seat: nothing binary
     got["left"] = await host.request({"type": "leave"})
