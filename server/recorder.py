@@ -215,4 +215,7 @@ class Recording:
         if self._file is not None:
             self._file.close()
             self._file = None
-        self.path.unlink(missing_ok=True)
+        try:
+            self.path.unlink(missing_ok=True)
+        except OSError:  # no spool to remove: its directory could not be made (not a dir)
+            pass

@@ -375,8 +375,7 @@ class ReplayStore:
         for header, name, size in rounds:
             row = self._tuple(header, name, size)
             rows.append(row)
-            names = {p["name"] for p in header["players"]
-                     if isinstance(p, dict) and isinstance(p.get("name"), str)}
+            names = player_names(header["players"])
             players += [(row[0], n, row[1], row[14], row[10]) for n in sorted(names)]
         ids = [(r[0],) for r in rows]
 
@@ -681,6 +680,20 @@ class ReplayStore:
             self._db.close()
             if self._wdb is not None:
                 self._wdb.close()
+
+
+def player_names(players: Any) -> set[str]:
+    """The names a round is found by (``?player=``): each seat's, and everyone who held a
+    seat during the round (``held_by``: a player who took it mid-round, or left it)."""
+    names: set[str] = set()
+    for p in players if isinstance(players, list) else ():
+        if not isinstance(p, dict):
+            continue
+        held = p.get("held_by")
+        for who in [p, *(held if isinstance(held, list) else ())]:
+            if isinstance(who, dict) and isinstance(who.get("name"), str):
+                names.add(who["name"])
+    return names
 
 
 def _postgres_ddl() -> list[str]:

@@ -110,7 +110,16 @@ class RoundRecord:
     id: str
     round: int
     started_at: float
-    players: list[dict[str, Any]] = field(default_factory=list)
+    # Per seat, everyone who held it during the round, in order ({kind, name}): a player who
+    # takes a seat mid-round played the round too, and its replay must say so.
+    held: list[list[dict[str, str]]] = field(default_factory=list)
+
+    def note(self, seat: Seat) -> None:
+        """``seat``'s occupant now (a new one is appended; empty seats hold no one)."""
+        who = {"kind": seat.kind, "name": seat.name}
+        if seat.kind != "empty" and (not self.held[seat.index]
+                                     or self.held[seat.index][-1] != who):
+            self.held[seat.index].append(who)
 
 
 class Room:
@@ -266,9 +275,7 @@ class Room:
                                     "corner is held by a player)")
             target = open_seats[0]
         else:
-            if not 0 <= seat < SEATS:
-                raise ProtocolError("bad_seat", f"seat must be 0..{SEATS - 1}, got {seat}")
-            target = self.seats[seat]
+            target = self._seat(seat)
             if target.kind == "human":
                 raise ProtocolError("bad_seat", f"seat {seat} is taken by a player")
         replaced = target.kind == "bot"
@@ -280,6 +287,8 @@ class Room:
         target.kind, target.name, target.ready = "human", name, False
         target.token = self._new_token()
         self._attach(target, conn)
+        if self._recording is not None:
+            self._recording.note(target)
         if replaced:
             self.event("seat", seat=target.index, kind="human", name=name,
                        reason="replaced_bot")
@@ -287,6 +296,12 @@ class Room:
             self.event("seat", seat=target.index, kind="human", name=name)
         self.broadcast_state()
         return self._joined(target)
+
+    def _seat(self, index: int) -> Seat:
+        """Seat ``index``, or ``bad_seat`` for a number that names none."""
+        if not 0 <= index < SEATS:
+            raise ProtocolError("bad_seat", f"seat must be 0..{SEATS - 1}, got {index}")
+        return self.seats[index]
 
     def _new_token(self) -> str:
         """A seat's reconnect key: this room's id, a dot, a secret. The id lets any process
@@ -416,19 +431,21 @@ class Room:
             if not free:
                 raise ProtocolError("room_full", f"room {self.id} has no free seat")
             index = free[0]
-        seat = self.seats[index]
+        seat = self._seat(index)
         if seat.kind != "empty" and not (reason == "grace_over" and seat.conn is None):
             raise ProtocolError("bad_seat", f"seat {index} is taken ({seat.kind})")
         seat.kind, seat.name, seat.ready = "bot", f"bot-{index}", True
         seat.difficulty = difficulty
         seat.token = self._new_token()
+        if self._recording is not None:
+            self._recording.note(seat)
         self.event("seat", seat=index, kind="bot", name=seat.name, reason=reason)
         self.broadcast_state()
         self.host.spawn_bot(self, index, seat.token, difficulty)
         return index
 
     def remove_bot(self, index: int) -> None:
-        seat = self.seats[index]
+        seat = self._seat(index)
         if seat.kind != "bot":
             raise ProtocolError("bad_seat", f"seat {index} holds no bot")
         conn = seat.conn
@@ -528,10 +545,10 @@ class Room:
         pos, vel = self._reset_ball()
         rnd = self.match.begin_round()
         self.sim.command("reset_ball", (pos, vel))
-        self._recording = RoundRecord(
-            id=new_round_id(), round=rnd, started_at=time.time(),
-            players=[s.info() for s in self.seats],
-        )
+        self._recording = RoundRecord(id=new_round_id(), round=rnd, started_at=time.time(),
+                                      held=[[] for _ in self.seats])
+        for s in self.seats:
+            self._recording.note(s)
         self.sim.command("record_start", (self._recording.id, self.settings.record_cap_s))
         self.event("round_start", round=rnd, ball=pos.tolist(), ball_velocity=vel.tolist())
         self.sim.command("arm")
@@ -665,7 +682,10 @@ class Room:
             "scene_data": self.scene.to_dict(),
             "geometry": self.geometry(),
             "round": rec.round,
-            "players": rec.players,
+            # The seats when the round was decided, each with everyone who held it in the
+            # round (``conceded_by`` names a seat of this list).
+            "players": [{**s.info(), "held_by": held} for s, held in zip(self.seats, rec.held,
+                                                                           strict=True)],
             "conceded_edge": edge,
             "conceded_by": conceded_by,
             "scorers": scorers,

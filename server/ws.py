@@ -55,6 +55,23 @@ class Connection(BinaryHook, ServerConnection):
             self._deadline.reschedule(None)
 
 
+JOIN_ROLES = ("player", "spectator")
+
+
+def hello_joins(msg: dict[str, Any]) -> bool:
+    """Whether a hello also joins a room (a role other than ``lobby``, or a ``token``); a
+    hello whose role is none of the three, or that names a player's or spectator's role
+    without a ``room`` (or a ``token``), is refused: it cannot be welcomed as asked."""
+    role = P.field_str(msg, "role", "lobby", max_len=16)
+    if role != "lobby" and role not in JOIN_ROLES:
+        raise ProtocolError("bad_message", f"'role': must be 'lobby', 'player' or "
+                            f"'spectator', got {role!r}")
+    if role != "lobby" and msg.get("room") is None and msg.get("token") is None:
+        raise ProtocolError("bad_message", f"missing field 'room': a hello with role "
+                            f"{role!r} joins a room (or send a 'token' to resume a seat)")
+    return role != "lobby" or "token" in msg
+
+
 def token_room(token: str) -> str | None:
     """The room a reconnect token was given in (``Room._new_token``: id, dot, secret);
     None for a token of another form."""
@@ -176,7 +193,10 @@ class WsEndpoint:
             if msg["type"] != "hello":
                 raise ProtocolError("bad_message",
                                     f"the first message must be a hello, got {msg['type']!r}")
-            version = msg.get("version")
+            if "version" not in msg:  # a missing field, as for every message
+                raise ProtocolError("bad_message", "missing field 'version' (the integer "
+                                    f"{P.PROTOCOL_VERSION})")
+            version = msg["version"]
             # The integer itself: 1.0 and true compare equal to 1 in Python, JSON tells them
             # apart, and a client that sends them speaks some other dialect.
             if type(version) is not int or version != P.PROTOCOL_VERSION:
@@ -185,7 +205,9 @@ class WsEndpoint:
                     f"protocol version {version!r} not supported; this server speaks "
                     f"{P.PROTOCOL_VERSION}",
                 )
+            re = P.request_id(msg)
             conn.name = P.field_str(msg, "name", "guest", max_len=32) or "guest"
+            joins = hello_joins(msg)
         except ProtocolError as e:
             self.srv.stats["bad_messages"] += 1
             conn.error(e)
@@ -199,11 +221,9 @@ class WsEndpoint:
             "server_time": time.perf_counter() - self.srv.epoch,
             "scenes": sorted(self.srv.scenes),
             "rooms": self.srv.lobby.listing(),
-            "re": P.request_id(msg),
+            "re": re,
         })
-        role = msg.get("role", "lobby")
-        if role != "lobby" or "token" in msg:
-            # hello may carry a join: the same fields as a join message.
+        if joins:  # hello may carry a join: the same fields as a join message
             self._on_control(conn, {**msg, "type": "join"})
         return True
 
@@ -257,9 +277,10 @@ class WsEndpoint:
 
     def _on_control(self, conn: Conn, msg: dict[str, Any]) -> None:
         t = msg["type"]
-        re = P.request_id(msg)
         handler = self.handlers.get(t)
+        re = None
         try:
+            re = P.request_id(msg)  # a bad id is refused before anything is done
             if handler is None:
                 raise ProtocolError("unknown_type", f"unknown message type {t!r}")
             reply = handler(conn, msg)
@@ -339,6 +360,9 @@ class WsEndpoint:
                 except ProtocolError:
                     continue
             raise ProtocolError("bad_token", "reconnect token unknown or expired")
+        if room_id is None:
+            raise ProtocolError("bad_message", "missing field 'room' (a room id from the "
+                                "room list, or a 'token' to resume a seat)")
         room = self.srv.lobby.get(room_id)
         code = P.field_str(msg, "code", None, max_len=64)
         if room.sim.asleep:  # waking a room costs what a new one does
@@ -354,7 +378,8 @@ class WsEndpoint:
                 raise ProtocolError("room_full", f"room {room.id} already has "
                                     f"{len(room.spectators)} spectators (the limit)")
             return room.join_spectator(conn, code)
-        raise ProtocolError("bad_message", f"role must be 'player' or 'spectator', got {role!r}")
+        raise ProtocolError("bad_message", f"'role': must be 'player' or 'spectator', got "
+                            f"{role!r}")
 
     def _as_seen_by(self, conn: Conn, url: str) -> str:
         """A sibling process's address as this client can reach it: processes of one
@@ -391,7 +416,7 @@ class WsEndpoint:
         room = self._in_room(conn)
         if not room.may_control(conn):
             raise ProtocolError("not_allowed", "only the room's host can add bots")
-        seat = P.field_int(msg, "seat", None, 0, 3)
+        seat = P.field_int(msg, "seat", None, -(2**31), 2**31)  # the room names bad seats
         difficulty = P.field_float(msg, "difficulty", room.settings.bot_difficulty, 0.0, 1.0)
         assert difficulty is not None
         room.add_bot(seat, difficulty)
@@ -400,7 +425,7 @@ class WsEndpoint:
         room = self._in_room(conn)
         if not room.may_control(conn):
             raise ProtocolError("not_allowed", "only the room's host can remove bots")
-        seat = P.field_int(msg, "seat", None, 0, 3, required=True)
+        seat = P.field_int(msg, "seat", None, -(2**31), 2**31, required=True)
         assert seat is not None
         room.remove_bot(seat)
 

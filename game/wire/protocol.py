@@ -33,6 +33,8 @@ BINARY_TYPES = {HIP: "HIP", CORNER: "CORNER", MESH: "MESH", TRACK: "TRACK"}
 
 FLAG_ZLIB = 1
 FLAG_DELTA = 2
+# The header flags each type may set: MESH's payload coding; every other type sends 0.
+KNOWN_FLAGS = {HIP: 0, CORNER: 0, MESH: FLAG_ZLIB | FLAG_DELTA, TRACK: 0}
 
 HEADER = struct.Struct("<BBHId")
 HIP_BODY = struct.Struct("<3f")
@@ -69,6 +71,7 @@ ERROR_CODES = (
     "bad_token",  # reconnect token unknown or expired
     "room_full",
     "illegal_move",  # the game rules refuse it (e.g. start while playing)
+    "cannot_start",  # start with empty seats in a room that allows neither bots nor unguarded
     "server_busy",  # too many rooms on the server
     "too_many_rooms",  # too many open rooms created from this address
     "room_stopped",  # the room's simulation failed; it is closed, the client is back in the lobby
@@ -215,21 +218,27 @@ def field_bool(msg: dict[str, Any], key: str, default: bool) -> bool:
     return v
 
 
+MAX_REQUEST_ID = 2**53  # integer ids beyond this lose precision in a browser's JSON
+
+
 def request_id(msg: dict[str, Any]) -> str | int | None:
-    """The optional ``id`` a client puts on a request; replies echo it as ``re``."""
-    v = msg.get("id")
-    if v is None:
+    """The optional ``id`` a client puts on a request; replies echo it as ``re``, exactly
+    as sent. None when absent; ``ProtocolError("bad_message")`` for one that is not a
+    string of at most 64 characters (checked as every client string is) or an integer of
+    magnitude at most 2**53 (``null``, a fraction, a list: the request is refused, and the
+    error carries no ``re``, having no id to echo)."""
+    if "id" not in msg:
         return None
-    if isinstance(v, bool) or not isinstance(v, int | str):
-        return None
+    v = msg["id"]
     if isinstance(v, str):
-        try:  # echoed back as given, so it must be text any client can decode
-            check_text("id", v, 64)
-        except ProtocolError:
-            return None
-    if isinstance(v, int) and not -(2**53) <= v <= 2**53:
-        return None
-    return v
+        check_text("id", v, 64)
+        return v
+    if isinstance(v, int) and not isinstance(v, bool) and -MAX_REQUEST_ID <= v <= MAX_REQUEST_ID:
+        return v
+    shown = json.dumps(v)
+    shown = shown if len(shown) <= 40 else shown[:37] + "..."
+    raise ProtocolError("bad_message", "'id': expected a string of at most 64 characters or "
+                        f"a whole number within +/-2**53, got {shown}")
 
 
 # --- binary header ---------------------------------------------------------------------------
@@ -258,6 +267,9 @@ def decode_header(data: bytes, expect: int | None = None) -> Header:
         raise ProtocolError(
             "bad_binary", f"expected a {BINARY_TYPES[expect]} message, got {BINARY_TYPES[t]}"
         )
+    if flags & ~KNOWN_FLAGS[t]:  # a flag this version does not define: refused, not ignored
+        raise ProtocolError("bad_binary", f"{BINARY_TYPES[t]} unknown flags {flags:#x} "
+                            f"(defined: {KNOWN_FLAGS[t]:#x})")
     if not math.isfinite(time):
         raise ProtocolError("bad_binary", "header time must be finite")
     return Header(t, v, flags, seq, time)
@@ -289,8 +301,8 @@ def decode_hip(data: bytes) -> Hip:
     """A HIP frame; raises ``ProtocolError`` on a wrong size, type, version or a NaN/Inf."""
     if len(data) == HIP_SIZE:  # a well-formed HIP in one unpack; anything else: checked below
         t, v, _flags, seq, time, x, y, z = HIP_MSG.unpack(data)
-        if (t == HIP and v == PROTOCOL_VERSION and _isfinite(time) and _isfinite(x)
-                and _isfinite(y) and _isfinite(z)):
+        if (t == HIP and v == PROTOCOL_VERSION and not _flags and _isfinite(time)
+                and _isfinite(x) and _isfinite(y) and _isfinite(z)):
             return Hip((x, y, z), seq, time)
     return _decode_hip_checked(data)
 
@@ -441,8 +453,6 @@ def decode_mesh(data: bytes) -> Mesh:
         raise ProtocolError("bad_binary", f"MESH n must be 2..{MAX_MESH_N}, got {n}")
     f = np.array(v[2:], dtype=np.float64)
     payload = data[HEADER.size + MESH_BODY.size:]
-    if h.flags & ~(FLAG_ZLIB | FLAG_DELTA):
-        raise ProtocolError("bad_binary", f"MESH unknown flags {h.flags:#x}")
     expected = n * n * 3 * 2
     if h.flags & FLAG_ZLIB:
         try:

@@ -56,18 +56,18 @@ async def _one_process_server(data: Path, *, bots: int = 0,
         await srv.stop()
 
 
+def http_get_url(url: str) -> tuple[int, bytes, dict[str, str]]:
+    """GET ``url`` (blocking): status, body and headers, an error status included."""
+    try:
+        with urllib.request.urlopen(url, timeout=10) as r:
+            return r.status, r.read(), dict(r.headers)
+    except urllib.error.HTTPError as e:
+        with e:
+            return e.code, e.read(), dict(e.headers)
+
+
 async def http_get(srv: GameServer, path: str) -> tuple[int, bytes, dict[str, str]]:
-    url = srv.http_url.rstrip("/") + path
-
-    def get() -> tuple[int, bytes, dict[str, str]]:
-        try:
-            with urllib.request.urlopen(url, timeout=10) as r:
-                return r.status, r.read(), dict(r.headers)
-        except urllib.error.HTTPError as e:
-            with e:
-                return e.code, e.read(), dict(e.headers)
-
-    return await asyncio.to_thread(get)
+    return await asyncio.to_thread(http_get_url, srv.http_url.rstrip("/") + path)
 
 
 async def http_json(srv: GameServer, path: str) -> Any:
@@ -131,16 +131,21 @@ class LiveServer:
         """Send raw bytes to the HTTP port; the whole answer (until the server closes)."""
         with socket.create_connection(("127.0.0.1", self.srv.port), timeout=timeout) as s:
             s.sendall(raw)
-            chunks = []
-            while True:
-                try:
-                    b = s.recv(65536)
-                except (TimeoutError, ConnectionResetError):
-                    break
-                if not b:
-                    break
-                chunks.append(b)
-            return b"".join(chunks)
+            return recv_all(s)
+
+
+def recv_all(s: socket.socket) -> bytes:
+    """What a socket receives until the other side closes it (or its timeout)."""
+    chunks = []
+    while True:
+        try:
+            b = s.recv(65536)
+        except (TimeoutError, ConnectionResetError):
+            break
+        if not b:
+            break
+        chunks.append(b)
+    return b"".join(chunks)
 
 
 @contextlib.contextmanager

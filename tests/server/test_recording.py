@@ -99,6 +99,18 @@ def test_a_write_error_is_the_recordings_error(tmp_path) -> None:
     rec.discard()
 
 
+def test_a_spool_that_could_not_be_made_is_discarded_without_an_error(tmp_path) -> None:
+    # A data directory that is a file's child (unusable): no spool, the error says why,
+    # and discarding it (as the server does after every round) raises nothing.
+    (tmp_path / "a-file").write_text("not a directory")
+    rec = Recording("r1", tmp_path / "a-file" / "spool", cap_s=10.0, frame_dt=0.001)
+    assert rec.error is not None and rec.cut is not None
+    rec.append(1, P.encode_track(1, 0.0, [0, 0, 0], [0, 0, 0], np.zeros((4, 3)),
+                                 np.zeros((4, 3))))
+    rec.finish()
+    rec.discard()
+
+
 def test_a_served_round_longer_than_the_cap_is_cut_and_marked(tmp_path) -> None:
     async def main() -> None:
         settings = RoomSettings(**{**FAST, "first_to": 99}, autoplay=True, record_cap_s=0.3)

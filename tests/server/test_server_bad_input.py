@@ -90,12 +90,19 @@ async def closed_with(ws: ClientConnection) -> int | None:
         ('{"type": "join"}', "bad_message"),
         ("not json", "bad_json"),
         ('{"type": "hello", "version": 99}', "bad_version"),
-        ('{"type": "hello"}', "bad_version"),
+        ('{"type": "hello"}', "bad_message"),  # a missing field, as in any message
         # the integer 1 only: JSON tells 1.0 and true from 1 (Python's == does not)
         ('{"type": "hello", "version": 1.0}', "bad_version"),
         ('{"type": "hello", "version": true}', "bad_version"),
         ('{"type": "hello", "version": "1"}', "bad_version"),
         ('{"type": "hello", "version": 1, "name": 5}', "bad_message"),
+        # a hello that cannot be welcomed as asked: no such role, a join without a room
+        ('{"type": "hello", "version": 1, "role": "king"}', "bad_message"),
+        ('{"type": "hello", "version": 1, "role": "player"}', "bad_message"),
+        ('{"type": "hello", "version": 1, "role": "spectator", "seat": 0}', "bad_message"),
+        # a request id that is neither a short string nor a whole number
+        ('{"type": "hello", "version": 1, "id": 1.5}', "bad_message"),
+        ('{"type": "hello", "version": 1, "id": null}', "bad_message"),
     ],
 )
 def test_a_bad_first_message_is_refused_and_closes(tmp_path, first, code) -> None:
@@ -248,6 +255,60 @@ def test_bad_messages_after_hello_get_errors_and_the_room_runs_on(tmp_path) -> N
             stats = await service_stats(srv)
             assert stats["bad_messages"] >= 30
             await player.close()
+
+    run(main())
+
+
+def test_a_bad_request_id_is_refused_without_re_and_the_request_is_not_done(tmp_path
+                                                                             ) -> None:
+    async def main() -> None:
+        async with server(tmp_path) as srv:
+            async with connect(srv.ws_url) as ws:
+                await ws.send(json.dumps(HELLO))
+                assert (await recv_json(ws))["type"] == "welcome"
+                for bad in ["x" * 65, 1.5, None, [1], {"a": 1}, True, 2**53 + 1, "a\u202eb"]:
+                    await ws.send(json.dumps({"type": "ping", "t": 1.0, "id": bad}))
+                    # not a pong: the ping was not answered (the pushed room list skipped)
+                    while (err := await recv_json(ws))["type"] == "rooms":
+                        pass
+                    assert err["type"] == "error" and err["code"] == "bad_message", (bad, err)
+                    assert "re" not in err and "'id'" in err["message"], (bad, err)
+                    await asyncio.sleep(0.25)  # stay under the error-reply rate
+                # the edges of what is allowed, echoed exactly
+                for good in ["x" * 64, 2**53, -(2**53), 0, ""]:
+                    await ws.send(json.dumps({"type": "ping", "id": good}))
+                    while (pong := await recv_json(ws))["type"] == "rooms":
+                        pass
+                    assert pong["type"] == "pong" and pong["re"] == good, (good, pong)
+
+    run(main())
+
+
+def test_bot_seats_out_of_range_are_bad_seat_and_hip_flags_are_refused(tmp_path) -> None:
+    async def main() -> None:
+        async with server(tmp_path) as srv:
+            assert srv.main_room is not None  # no host: any seated player controls it
+            # seat 9 names no seat, as join says
+            ws, joined = await open_seated(srv.ws_url, {**HELLO, "role": "player",
+                                                        "room": srv.main_room.id,
+                                                        "seat": 2, "mesh": False,
+                                                        "corner_rate": 5})
+            async with ws:
+                for msg in ({"type": "remove_bot", "seat": 9}, {"type": "add_bot", "seat": 9},
+                            {"type": "remove_bot", "seat": -1}):
+                    err = await error_for(ws, json.dumps(msg))
+                    assert err["code"] == "bad_seat" and "0..3" in err["message"], (msg, err)
+                    await asyncio.sleep(0.25)
+                err = await error_for(ws, json.dumps({"type": "remove_bot", "seat": "9"}))
+                assert err["code"] == "bad_message"  # of the wrong type: a bad message
+                await asyncio.sleep(0.25)
+                # a HIP whose header sets a flag no version defines for it: refused
+                c = joined["reach"]["centre"]
+                hip = bytearray(P.encode_hip(c, 1, 0.0))
+                hip[2:4] = (1).to_bytes(2, "little")
+                await ws.send(bytes(hip))
+                err = await next_error(ws)
+                assert err["code"] == "bad_binary" and "flags" in err["message"], err
 
     run(main())
 

@@ -78,3 +78,46 @@ def test_bots_play_a_match_to_the_end_and_rounds_are_recorded(tmp_path) -> None:
             assert not (tmp_path / "replays" / "junk.cbr.tmp").exists()
 
     run(again())
+
+
+def test_a_player_who_took_a_seat_mid_round_is_in_its_replay_and_found_by_name(tmp_path
+                                                                              ) -> None:
+    # Rounds of about a second (a slower throw than FAST's), so that a join lands in one.
+    settings = RoomSettings(autoplay=True, **{**FAST, "reset_speed": 1.0})
+
+    async def main() -> None:
+        async with server(tmp_path, bots=4, settings=settings) as srv:
+            room = srv.main_room
+            assert room is not None
+            spec = await NetClient.connect(srv.ws_url, role="spectator", room=room.id,
+                                           mesh=False)
+            late = None
+            for _ in range(10):  # a join that lands between two rounds is tried again
+                start = await spec.wait_event("round_start", timeout=30)
+                late = await NetClient.connect(srv.ws_url, name="latecomer", role="player",
+                                               room=room.id, mesh=False, corner_rate=5)
+                assert late.joined is not None
+                state = late.joined["state"]
+                if state["state"] == "playing" and state["round"] == start["round"]:
+                    break
+                await late.close()
+                late = None
+            assert late is not None, "no join landed in a round"
+            seat, rnd = late.seat, start["round"]
+            saved = await spec.wait_event("replay_saved", timeout=30, round=rnd)
+            # the round was found by the name of the player who joined it mid-round
+            listing = await http_json(srv, "/api/replays?player=latecomer")
+            assert saved["id"] in {r["id"] for r in listing["replays"]}, listing
+            row = next(r for r in listing["replays"] if r["id"] == saved["id"])
+            assert row["round"] == rnd
+            # its seat lists the bot it replaced, then the player, in order
+            held = row["players"][seat]["held_by"]
+            assert held == [{"kind": "bot", "name": f"bot-{seat}"},
+                            {"kind": "human", "name": "latecomer"}], held
+            assert row["players"][seat]["name"] == "latecomer"
+            status, body, _ = await http_get(srv, f"/api/replays/{saved['id']}")
+            assert status == 200 and read_replay(body)[0]["players"] == row["players"]
+            await late.close()
+            await spec.close()
+
+    run(main())
