@@ -10,6 +10,7 @@ import sys
 
 import pytest
 
+from tests.conftest import needs_usb_transport
 from tests.server.conftest import local_server
 
 
@@ -59,6 +60,7 @@ def test_an_unknown_replay_id_says_how_to_list_them(tmp_path) -> None:
     assert_short_error(r, "no replay 'nosuchround'", "clothball replay --server")
 
 
+@needs_usb_transport
 def test_falcon_check_without_a_device_points_to_the_emulator() -> None:
     r = clothball("falcon", "check")
     if "Falcon check: OK" in r.stdout:
