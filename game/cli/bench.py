@@ -14,6 +14,7 @@ from ...server import admitbench, emptybench, indexbench, loadbench, soakbench
 from ...server.room import RoomSettings
 from ...server.thread import ServerThread
 from ..rules import EDGE_NAMES
+from ..sim.cloth import cuda_unavailable_reason
 from ..sim.scene import Scene, SceneError
 from ..study import rooms, rounds
 from ..study.bench import (
@@ -90,6 +91,11 @@ def run(args: argparse.Namespace) -> int:
     if args.index:
         return indexbench.run(args)
     if args.server or args.load:
+        # Checked here, before any server process starts (its failure is a traceback there).
+        why = cuda_unavailable_reason() if args.server_backend == "cuda" else ""
+        if why:
+            print(f"clothball bench: --server-backend cuda: {why}", file=sys.stderr)
+            return 2
         return loadbench.run_load(args) if args.load else loadbench.run(args)
     if args.rooms:
         return run_rooms_cmd(args)
