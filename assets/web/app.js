@@ -256,6 +256,12 @@ app.screenPoints = (ij) => {
 
 // --- scoreboard and events --------------------------------------------------------------
 
+// The round a room's info names: during a countdown, the round it leads to (the info's
+// `round` counts the rounds begun, so it still names the last one, already over).
+function shownRound(info) {
+  return info.state === "countdown" && Number.isInteger(info.round) ? info.round + 1 : info.round;
+}
+
 function renderScoreboard(scores, info) {
   const box = $("scoreboard");
   box.dataset.scores = scores.join(",");
@@ -273,7 +279,7 @@ function renderScoreboard(scores, info) {
   box.replaceChildren(
     el("div", { class: "match" },
       el("strong", {}, info.name || info.room_name || ""),
-      el("span", {}, ` round ${info.round ?? "?"} · first to ${info.first_to ?? "?"} · ${STATE_TEXT[info.state] || info.state || ""}${winners}`)),
+      el("span", {}, ` round ${shownRound(info) ?? "?"} · first to ${info.first_to ?? "?"} · ${STATE_TEXT[info.state] || info.state || ""}${winners}`)),
     el("table", {}, el("tbody", {}, ...rows)));
 }
 
@@ -375,7 +381,7 @@ function renderRoomList() {
     list.append(el("li", { class: "room" },
       el("a", { href: `#/room/${encodeURIComponent(r.id)}`, class: "room-link" },
         el("strong", {}, r.name), ` ${r.scene} · ${r.n}×${r.n} · ${STATE_TEXT[r.state] || r.state}`
-        + ` · round ${r.round} · first to ${r.first_to} · ${r.spectators} watching`),
+        + ` · round ${shownRound(r)} · first to ${r.first_to} · ${r.spectators} watching`),
       seats, seatHint(r)));
   }
   // room filter options: live rooms and rooms seen in replays

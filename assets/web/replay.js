@@ -98,8 +98,11 @@ export class Replay {
     this.frame0 = Math.min(...frames);
     this.frame1 = Math.max(...frames);
     this.duration = (this.frame1 - this.frame0) * this.frameDt;
-    this._cache = new Map();
-    this._pending = new Set();
+    this._cache = new Map();  // index -> decoded mesh, the last few
+    this._wanted = [];        // indices asked for, not decoded yet, newest last
+    this._decoding = null;    // the index being inflated: one at a time
+    this._pumping = false;
+    this._failed = new Set(); // damaged meshes, not asked for again
     this._newest = null;  // the last mesh decoded, shown while a wanted one is inflated
     this.onMesh = null;   // called when a mesh that was asked for is ready
   }
@@ -120,25 +123,52 @@ export class Replay {
 
   /** The decoded mesh at an index (the last few decoded are kept). Inflating is
    * asynchronous: until that mesh is ready this is the newest mesh decoded so far, and
-   * `onMesh` is called once it is. */
+   * `onMesh` is called once it is (`onMesh` may ask for meshes again: a mesh being inflated
+   * is not asked for twice, so the page never waits on itself). */
   mesh(index) {
     const hit = this._cache.get(index);
     if (hit) return hit;
-    this._decode(index).then(() => this.onMesh?.(), () => {});
+    this._want(index);
     return this._newest;
   }
 
-  async _decode(index) {
-    if (this._cache.has(index) || this._pending.has(index)) return;
-    this._pending.add(index);
+  // One mesh is inflated at a time. Requests made meanwhile wait, and only the newest ones
+  // are kept (the pair of one picture): a seek makes the older ones moot.
+  _want(index) {
+    if (index === this._decoding || this._failed.has(index)) return;
+    this._wanted = [...this._wanted.filter((i) => i !== index), index].slice(-2);
+    if (!this._pumping) this._pump();
+  }
+
+  async _pump() {
+    this._pumping = true;
     try {
-      const m = await decodeMesh(this.meshes[index].data);
-      this._cache.set(index, m);
-      this._newest = m;
-      if (this._cache.size > 8) this._cache.delete(this._cache.keys().next().value);
+      while (this._wanted.length) {
+        const index = this._wanted.shift();
+        if (this._cache.has(index)) continue;
+        this._decoding = index;
+        try {
+          await this._decode(index);
+        } catch (e) {
+          this._failed.add(index);
+          console.warn(`replay: mesh ${index} not shown: ${e.message}`);
+          continue;
+        } finally {
+          this._decoding = null;
+        }
+        this.onMesh?.();
+      }
     } finally {
-      this._pending.delete(index);
+      this._pumping = false;
     }
+  }
+
+  async _decode(index) {
+    if (this._cache.has(index)) return;
+    const m = await decodeMesh(this.meshes[index].data);
+    this._cache.set(index, m);
+    this._newest = m;
+    if (this._cache.size > 8) this._cache.delete(this._cache.keys().next().value);
   }
 
   /** The meshes around time t and how far t is from the first towards the second. */
@@ -168,9 +198,12 @@ export class Replay {
     };
   }
 
-  /** Events up to time t (inclusive), oldest first. */
+  /** Events up to time t (inclusive), oldest first. The end of the timeline has them all:
+   * an event is stamped with the room's frame when it happened, which may be a few frames
+   * after the last recorded MESH or TRACK (the timeline's end). */
   eventsUntil(t) {
     const f = this.frameAt(t) + 1e-6;
+    if (f >= this.frame1) return this.events.slice();
     return this.events.filter((e) => e.frame <= f);
   }
 

@@ -35,19 +35,41 @@ def build_parser() -> argparse.ArgumentParser:
         try:
             importlib.import_module(module).configure(p)
         except Exception as e:  # noqa: BLE001 - one broken command must not break the others
-            p.set_defaults(_missing=f"{type(e).__name__}: {e}")
+            p.set_defaults(_missing=unavailable(module, e))
     return parser
 
 
+# Python packages whose pip name is not the name they are imported by.
+PIP_NAMES = {"psycopg": "'psycopg[binary]'", "matplotlib": "matplotlib (or pip install '.[study]')"}
+
+
+def unavailable(module: str, e: Exception) -> str:
+    """Why a command whose module failed to import cannot run, and what to install."""
+    missing = e.name if isinstance(e, ModuleNotFoundError) and e.name else None
+    if missing is None:
+        return f"importing {module} failed ({type(e).__name__}: {e})"
+    top = missing.split(".")[0]
+    if top == "clothball":
+        fix = "this installation of clothball is incomplete: reinstall it (pip install .)"
+    else:
+        fix = f"pip install {PIP_NAMES.get(top, top)}"
+    return f"importing {module} failed: the Python module {missing!r} is not installed ({fix})"
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    # Known arguments first: a command that could not be imported has no options of its
+    # own, so its arguments would be refused before saying what is missing.
+    args, extra = parser.parse_known_args(argv)
+    if getattr(args, "_missing", None):
+        print(f"clothball {args.command}: not available: {args._missing}", file=sys.stderr)
+        return 2
+    if extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args.argv = list(sys.argv[1:] if argv is None else argv)  # as given (host --workers)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s"
     )
-    if getattr(args, "_missing", None):
-        print(f"clothball {args.command}: not available ({args._missing})", file=sys.stderr)
-        return 2
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
     except KeyboardInterrupt:

@@ -15,6 +15,7 @@ from ...server import admitbench, emptybench, indexbench, loadbench, soakbench
 from ...server.room import RoomSettings
 from ...server.thread import ServerThread
 from ..rules import EDGE_NAMES
+from ..sim.cloth import cuda_unavailable_reason
 from ..sim.scene import Scene, SceneError
 from ..study import largest, rooms, rounds
 from ..study.bench import (
@@ -95,6 +96,11 @@ def run(args: argparse.Namespace) -> int:
     if args.largest:
         return run_largest_cmd(args)
     if args.server or args.load:  # their scene: classic at n = 64 unless --scene says
+        # Checked here, before any server process starts (its failure is a traceback there).
+        why = cuda_unavailable_reason() if args.server_backend == "cuda" else ""
+        if why:
+            print(f"clothball bench: --server-backend cuda: {why}", file=sys.stderr)
+            return 2
         return loadbench.run_load(args) if args.load else loadbench.run(args)
     if args.scene is None:
         args.scene = "classic"

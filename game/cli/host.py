@@ -32,7 +32,7 @@ from ...server.app import GameServer, default_data_dir
 from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
 from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
-from ..sim.scene import Scene, SceneError, available
+from ..sim.scene import Scene, SceneError
 from .args import FIRST_TO, PORT, WORKERS, postgres_url, redis_url, ws_url
 
 log = logging.getLogger("clothball.server")
@@ -163,7 +163,7 @@ def _check(args: argparse.Namespace) -> tuple[dict[str, Scene], Limits, Any, Any
         try:
             scene = Scene.load(s)
         except SceneError as e:
-            print(f"clothball host: {e}; shipped scenes: {', '.join(available())}")
+            print(f"clothball host: {e}")  # an unknown name's error lists the scenes
             return None
         scenes[scene.name] = scene
     if args.db is not None:

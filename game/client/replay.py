@@ -2,8 +2,11 @@
 pause, seek and speed. Pure logic: the window draws ``ReplayPlayer.sample()``.
 
 A replay (``game.wire.replay``) holds the MESH stream (~30 Hz), a TRACK stream (~100 Hz:
-ball, hands and corners) and the round's events, all stamped with the server's clock.
-Playback time ``t`` runs from the first to the last recorded frame; the cloth is
+ball, hands and corners) and the round's events, each stamped with its simulation frame
+(and the server's wall clock). Playback runs on the simulation's clock, frame x
+``frame_dt``, from the first to the last recorded MESH or TRACK frame: the length the
+index lists (``duration_s``) and the browser shows. (The wall clock runs slower than the
+game where the server fell behind: 35 s of it for a round of 27 s.) The cloth is
 interpolated between MESH frames, the ball and hands between TRACK samples (fresher), and
 the events up to ``t`` give the scores and the log.
 """
@@ -26,6 +29,7 @@ from ..wire.replay import ReplayError, read_replay
 from .interp import MeshFrame, Sample, Timeline
 
 SPEEDS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
+DEFAULT_FRAME_DT = 0.001  # s: a header without geometry (the server's rooms step at 1 kHz)
 
 
 def http_base(server: str) -> str:
@@ -67,48 +71,52 @@ class TrackPoint:
 
 @dataclass
 class ReplayData:
+    """A parsed replay; every time in it is the simulation's (frame x ``frame_dt``), the
+    ``server_time`` of its mesh frames included."""
+
     header: dict[str, Any]
     timeline: Timeline
     tracks: list[TrackPoint]
-    events: list[tuple[float, dict[str, Any]]]  # (server time, event message), by time
+    events: list[tuple[float, dict[str, Any]]]  # (time, event message), by time
+    start: float  # the first recorded MESH or TRACK frame's time
+    end: float  # the last one's
 
     @classmethod
     def parse(cls, data: bytes) -> ReplayData:
         header, records = read_replay(data)
+        geometry = header.get("geometry")
+        dt = geometry.get("frame_dt") if isinstance(geometry, dict) else None
+        dt = float(dt) if isinstance(dt, int | float) and dt > 0 else DEFAULT_FRAME_DT
         frames: list[MeshFrame] = []
         tracks: list[TrackPoint] = []
-        events: list[tuple[float, dict[str, Any]]] = []
+        raw: list[tuple[int | None, dict[str, Any]]] = []
         for kind, rec in records:
             if kind == 0:
                 try:
                     msg = P.decode_json(rec, limit=len(rec) + 1)
                 except P.ProtocolError:
                     continue
-                t = msg.get("time")
-                if isinstance(t, int | float):
-                    events.append((float(t), msg))
+                f = msg.get("frame")
+                raw.append((f if isinstance(f, int) and not isinstance(f, bool) else None, msg))
                 continue
             try:
                 m = P.decode_binary(rec)
             except P.ProtocolError as e:
                 raise ReplayError(f"damaged record: {e}") from None
             if isinstance(m, P.Mesh):
-                frames.append(MeshFrame.from_mesh(m))
+                frames.append(replace(MeshFrame.from_mesh(m), server_time=m.frame * dt))
             elif isinstance(m, P.Track):
-                tracks.append(TrackPoint(m.server_time, m.ball_position, m.hips, m.corners))
+                tracks.append(TrackPoint(m.frame * dt, m.ball_position, m.hips, m.corners))
         if not frames:
             raise ReplayError("the replay holds no mesh frames")
         tracks.sort(key=lambda p: p.time)
-        events.sort(key=lambda e: e[0])
-        return cls(header, Timeline(frames), tracks, events)
-
-    @property
-    def start(self) -> float:
-        return self.timeline.start
-
-    @property
-    def end(self) -> float:
-        return self.timeline.end
+        timeline = Timeline(frames)
+        start = min([timeline.start, *(p.time for p in tracks[:1])])
+        end = max([timeline.end, *(p.time for p in tracks[-1:])])
+        # An event without a frame (none the server writes) is placed at the start.
+        events = sorted(((start if f is None else f * dt, msg) for f, msg in raw),
+                        key=lambda e: e[0])
+        return cls(header, timeline, tracks, events, start, end)
 
     @property
     def duration(self) -> float:

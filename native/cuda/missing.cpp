@@ -3,12 +3,12 @@
 
 #include "core/backend.hpp"
 #include "core/batch_stepper.hpp"
+#include "cuda_skipped.hpp"  // CLOTHBALL_CUDA_SKIPPED, written by CMake
 
 namespace cb {
 
 std::string cuda_unavailable_reason() {
-  return "this build of clothball has no CUDA backend (rebuild with "
-         "-C cmake.define.CLOTHBALL_CUDA=ON on a machine with nvcc)";
+  return "this build of clothball has no CUDA backend: " CLOTHBALL_CUDA_SKIPPED;
 }
 
 double cuda_copy_bandwidth_gbs(size_t, int) {

@@ -28,6 +28,8 @@ from clothball.game.wire import protocol as P
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.conftest import examples
+
 N = 8
 
 
@@ -106,7 +108,7 @@ def test_clock_sync_takes_the_least_delayed_packet() -> None:
     assert 0.0 < c.jitter() <= max(delays) - min(delays) + 1e-12
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), display_hz=st.sampled_from([60.0, 75.0, 144.0]))
 def test_live_buffer_is_smooth_at_display_rate(seed: int, display_hz: float) -> None:
     """Frames at 30 Hz with random network delay (5..40 ms); the display samples at its

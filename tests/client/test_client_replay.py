@@ -18,7 +18,7 @@ from clothball.game.client.replay import (
 )
 from clothball.game.sim.cloth import rest_positions
 from clothball.game.wire import protocol as P
-from clothball.game.wire.replay import ReplayError, write_replay
+from clothball.game.wire.replay import ReplayError, recorded_length, write_replay
 
 from tests.server.conftest import TINY, run, server
 
@@ -39,10 +39,12 @@ def synthetic_records() -> list[tuple[int, bytes]]:
     rest = rest_positions(TINY)
     recs: list[tuple[int, bytes]] = []
     events = [
-        (T0, {"type": "event", "event": "round_start", "round": 3, "time": T0}),
+        (T0, {"type": "event", "event": "round_start", "round": 3, "time": T0,
+              "frame": round(T0 * 1000)}),
         (T0 + 1.5, {"type": "event", "event": "score", "round": 3, "edge": 1,
                     "edge_name": "east", "conceded_by": 1, "scorers": [0, 2],
-                    "scores": [3, 0, 3, 1], "time": T0 + 1.5}),
+                    "scores": [3, 0, 3, 1], "time": T0 + 1.5,
+                    "frame": round((T0 + 1.5) * 1000)}),
     ]
     for k in range(int(DURATION * TRACK_HZ) + 1):
         t = T0 + k / TRACK_HZ
@@ -121,6 +123,38 @@ def test_parse_and_play(replay_file) -> None:
     assert p.position == 0.0
     p.seek_fraction(0.5)
     assert p.position == pytest.approx(DURATION / 2)
+
+
+def test_the_length_is_the_simulations_as_the_index_lists_it(tmp_path) -> None:
+    """A server that fell behind stamps its wall clock 1.3x slower than the game (a round of
+    27.3 s of play over 35.5 s); the TRACK stream goes on 40 ms after the last MESH. The
+    desktop's length is the game's, first to last MESH or TRACK frame x frame_dt: the
+    header's duration_s (the index's) and the browser's; events sit at their frames."""
+    dt, f0, lag = 0.001, 123_000, 1.3
+    rest = rest_positions(TINY)
+    wall = lambda f: 1000.0 + lag * (f - f0) * dt  # noqa: E731
+    mesh_frames = list(range(f0, f0 + 2000, 33))
+    track_frames = list(range(f0 + 5, mesh_frames[-1] + 41, 10))
+    recs = [(1, P.encode_mesh(f, wall(f), rest, [0, 1, 0], 0.05, np.zeros((4, 3))))
+            for f in mesh_frames]
+    recs += [(1, P.encode_track(f, wall(f), [0, 1, 0], [0, 0, 0], np.zeros((4, 3)),
+                                np.zeros((4, 3)))) for f in track_frames]
+    score_frame = mesh_frames[-1] - 500
+    recs.append((0, P.encode_json({"type": "event", "event": "score", "frame": score_frame,
+                                   "time": wall(score_frame), "scores": [1, 0, 0, 0]}).encode()))
+    length = (track_frames[-1] - mesh_frames[0]) * dt
+    header = {**HEADER, "geometry": {"frame_dt": dt}, "duration_s": length}
+    write_replay(tmp_path / "r.cbr", header, recs)
+    data = ReplayData.parse((tmp_path / "r.cbr").read_bytes())
+    assert data.duration == pytest.approx(length, abs=1e-9)
+    assert data.duration == pytest.approx(recorded_length(dt, recs), abs=1e-9)
+    p = ReplayPlayer(data)
+    p.seek((score_frame - f0) * dt - 0.002)
+    assert p.events_until() == []
+    p.seek((score_frame - f0) * dt)
+    assert [e["event"] for e in p.events_until()] == ["score"]
+    p.advance(100.0)
+    assert p.position == pytest.approx(length, abs=1e-9) and p.finished
 
 
 def test_speed_steps_and_loop(replay_file) -> None:

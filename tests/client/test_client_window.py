@@ -10,6 +10,7 @@ shows the cloth (its shaded colour in the middle of the picture, not a blank win
 
 from __future__ import annotations
 
+import ctypes.util
 import json
 import os
 import shutil
@@ -59,7 +60,11 @@ def cloth_like(rgb: np.ndarray) -> np.ndarray:
 @pytest.fixture
 def display():
     if shutil.which("Xvfb") is None:
-        pytest.skip("Xvfb is not installed (apt-get install xvfb xauth libgl1-mesa-dri)")
+        pytest.skip("needs a virtual display: Xvfb is not installed (apt-get install xvfb "
+                    "xauth libgl1-mesa-dri)")
+    if ctypes.util.find_library("GL") is None:
+        pytest.skip("needs OpenGL for the window: libGL is not installed (apt-get install "
+                    "libgl1 libglx-mesa0 libgl1-mesa-dri libglu1-mesa)")
     r, w = os.pipe()
     proc = subprocess.Popen(
         ["Xvfb", "-displayfd", str(w), "-screen", "0", "1280x800x24", "-nolisten", "tcp"],

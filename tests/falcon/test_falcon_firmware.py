@@ -9,6 +9,8 @@ import pytest
 from clothball._native import falcon as f
 from clothball.game.devices import falcon as F
 
+from tests.conftest import needs_usb_transport
+
 
 def emulator(**kw: object) -> f.EmulatorTransport:
     o = f.EmulatorOptions()
@@ -131,6 +133,7 @@ def test_firmware_from_env_and_config(tmp_path: Path, monkeypatch: pytest.Monkey
         dev.stop()
 
 
+@needs_usb_transport
 def test_no_usb_device_error_is_actionable() -> None:
     if f.count_usb_devices() > 0:
         pytest.skip("a real Falcon is plugged in")

@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
+from tests.conftest import examples
 from tests.server.conftest import (
     FAST,
     ErrorLog,
@@ -115,7 +116,7 @@ names = st.one_of(
 )
 
 
-@settings(max_examples=6, deadline=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=examples(6), deadline=None, suppress_health_check=list(HealthCheck))
 @given(room_name=names, player_names=st.lists(names, min_size=2, max_size=2))
 @example(room_name="\u202eroom", player_names=["\ud800x", "\u200fמשה"])
 @example(room_name="😀", player_names=["a\x00b", "e\u0301" * 32])

@@ -15,6 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from tests.conftest import examples
+
 f32 = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False, width=32)
 vec3 = st.tuples(f32, f32, f32)
 u32 = st.integers(0, 2**32 - 1)
@@ -41,7 +43,7 @@ def test_corner_round_trip(frame, seat, p, v, f, k, bp, bv, seq, ht, t) -> None:
     assert c.hip_time == ht or (math.isnan(ht) and math.isnan(c.hip_time))
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(
     st.integers(2, 24).flatmap(
         lambda n: hnp.arrays(np.float64, (n, n, 3), elements=st.floats(-50, 50, width=32))

@@ -21,6 +21,8 @@ from clothball.game.sim.scene import Scene
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.conftest import examples
+
 SCENE = Scene.load("classic").with_changes({"cloth": {"n": 8}})
 CORNERS = corners_of(rest_positions(SCENE))  # (-,-z) (+,-z) (+,+z) (-,+z) at y = 1
 FLOOR = -1.0
@@ -226,7 +228,7 @@ def _exit_case(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 @given(_exit_case())
-@settings(max_examples=3000, deadline=None)
+@settings(max_examples=examples(3000), deadline=None)
 def test_exit_pre_test_agrees_with_the_full_test(case) -> None:
     ball, corners, floor = case
     full = exit_edge(ball, corners, floor)

@@ -21,6 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from websockets.asyncio.client import connect
 
+from tests.conftest import examples
 from tests.server.conftest import run, server, until
 
 _f64 = st.floats(allow_nan=True, allow_infinity=True, width=64)
@@ -31,7 +32,7 @@ _vec = st.tuples(_f64, _f64, _f64)
        rows=st.lists(st.tuples(_vec, _vec, _vec, st.integers(0, 2**40), _f64),
                      min_size=4, max_size=4),
        stiffness=_f64, bp=_vec, bv=_vec)
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 def test_encode_corners_is_encode_corner_four_times(frame, server_time, rows, stiffness, bp,
                                                    bv) -> None:
     pos = [r[0] for r in rows]
@@ -71,7 +72,7 @@ def _outcome(fn, data):
         lambda v: P.encode_hip(v[:3], v[3], v[4]) if math.isfinite(v[4])
         else P.encode_hip((0.0, 0.0, 0.0), v[3], 0.0)),
 ))
-@settings(max_examples=2000, deadline=None)
+@settings(max_examples=examples(2000), deadline=None)
 def test_decode_hip_fast_path_is_the_checked_decoder(data) -> None:
     # NaN never reaches an "ok" outcome, so plain equality is right
     assert _outcome(P.decode_hip, data) == _outcome(P._decode_hip_checked, data)

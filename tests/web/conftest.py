@@ -9,7 +9,10 @@ so no GPU or display is needed.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
+import signal
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -76,7 +79,41 @@ def driver() -> Iterator[Any]:
     try:
         yield d
     finally:
+        quit_driver(d)
+
+
+def quit_driver(d: Any) -> None:
+    """Quit the browser. Chromedriver waits on a frozen page (a test that found one) before
+    it quits, minutes on end: a browser that does not answer a script is killed instead."""
+    d.command_executor.client_config.timeout = 15
+    try:
+        d.execute_script("return 1")
+    except Exception:  # noqa: BLE001 - frozen or gone: either way, no waiting on it
+        _kill_children(d.service.process.pid)
+    try:
         d.quit()
+    except Exception:  # noqa: BLE001 - the session died with its browser
+        d.service.stop()
+
+
+def _kill_children(pid: int) -> None:
+    """SIGKILL every process below ``pid`` (Linux /proc), deepest first."""
+    parents: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parents.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    order: list[int] = []
+    todo = list(parents.get(pid, []))
+    while todo:
+        p = todo.pop()
+        order.append(p)
+        todo.extend(parents.get(p, []))
+    for p in reversed(order):
+        with contextlib.suppress(OSError):
+            os.kill(p, signal.SIGKILL)
 
 
 def console_errors(driver: Any) -> list[dict[str, Any]]:

@@ -458,3 +458,29 @@ def test_one_palette_for_both_clients(live: ServerThread, driver) -> None:
     rgb = lambda hx: tuple(int(hx[k:k + 2], 16) / 255 for k in (1, 3, 5))  # noqa: E731
     assert np.allclose([rgb(page[k]) for k in ("cloth_front", "cloth_back", "ball")],
                        [CLOTH_FRONT, CLOTH_BACK, BALL_COLOUR])
+
+
+def test_lobby_names_the_round_a_countdown_leads_to(tmp_path, driver) -> None:
+    """Between rounds a room counts down to the next one: with round 1 over (and in the
+    replay list), the lobby says "countdown · round 2", not round 1 again."""
+    settings = RoomSettings(autoplay=True, first_to=3, countdown=8.0, reset_speed=1.5,
+                            restart_delay=1.0)
+
+    def api(st: ServerThread, path: str) -> Any:
+        with urllib.request.urlopen(st.url + path, timeout=10) as r:
+            return json.loads(r.read())
+
+    with web_server(tmp_path, scene=SCENE, settings=settings) as st:
+        def between() -> bool:
+            room = api(st, "api/rooms")["rooms"][0]
+            saved = [r["round"] for r in api(st, "api/replays")["replays"]]
+            return room["state"] == "countdown" and room["round"] == 1 and saved == [1]
+
+        wait_for(between, 60, "round 1 played and saved, the room counting down", poll=0.2)
+        open_page(driver, st.url)
+        line = wait_for(lambda: driver.find_element("css selector", "#rooms li.room").text,
+                        5, "the room in the lobby")
+        replays = wait_for(lambda: driver.find_element("id", "replays").text, 5, "the replays")
+        assert "round 1" in replays
+        assert "countdown · round 2" in line, line
+        assert console_errors(driver) == []
