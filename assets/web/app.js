@@ -415,7 +415,8 @@ function renderReplayList() {
   const list = $("replays");
   list.replaceChildren();
   const rows = app.replays.filter((r) => (!room || r.room_id === room)
-    && (!q || r.players.some((p) => (p.name || "").toLowerCase().includes(q))
+    && (!q || r.players.some((p) => [p, ...(p.held_by || [])]
+      .some((h) => (h.name || "").toLowerCase().includes(q)))
       || r.room_name.toLowerCase().includes(q)));
   if (!rows.length) list.append(el("li", { class: "empty" }, app.replays.length ? "No replay matches." : "No rounds recorded yet."));
   for (const r of rows.slice(0, 200)) {

@@ -104,6 +104,7 @@ export function decodeCorner(data) {
       `CORNER message must be ${CORNER_SIZE} bytes, got ${b.length}`);
   }
   const h = decodeHeader(b, CORNER);
+  if (h.flags) throw new ProtocolError("bad_binary", `CORNER unknown flags 0x${h.flags.toString(16)}`);
   const dv = view(b);
   const o = HEADER_SIZE;
   const f = f32s(dv, o + 12, 16);
@@ -251,6 +252,7 @@ export function decodeTrack(data) {
     throw new ProtocolError("bad_binary", `TRACK message must be ${TRACK_SIZE} bytes`);
   }
   const h = decodeHeader(b, TRACK);
+  if (h.flags) throw new ProtocolError("bad_binary", `TRACK unknown flags 0x${h.flags.toString(16)}`);
   const dv = view(b);
   const f = f32s(dv, HEADER_SIZE + 8, 30);
   return {

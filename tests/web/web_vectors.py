@@ -118,6 +118,8 @@ def messages() -> list[tuple[str, bytes]]:
         ("bad_hip_nan", good["hip"][:16] + struct.pack("<3f", 0.0, float("nan"), 0.0)),
         ("bad_time_inf", good["hip"][:8] + struct.pack("<d", float("inf")) + good["hip"][16:]),
         ("bad_corner_size", good["corner"][:-1]),
+        ("bad_corner_flags", good["corner"][:2] + struct.pack("<H", 1) + good["corner"][4:]),
+        ("bad_track_flags", good["track"][:2] + struct.pack("<H", 1) + good["track"][4:]),
         ("bad_track_size", good["track"] + b"\0\0"),
         ("bad_mesh_short", mesh[:40]),
         ("bad_mesh_n", mesh[:24] + struct.pack("<H", 1) + mesh[26:]),
