@@ -15,7 +15,8 @@ import os
 import secrets
 import time
 import urllib.parse
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from websockets.asyncio.server import Server, serve
 
 from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
-from .directory import PUBLISH_S, Directory, HostEntry, Snapshot
+from .directory import IO_TIMEOUT_S, MIN_READ_GAP_S, PUBLISH_S, Directory, HostEntry, OnDemand
 from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
@@ -104,7 +105,12 @@ class GameServer:
         # Admission control: the server's own measure of what more it can run.
         self.headroom = Headroom(self.sims, self.limits.admit_lateness_ms)
         self.lobby.busy = lambda: self.headroom.busy
-        self.lobby.read_directory = self._read_directory_now
+        # Every directory call runs on these threads, bounded by IO_TIMEOUT_S: a hung store
+        # never holds the event loop (joins wait for a read made for all of them at once).
+        self._dir_pool = ThreadPoolExecutor(3, thread_name_prefix="directory")
+        self._reads = OnDemand(self._read_directory, MIN_READ_GAP_S)
+        self._publications = OnDemand(self._publish_rooms)
+        self.lobby.fresh_view = lambda: self._reads.after_now(IO_TIMEOUT_S)
         self.lobby.publish_now = self._publish_now
         self.lobby.index_error = lambda: self.storage.index_error
         self.clients: set[Conn] = set()
@@ -173,18 +179,26 @@ class GameServer:
             **extra,
         )
 
+    async def _dir(self, fn: Callable[..., Any], *args: Any, timeout: float = 3 * IO_TIMEOUT_S
+                   ) -> Any:
+        """``fn(*args)`` on a directory thread; ``TimeoutError`` after ``timeout`` s (the
+        store's own socket timeout ends the call itself soon after)."""
+        fut = asyncio.get_running_loop().run_in_executor(self._dir_pool, fn, *args)
+        return await asyncio.wait_for(fut, timeout)
+
     async def _publish(self) -> None:
         """This process's rooms and load to the directory; everyone's back."""
         assert self.directory is not None and self.lobby.me is not None
         me = self.lobby.me
         me.rooms, me.clients = len(self.lobby.rooms), len(self.clients)
         try:
-            await asyncio.to_thread(self.directory.publish, me, self.lobby.published())
-            self.lobby.peers = await asyncio.to_thread(self.directory.read)
+            await self._dir(self.directory.publish, me, self.lobby.published())
+            self.lobby.peers = await self._dir(self.directory.read)
         except Exception as e:  # the store is away: keep the rooms running, say so
             if self.lobby.directory_error is None:
                 log.warning("room directory unavailable (%s); listing this process's rooms "
-                            "only until it is back", e)
+                            "only until it is back", type(e).__name__ if
+                            isinstance(e, TimeoutError) else e)
             self.lobby.peers = None
             self.lobby.directory_error = (f"the cluster's room directory is unavailable "
                                           f"({type(e).__name__}); only this host's rooms "
@@ -194,23 +208,27 @@ class GameServer:
             log.info("room directory back: registered again")
             self.lobby.directory_error = None
 
-    def _publish_now(self) -> None:
-        """This process's rooms to the directory at once (a millisecond or two: a new room
-        is there before its id is given out); skipped while the directory is away."""
+    async def _publish_rooms(self) -> None:
         me = self.lobby.me
         if self.directory is None or me is None or self.lobby.directory_error is not None:
             return
         me.rooms, me.clients = len(self.lobby.rooms), len(self.clients)
-        try:
-            self.directory.publish(me, self.lobby.published())
-        except Exception:
-            pass  # the periodic publication reports it and retries
+        await self._dir(self.directory.publish, me, self.lobby.published())
 
-    def _read_directory_now(self) -> Snapshot | None:
-        try:
-            return self.directory.read() if self.directory is not None else None
-        except Exception:
-            return None  # unreachable: the periodic publication reports it
+    def _publish_now(self) -> Awaitable[bool] | None:
+        """This process's rooms to the directory soon (a new room is there before its id is
+        given out: the reply waits for this, the event loop does not); None while the
+        directory is away (the periodic publication reports it and retries)."""
+        if self.directory is None or self.lobby.me is None or \
+                self.lobby.directory_error is not None:
+            return None
+        return asyncio.ensure_future(self._publications.after_now(3 * IO_TIMEOUT_S))
+
+    async def _read_directory(self) -> None:
+        """A fresh view of the directory, for the joins that wait for one."""
+        if self.directory is None or self.lobby.directory_error is not None:
+            return  # away: the periodic publication finds it again
+        self.lobby.peers = await self._dir(self.directory.read)
 
     async def _publish_forever(self) -> None:
         changes = None
@@ -218,19 +236,19 @@ class GameServer:
         while True:
             if changes is None and hasattr(self.directory, "changes"):
                 try:  # another host's rooms changed: read at once, not at the next tick
-                    changes = await asyncio.to_thread(self.directory.changes)
+                    changes = await self._dir(self.directory.changes)
                 except Exception:
                     changes = None
             next_at += PUBLISH_S
             wait = next_at - asyncio.get_running_loop().time()
             if changes is not None and wait > 0:
                 try:
-                    msg = await asyncio.to_thread(changes.get_message, timeout=wait)
+                    msg = await self._dir(changes.get_message, timeout=wait + IO_TIMEOUT_S)
                 except Exception:
                     changes, msg = None, None
                 if msg is not None and self.lobby.peers is not None:
                     with contextlib.suppress(Exception):
-                        self.lobby.peers = await asyncio.to_thread(self.directory.read)
+                        self.lobby.peers = await self._dir(self.directory.read)
                     continue
             elif wait > 0:
                 await asyncio.sleep(wait)
@@ -294,10 +312,13 @@ class GameServer:
             if srv is not None:
                 await srv.wait_closed()
         if self.directory is not None:
+            self._reads.cancel()
+            self._publications.cancel()
             try:
-                await asyncio.to_thread(self.directory.withdraw, self.host_id)
+                await self._dir(self.directory.withdraw, self.host_id)
             except Exception as e:
                 log.warning("could not leave the room directory: %s", e)
+        self._dir_pool.shutdown(wait=False)
         await self.lobby.close()
         await asyncio.to_thread(self.sims.close)
         if self._saves:

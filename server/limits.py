@@ -29,6 +29,9 @@ class Limits:
     abuse_window: float = 2.0
     # --- connections and rooms ---------------------------------------------------------------
     max_clients: int = 512  # websocket connections in all (more: HTTP 503)
+    # The last slots of max_clients (at most an eighth of them) are kept for addresses that
+    # hold no connection: a newcomer gets in while others' many connections fill the rest.
+    reserved_slots: int = 16
     conns_per_address: int = 32  # from one IP address (more: closed 1008)
     max_rooms: int = 32  # rooms in all (more: server_busy)
     rooms_per_address: int = 4  # rooms created from one IP address and still open
@@ -65,6 +68,17 @@ class Limits:
     lobby_idle_s: float = 60.0  # s a lobby connection may send nothing (else closed 1008)
     ping_interval: float = 20.0  # s between keep-alive pings
     ping_timeout: float = 20.0  # s without a pong: the client is gone (closed 1011)
+
+    def full_for(self, clients: int, held: int) -> str | None:
+        """Why a new connection is refused (HTTP 503) with ``clients`` connected and
+        ``held`` of them from its address; None: it may connect."""
+        if clients >= self.max_clients:
+            return f"server full ({self.max_clients} connections)"
+        reserved = min(self.reserved_slots, self.max_clients // 8)
+        if held and clients >= self.max_clients - reserved:
+            return (f"server full for addresses that already hold a connection (the last "
+                    f"{reserved} of {self.max_clients} are kept for new addresses)")
+        return None
 
     def replace(self, **changes: float | int) -> Limits:
         return dataclasses.replace(self, **changes)
