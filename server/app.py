@@ -31,7 +31,7 @@ from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .recorder import Recording, spool_dir_for
-from .replays import ReplayStore, Retention, Storage, StorageOff, access_key
+from .replays import PRUNE_BATCH, ReplayStore, Retention, Storage, StorageOff, access_key, owner_key
 from .room import Room, RoomSettings
 from .sim import SimPool
 from .ws import Connection, WsEndpoint
@@ -40,6 +40,7 @@ log = logging.getLogger("clothball.server")
 
 WEB_DIR = ASSETS / "web"
 LOBBY_PUSH_S = 0.5  # how often lobby clients' room list is checked for changes
+PRUNE_PAUSE_S = 0.05  # s between batches of a pruning backlog (saves and checks go between)
 
 class GameServer:
     """The clothball server. ``await start()``, then ``await stop()`` (or ``run_forever``)."""
@@ -394,8 +395,11 @@ class GameServer:
 
     async def _watch_storage(self) -> None:
         """The data directory looked at again and again: problems named as they come,
-        recording resumed as they go (``server.replays.Storage``)."""
+        recording resumed as they go (``server.replays.Storage``); the rounds retention
+        does not keep pruned in batches, so a large backlog never holds up a request."""
         while True:
+            while await self.storage.prune_some() >= PRUNE_BATCH:
+                await asyncio.sleep(PRUNE_PAUSE_S)
             await asyncio.sleep(self.limits.storage_check_s)
             await self.storage.check()
 
@@ -439,6 +443,9 @@ class GameServer:
         if room is not None and room.code is not None:
             # A private room's rounds are listed and served only to holders of its code.
             header = {**header, "access": access_key(room.id, room.code)}
+        address = self.lobby.addresses.get(header["room_id"])
+        if address is not None:  # its creator's rounds share one quota (Retention)
+            header = {**header, "owner": owner_key(address)}
 
         def failed(reason: str) -> None:
             self.stats["rounds_not_saved"] += 1

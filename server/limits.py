@@ -52,6 +52,10 @@ class Limits:
     download_stall_s: float = 30.0  # s a download may wait for its client to read (else cut)
     # --- the replay store's retention (oldest rounds pruned first, file and index row) -------
     replays_max_mib: float = 2048.0  # MiB of recorded rounds kept in all
+    # The share of replays_max_mib the rounds of the rooms one address created may keep
+    # (past it, that address's oldest go, never anyone else's).
+    replays_address_share: float = 0.25
+    record_cap_max_s: float = 600.0  # the longest record_cap_s a create_room may ask for
     replays_max_days: float = 30.0  # days a recorded round is kept
     # --- the data directory --------------------------------------------------------------------
     storage_min_free_mib: float = 64.0  # free MiB below which recording pauses ("full")

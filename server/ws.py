@@ -345,6 +345,12 @@ class WsEndpoint:
         scene = P.field_str(msg, "scene", None, max_len=64)
         public = P.field_bool(msg, "public", True)
         settings = parse_settings(msg)
+        cap = self.srv.limits.record_cap_max_s
+        if settings.record_cap_s > cap:
+            if "record_cap_s" in msg:
+                raise ProtocolError("bad_message", f"record_cap_s {settings.record_cap_s:g} "
+                                    f"is over this server's limit of {cap:g} s")
+            settings.record_cap_s = cap
         self.srv.lobby.scene_name(scene)  # a bad request is refused here, not sent on
         # Moved: another process or host takes new rooms now (unless one sent it here). The
         # asking client is not counted: it leaves with the request.
