@@ -104,8 +104,11 @@ class GameServer:
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
                            max_rooms=self.limits.max_rooms, sims=self.sims)
         # Admission control: the server's own measure of what more it can run.
-        self.headroom = Headroom(self.sims, self.limits.admit_lateness_ms)
+        self.headroom = Headroom(self.sims, lim.admit_lateness_ms, load=lim.admit_load,
+                                 cores=lim.admit_cores, backend=backend)
         self.lobby.busy = lambda: self.headroom.busy
+        self.lobby.admit = lambda scene: self.headroom.refusal(
+            scene, [r.scene for r in self.lobby.rooms.values()])
         # Every directory call runs on these threads, bounded by IO_TIMEOUT_S: a hung store
         # never holds the event loop (joins wait for a read made for all of them at once).
         self._dir_pool = ThreadPoolExecutor(3, thread_name_prefix="directory")
@@ -143,6 +146,8 @@ class GameServer:
             raise
         sock = next(iter(self._server.sockets))
         self.port = sock.getsockname()[1]
+        # What a room of each scene costs here, for admission (a fraction of a second).
+        await asyncio.to_thread(self.headroom.measure, self.scenes.values())
         if self.storage.db is not None:
             self.storage.host_url = self.advertised_http_url
             await self.storage.check()
@@ -185,7 +190,10 @@ class GameServer:
         """``fn(*args)`` on a directory thread; ``TimeoutError`` after ``timeout`` s (the
         store's own socket timeout ends the call itself soon after)."""
         fut = asyncio.get_running_loop().run_in_executor(self._dir_pool, fn, *args)
-        return await asyncio.wait_for(fut, timeout)
+        # Not wait_for: on 3.11 it swallows a cancellation that meets a finished call, and
+        # the server's stop would wait for the publishing task for ever.
+        async with asyncio.timeout(timeout):
+            return await fut
 
     async def _publish(self) -> None:
         """This process's rooms and load to the directory; everyone's back."""
@@ -509,7 +517,10 @@ class GameServer:
             "storage": self.storage_snapshot(),
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),
-            "headroom": {**vars(self.headroom.last), "busy": self.headroom.busy},
+            "headroom": {**vars(self.headroom.last), "busy": self.headroom.busy,
+                         "outside": self.headroom.outside, "cores": self.headroom.cores,
+                         "load": self.headroom.load,
+                         "room_cost": {n: self.headroom.cost(s) for n, s in self.scenes.items()}},
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             "rooms": rooms,

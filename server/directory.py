@@ -68,7 +68,8 @@ class OnDemand:
         if self._task is None or self._task.done():
             self._task = asyncio.create_task(self._serve())
         try:
-            await asyncio.wait_for(asyncio.shield(fut), timeout)
+            async with asyncio.timeout(timeout):  # (wait_for may swallow a cancellation)
+                await asyncio.shield(fut)
         except TimeoutError:
             return False
         return True

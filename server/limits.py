@@ -39,9 +39,14 @@ class Limits:
     # A room nobody is in (no human player, no spectator) sleeps at once and closes after
     # this long (its creator's seat and a reconnect have this long to come back).
     room_idle_close_s: float = 15.0
-    # Admission: while the frame lateness p99 passes this (or frames are skipped) three
-    # seconds running, new rooms and wake-ups of sleeping rooms are refused (server_busy);
-    # 0: no admission control.
+    # Admission (server.headroom): a new room is refused (server_busy) when the open rooms'
+    # measured cost and its own would pass admit_load of admit_cores (0: the cores this
+    # process may use), or of one core for the rooms of one scene; 0: no cost model.
+    admit_load: float = 0.75
+    admit_cores: float = 0.0
+    # And while the frame lateness p99 passes this (or frames are skipped) three seconds
+    # running with the server itself using half a core or more, new rooms and wake-ups of
+    # sleeping rooms are refused (server_busy); 0: off.
     admit_lateness_ms: float = 5.0
     # --- the replay index over HTTP (/api/replays...), per IP address -----------------------
     index_rate: float = 50.0  # queries a second (token bucket; more: HTTP 429)
@@ -110,7 +115,8 @@ class Limits:
         return self.replace(**{name: v})
 
 
-MAY_BE_OFF = frozenset({"admit_lateness_ms"})  # limits that 0 turns off
+# Limits that 0 turns off (admit_cores 0: the cores this process may use).
+MAY_BE_OFF = frozenset({"admit_lateness_ms", "admit_load", "admit_cores"})
 
 
 def parse_origins(origins: list[str] | None) -> tuple[str, ...] | None:

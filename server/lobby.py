@@ -52,6 +52,9 @@ class Lobby:
         self.publish_now: Callable[[], Awaitable[bool] | None] = lambda: None
         # Why no room more fits on this server now (server.headroom); None: room to spare.
         self.busy: Callable[[], str | None] = lambda: None
+        # Why a new room of this scene would not fit beside the open ones (the same, and
+        # what the room would cost); None: it fits.
+        self.admit: Callable[[Scene], str | None] = lambda scene: None
         # Why the shared replay index cannot be written now (rounds wait as files), or None.
         self.index_error: Callable[[], str | None] = lambda: None
 
@@ -64,7 +67,7 @@ class Lobby:
         scene_name = self.scene_name(scene)
         if len(self.rooms) >= self.max_rooms:
             raise ProtocolError("server_busy", f"this server already runs {self.max_rooms} rooms")
-        why = None if permanent else self.busy()
+        why = None if permanent else self.admit(self.scenes[scene_name])
         if why is not None:
             raise ProtocolError("server_busy", why)
         if room_id is None:

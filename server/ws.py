@@ -317,7 +317,8 @@ class WsEndpoint:
                             call: Callable[[], Reply], fresh: bool
                             ) -> None:
         try:
-            await asyncio.wait_for(wait, 3 * IO_TIMEOUT_S)
+            async with asyncio.timeout(3 * IO_TIMEOUT_S):
+                await wait
         except Exception:  # away or slow: answered from the view as it is
             pass
         if conn.closed:
