@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -252,7 +253,8 @@ class GameServer:
             wait = next_at - asyncio.get_running_loop().time()
             if changes is not None and wait > 0:
                 try:
-                    msg = await self._dir(changes.get_message, timeout=wait + IO_TIMEOUT_S)
+                    msg = await self._dir(functools.partial(changes.get_message, timeout=wait),
+                                          timeout=wait + IO_TIMEOUT_S)
                 except Exception:
                     changes, msg = None, None
                 if msg is not None and self.lobby.peers is not None:
@@ -397,7 +399,7 @@ class GameServer:
     async def _watch_headroom(self) -> None:
         while True:
             await asyncio.sleep(WINDOW_S)
-            self.headroom.sample()
+            self.headroom.sample(r.scene for r in self.lobby.rooms.values() if not r.sim.asleep)
             if self.lobby.me is not None:
                 self.lobby.me.busy = self.headroom.busy is not None
 

@@ -14,9 +14,10 @@ Besides the model, every ``WINDOW_S`` the server looks at what its rooms did sin
 look: the frame lateness of its simulation workers (p99 of every pass), frames they had to
 skip, the CPU the process used and the machine's stolen CPU (``/proc/stat``). It is *busy*
 while each of the last ``SUSTAINED`` windows had a lateness p99 past ``admit_lateness_ms``
-or skipped frames *and* the process itself used at least ``OWN_LOAD_CORES``: late frames
-of a server that is doing little are not its load (CPU steal, neighbours), and refusing
-rooms would not help them. While busy, a new room or the waking of a sleeping one is
+or skipped frames *and* the server carried load of its own: it used at least
+``OWN_LOAD_CORES``, or its awake rooms cost that much by the model. Late frames of a server
+that is doing little are not its load (CPU steal, neighbours), and refusing rooms would
+not help them. While busy, a new room or the waking of a sleeping one is
 refused with ``server_busy`` and the reason, and a host that is busy takes no new rooms
 from the others (``docs/cluster.md``).
 """
@@ -85,6 +86,7 @@ class Sample:
     lateness_p99_ms: float = 0.0
     skipped_frames: int = 0
     cpu_cores: float = 0.0  # process CPU time over wall time in the window
+    carried_cores: float = 0.0  # what its awake rooms cost by the model
     steal: float = 0.0  # share of the machine's CPU time stolen by the hypervisor (Linux)
 
 
@@ -126,9 +128,8 @@ class Headroom:
     # --- the cost model ---------------------------------------------------------------------
     def measure(self, scenes: Iterable[Scene]) -> None:
         """Every scene's room cost measured now (blocking: at start-up, off the loop)."""
-        if self.load > 0:
-            for scene in scenes:
-                room_cost(scene, self.backend)
+        for scene in scenes:
+            room_cost(scene, self.backend)
 
     def cost(self, scene: Scene) -> float:
         """A room of ``scene``'s cost in cores (as measured; 0 if not measured yet)."""
@@ -158,8 +159,9 @@ class Headroom:
         return self.busy
 
     # --- the measured signal ----------------------------------------------------------------
-    def sample(self) -> Sample:
-        """Look at the window since the last call (the server calls it every WINDOW_S)."""
+    def sample(self, awake: Iterable[Scene] = ()) -> Sample:
+        """Look at the window since the last call (the server calls it every WINDOW_S, with
+        the scenes of its awake rooms)."""
         late: list[np.ndarray] = []
         skipped = 0
         seen: dict[int, tuple[int, int]] = {}
@@ -181,28 +183,34 @@ class Headroom:
         self._steal = now
         window = np.concatenate(late) if late else np.zeros(0)
         p99 = float(np.percentile(window, 99)) * 1e3 if window.size else 0.0
-        self.last = Sample(p99, skipped, cores, steal if math.isfinite(steal) else 0.0)
+        self.last = Sample(p99, skipped, cores, sum(self.cost(s) for s in awake),
+                           steal if math.isfinite(steal) else 0.0)
         self.recent = [*self.recent, self.last][-SUSTAINED:]
         return self.last
 
     def _late(self, s: Sample) -> bool:
         return s.skipped_frames > 0 or s.lateness_p99_ms > self.lateness_ms
 
+    @staticmethod
+    def _own(s: Sample) -> bool:
+        return max(s.cpu_cores, s.carried_cores) >= OWN_LOAD_CORES
+
     @property
     def outside(self) -> str | None:
-        """Late frames that are not this server's load (it used little CPU), or None."""
+        """Late frames that are not this server's load (it carries little), or None."""
         s = self.last
-        if self.lateness_ms <= 0 or not self._late(s) or s.cpu_cores >= OWN_LOAD_CORES:
+        if self.lateness_ms <= 0 or not self._late(s) or self._own(s):
             return None
         return (f"frames late (p99 {s.lateness_p99_ms:.1f} ms) while this server used "
-                f"{s.cpu_cores:.2f} cores: CPU taken from outside ({s.steal:.0%} stolen)")
+                f"{s.cpu_cores:.2f} cores and its rooms cost {s.carried_cores:.2f}: CPU "
+                f"taken from outside ({s.steal:.0%} stolen)")
 
     @property
     def busy(self) -> str | None:
         """Why no more rooms fit now by the measured signal (None: there is room)."""
         if self.lateness_ms <= 0 or len(self.recent) < SUSTAINED:
             return None
-        if not all(self._late(s) and s.cpu_cores >= OWN_LOAD_CORES for s in self.recent):
+        if not all(self._late(s) and self._own(s) for s in self.recent):
             return None
         s = self.last
         return (f"this server is at capacity: for {SUSTAINED} s its frames were late (p99 "

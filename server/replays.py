@@ -192,7 +192,8 @@ class ReplayStore:
         try:
             if self._wdb.execute("PRAGMA user_version").fetchone()[0] < INDEX_VERSION:
                 self._write(self._migrate)
-            self._write(self._add_owner)
+            if not self._owner_ready():
+                self._write(self._add_owner)
             self._db = self._connect()
             # 32 MiB of pages (default 2): a count over 100 000 rounds' index entries then
             # reads memory, not the OS's file cache (~6 ms instead of ~9).
@@ -331,6 +332,14 @@ class ReplayStore:
         if "owner" not in {r[1] for r in self._wdb.execute("PRAGMA table_info(rounds)")}:
             self._wdb.execute(OWNER_DDL[0])
         self._wdb.execute(OWNER_DDL[1])
+
+    def _owner_ready(self) -> bool:
+        """The index has the ``owner`` column and its index (checked without writing: a
+        store opened on a disk that refuses writes must not fail here)."""
+        assert self._wdb is not None
+        names = {r[0] for r in self._wdb.execute(
+            "SELECT name FROM sqlite_master WHERE name = 'rounds_owner'")}
+        return "rounds_owner" in names
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[None]:

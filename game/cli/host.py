@@ -30,6 +30,7 @@ from typing import Any
 from ...server import loops
 from ...server.app import GameServer, default_data_dir
 from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
+from ...server.headroom import usable_cores
 from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ..sim.scene import Scene, SceneError, available
@@ -273,6 +274,9 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
     data = Path(args.data or default_data_dir())
     rooms_file, spare = _rooms_file(data)
     base = [sys.executable, "-m", "clothball.game.cli", *args.argv]
+    if not any(s.replace("-", "_").startswith("admit_cores=") for s in args.limit):
+        # Admission: each process's rooms may use its share of the machine's cores.
+        base += ["--limit", f"admit_cores={usable_cores() / workers:.3g}"]
     procs = [_Worker(k, [*base, "--data", str(data), "--port", str(port), "--workers", "1",
                          "--worker-index", str(k), "--shared-port", str(port),
                          "--rooms-file", str(rooms_file)])
