@@ -104,9 +104,11 @@ INDEX_VERSION = 1  # PRAGMA user_version once ``round_players`` holds every roun
 COLUMNS = ("id", "room_id", "room_name", "scene", "round", "players", "conceded_edge",
            "conceded_by", "scores", "started_at", "ended_at", "duration_s", "file", "bytes",
            "access", "owner")
-# Added to an index made before the column existed (SQLite, PostgreSQL).
-OWNER_DDL = ("ALTER TABLE rounds ADD COLUMN owner TEXT",
-             "CREATE INDEX IF NOT EXISTS rounds_owner ON rounds (owner, ended_at)")
+# Added to an index made before the column existed (SQLite, PostgreSQL). No index of its
+# own: a quota check reads one owner's rows once per saved round, on the writer thread,
+# and an index more would not fit a nearly full disk's first write (tests/server/
+# test_faults.py).
+OWNER_DDL = "ALTER TABLE rounds ADD COLUMN owner TEXT"
 
 
 class IndexUnavailable(Exception):
@@ -192,7 +194,7 @@ class ReplayStore:
         try:
             if self._wdb.execute("PRAGMA user_version").fetchone()[0] < INDEX_VERSION:
                 self._write(self._migrate)
-            if not self._owner_ready():
+            if not self._has_owner():
                 self._write(self._add_owner)
             self._db = self._connect()
             # 32 MiB of pages (default 2): a count over 100 000 rounds' index entries then
@@ -315,6 +317,8 @@ class ReplayStore:
         have = {r[1] for r in db.execute("PRAGMA table_info(rounds)")}
         if "access" not in have:  # an index from before private rounds were locked
             db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
+        if "owner" not in have:  # from before per-address quotas
+            db.execute(OWNER_DDL)
         for stmt in _statements(INDEXES):
             db.execute(stmt)
         db.execute("DELETE FROM round_players")
@@ -325,21 +329,16 @@ class ReplayStore:
             " WHERE json_extract(p.value, '$.name') IS NOT NULL")
         db.execute(f"PRAGMA user_version = {INDEX_VERSION}")
 
-    def _add_owner(self) -> None:
-        """Gives an index from before per-owner quotas its ``owner`` column (in a write
-        transaction)."""
+    def _has_owner(self) -> bool:
+        """The index has the ``owner`` column (an index of this version may not: it came
+        later). Read, not written: a disk that refuses writes still opens the index."""
         assert self._wdb is not None
-        if "owner" not in {r[1] for r in self._wdb.execute("PRAGMA table_info(rounds)")}:
-            self._wdb.execute(OWNER_DDL[0])
-        self._wdb.execute(OWNER_DDL[1])
+        return "owner" in {r[1] for r in self._wdb.execute("PRAGMA table_info(rounds)")}
 
-    def _owner_ready(self) -> bool:
-        """The index has the ``owner`` column and its index (checked without writing: a
-        store opened on a disk that refuses writes must not fail here)."""
+    def _add_owner(self) -> None:
         assert self._wdb is not None
-        names = {r[0] for r in self._wdb.execute(
-            "SELECT name FROM sqlite_master WHERE name = 'rounds_owner'")}
-        return "rounds_owner" in names
+        if not self._has_owner():
+            self._wdb.execute(OWNER_DDL)
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[None]:
@@ -770,9 +769,10 @@ def _postgres_ddl() -> list[str]:
         assert old in text, old
         text = text.replace(old, new)
     out = [s for s in _statements(text) if not s.startswith("CREATE TRIGGER")]
-    # An index from before per-owner quotas gets the column (IF NOT EXISTS: PostgreSQL's).
-    owner = [OWNER_DDL[0].replace("ADD COLUMN", "ADD COLUMN IF NOT EXISTS"), OWNER_DDL[1]]
-    return [*out, "CREATE INDEX IF NOT EXISTS rounds_host ON rounds (host, ended_at)", *owner]
+    # A table from before per-owner quotas gets the column before any index names it.
+    owner = OWNER_DDL.replace("ADD COLUMN", "ADD COLUMN IF NOT EXISTS")
+    return [out[0], owner, *out[1:],
+            "CREATE INDEX IF NOT EXISTS rounds_host ON rounds (host, ended_at)"]
 
 
 class PostgresReplayStore(ReplayStore):
