@@ -31,6 +31,7 @@ from clothball.game.net.client import NetClient, ServerError
 from clothball.game.wire import protocol as P
 from clothball.server import headroom
 from clothball.server.app import GameServer
+from clothball.server.directory import OnDemand
 from clothball.server.headroom import OWN_LOAD_CORES, SUSTAINED, Headroom, room_cost
 from clothball.server.hostproc import free_port, http_base
 from clothball.server.limits import Limits
@@ -203,6 +204,35 @@ async def until_listed(c: NetClient, rid: str, timeout: float = 15.0) -> None:
             return
         assert time.monotonic() < end, f"{rid} not listed again: {reply}"
         await asyncio.sleep(0.2)
+
+
+def test_joins_waiting_for_the_directory_share_its_reads() -> None:
+    """200 joins asking at once cost the store one read; one asking while a read is under
+    way waits for the next (it may lack a room made meanwhile); a read that hangs costs a
+    waiting join its timeout, no more."""
+    async def main() -> None:
+        calls: list[float] = []
+        hang = asyncio.Event()
+
+        async def read() -> None:
+            calls.append(asyncio.get_running_loop().time())
+            if hang.is_set():
+                await asyncio.sleep(3600)
+            await asyncio.sleep(0.05)
+
+        reads = OnDemand(read, min_gap_s=0.1)
+        assert all(await asyncio.gather(*(reads.after_now(5.0) for _ in range(200))))
+        assert len(calls) == 1
+        first = asyncio.create_task(reads.after_now(5.0))
+        await until(lambda: len(calls) == 2, 5, "a read under way")
+        late = asyncio.create_task(reads.after_now(5.0))
+        assert await first and await late and len(calls) == 3
+        assert calls[2] - calls[1] >= 0.1  # reads made for joins are spaced
+        hang.set()
+        assert not await reads.after_now(0.3)  # timed out: answered from the view as it is
+        reads.cancel()
+
+    run(main())
 
 
 # --- 3: keep-alive clients holding the slots ------------------------------------------------
