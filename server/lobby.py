@@ -129,7 +129,7 @@ class Lobby:
         if self.peers is None or self.me is None:
             return
         self.me.rooms, self.me.clients = len(self.rooms), clients
-        self.me.busy = self.busy() is not None
+        self.me.busy = self.admit(self.scenes[self.default_scene]) is not None
         hosts = dict(self.peers.hosts)
         hosts[self.me.host_id] = self.me  # this process's own load as of now
         best = min(hosts.values(), key=lambda h: (h.load, h.host_id != self.me.host_id))
