@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -15,7 +16,8 @@ import os
 import secrets
 import time
 import urllib.parse
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +26,13 @@ from websockets.asyncio.server import Server, serve
 
 from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
-from .directory import PUBLISH_S, Directory, HostEntry, Snapshot
+from .directory import IO_TIMEOUT_S, MIN_READ_GAP_S, PUBLISH_S, Directory, HostEntry, OnDemand
 from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .recorder import Recording, spool_dir_for
-from .replays import ReplayStore, Retention, Storage, StorageOff, access_key
+from .replays import PRUNE_BATCH, ReplayStore, Retention, Storage, StorageOff, access_key, owner_key
 from .room import Room, RoomSettings
 from .sim import SimPool
 from .ws import Connection, WsEndpoint
@@ -39,6 +41,7 @@ log = logging.getLogger("clothball.server")
 
 WEB_DIR = ASSETS / "web"
 LOBBY_PUSH_S = 0.5  # how often lobby clients' room list is checked for changes
+PRUNE_PAUSE_S = 0.05  # s between batches of a pruning backlog (saves and checks go between)
 
 class GameServer:
     """The clothball server. ``await start()``, then ``await stop()`` (or ``run_forever``)."""
@@ -102,9 +105,17 @@ class GameServer:
         self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
                            max_rooms=self.limits.max_rooms, sims=self.sims)
         # Admission control: the server's own measure of what more it can run.
-        self.headroom = Headroom(self.sims, self.limits.admit_lateness_ms)
+        self.headroom = Headroom(self.sims, lim.admit_lateness_ms, load=lim.admit_load,
+                                 cores=lim.admit_cores, backend=backend)
         self.lobby.busy = lambda: self.headroom.busy
-        self.lobby.read_directory = self._read_directory_now
+        self.lobby.admit = lambda scene: self.headroom.refusal(
+            scene, [r.scene for r in self.lobby.rooms.values()])
+        # Every directory call runs on these threads, bounded by IO_TIMEOUT_S: a hung store
+        # never holds the event loop (joins wait for a read made for all of them at once).
+        self._dir_pool = ThreadPoolExecutor(3, thread_name_prefix="directory")
+        self._reads = OnDemand(self._read_directory, MIN_READ_GAP_S)
+        self._publications = OnDemand(self._publish_rooms)
+        self.lobby.fresh_view = lambda: self._reads.after_now(IO_TIMEOUT_S)
         self.lobby.publish_now = self._publish_now
         self.lobby.index_error = lambda: self.storage.index_error
         self.clients: set[Conn] = set()
@@ -136,6 +147,8 @@ class GameServer:
             raise
         sock = next(iter(self._server.sockets))
         self.port = sock.getsockname()[1]
+        # What a room of each scene costs here, for admission (a fraction of a second).
+        await asyncio.to_thread(self.headroom.measure, self.scenes.values())
         if self.storage.db is not None:
             self.storage.host_url = self.advertised_http_url
             await self.storage.check()
@@ -173,18 +186,29 @@ class GameServer:
             **extra,
         )
 
+    async def _dir(self, fn: Callable[..., Any], *args: Any, timeout: float = 3 * IO_TIMEOUT_S
+                   ) -> Any:
+        """``fn(*args)`` on a directory thread; ``TimeoutError`` after ``timeout`` s (the
+        store's own socket timeout ends the call itself soon after)."""
+        fut = asyncio.get_running_loop().run_in_executor(self._dir_pool, fn, *args)
+        # Not wait_for: on 3.11 it swallows a cancellation that meets a finished call, and
+        # the server's stop would wait for the publishing task for ever.
+        async with asyncio.timeout(timeout):
+            return await fut
+
     async def _publish(self) -> None:
         """This process's rooms and load to the directory; everyone's back."""
         assert self.directory is not None and self.lobby.me is not None
         me = self.lobby.me
         me.rooms, me.clients = len(self.lobby.rooms), len(self.clients)
         try:
-            await asyncio.to_thread(self.directory.publish, me, self.lobby.published())
-            self.lobby.peers = await asyncio.to_thread(self.directory.read)
+            await self._dir(self.directory.publish, me, self.lobby.published())
+            self.lobby.peers = await self._dir(self.directory.read)
         except Exception as e:  # the store is away: keep the rooms running, say so
             if self.lobby.directory_error is None:
                 log.warning("room directory unavailable (%s); listing this process's rooms "
-                            "only until it is back", e)
+                            "only until it is back", type(e).__name__ if
+                            isinstance(e, TimeoutError) else e)
             self.lobby.peers = None
             self.lobby.directory_error = (f"the cluster's room directory is unavailable "
                                           f"({type(e).__name__}); only this host's rooms "
@@ -194,23 +218,27 @@ class GameServer:
             log.info("room directory back: registered again")
             self.lobby.directory_error = None
 
-    def _publish_now(self) -> None:
-        """This process's rooms to the directory at once (a millisecond or two: a new room
-        is there before its id is given out); skipped while the directory is away."""
+    async def _publish_rooms(self) -> None:
         me = self.lobby.me
         if self.directory is None or me is None or self.lobby.directory_error is not None:
             return
         me.rooms, me.clients = len(self.lobby.rooms), len(self.clients)
-        try:
-            self.directory.publish(me, self.lobby.published())
-        except Exception:
-            pass  # the periodic publication reports it and retries
+        await self._dir(self.directory.publish, me, self.lobby.published())
 
-    def _read_directory_now(self) -> Snapshot | None:
-        try:
-            return self.directory.read() if self.directory is not None else None
-        except Exception:
-            return None  # unreachable: the periodic publication reports it
+    def _publish_now(self) -> Awaitable[bool] | None:
+        """This process's rooms to the directory soon (a new room is there before its id is
+        given out: the reply waits for this, the event loop does not); None while the
+        directory is away (the periodic publication reports it and retries)."""
+        if self.directory is None or self.lobby.me is None or \
+                self.lobby.directory_error is not None:
+            return None
+        return asyncio.ensure_future(self._publications.after_now(3 * IO_TIMEOUT_S))
+
+    async def _read_directory(self) -> None:
+        """A fresh view of the directory, for the joins that wait for one."""
+        if self.directory is None or self.lobby.directory_error is not None:
+            return  # away: the periodic publication finds it again
+        self.lobby.peers = await self._dir(self.directory.read)
 
     async def _publish_forever(self) -> None:
         changes = None
@@ -218,19 +246,20 @@ class GameServer:
         while True:
             if changes is None and hasattr(self.directory, "changes"):
                 try:  # another host's rooms changed: read at once, not at the next tick
-                    changes = await asyncio.to_thread(self.directory.changes)
+                    changes = await self._dir(self.directory.changes)
                 except Exception:
                     changes = None
             next_at += PUBLISH_S
             wait = next_at - asyncio.get_running_loop().time()
             if changes is not None and wait > 0:
                 try:
-                    msg = await asyncio.to_thread(changes.get_message, timeout=wait)
+                    msg = await self._dir(functools.partial(changes.get_message, timeout=wait),
+                                          timeout=wait + IO_TIMEOUT_S)
                 except Exception:
                     changes, msg = None, None
                 if msg is not None and self.lobby.peers is not None:
                     with contextlib.suppress(Exception):
-                        self.lobby.peers = await asyncio.to_thread(self.directory.read)
+                        self.lobby.peers = await self._dir(self.directory.read)
                     continue
             elif wait > 0:
                 await asyncio.sleep(wait)
@@ -294,10 +323,13 @@ class GameServer:
             if srv is not None:
                 await srv.wait_closed()
         if self.directory is not None:
+            self._reads.cancel()
+            self._publications.cancel()
             try:
-                await asyncio.to_thread(self.directory.withdraw, self.host_id)
+                await self._dir(self.directory.withdraw, self.host_id)
             except Exception as e:
                 log.warning("could not leave the room directory: %s", e)
+        self._dir_pool.shutdown(wait=False)
         await self.lobby.close()
         await asyncio.to_thread(self.sims.close)
         if self._saves:
@@ -367,14 +399,19 @@ class GameServer:
     async def _watch_headroom(self) -> None:
         while True:
             await asyncio.sleep(WINDOW_S)
-            self.headroom.sample()
+            self.headroom.sample(r.scene for r in self.lobby.rooms.values() if not r.sim.asleep)
             if self.lobby.me is not None:
-                self.lobby.me.busy = self.headroom.busy is not None
+                # Busy for the others' placement: no room of its default scene fits here.
+                scene = self.scenes[self.lobby.default_scene]
+                self.lobby.me.busy = self.lobby.admit(scene) is not None
 
     async def _watch_storage(self) -> None:
         """The data directory looked at again and again: problems named as they come,
-        recording resumed as they go (``server.replays.Storage``)."""
+        recording resumed as they go (``server.replays.Storage``); the rounds retention
+        does not keep pruned in batches, so a large backlog never holds up a request."""
         while True:
+            while await self.storage.prune_some() >= PRUNE_BATCH:
+                await asyncio.sleep(PRUNE_PAUSE_S)
             await asyncio.sleep(self.limits.storage_check_s)
             await self.storage.check()
 
@@ -418,6 +455,9 @@ class GameServer:
         if room is not None and room.code is not None:
             # A private room's rounds are listed and served only to holders of its code.
             header = {**header, "access": access_key(room.id, room.code)}
+        address = self.lobby.addresses.get(header["room_id"])
+        if address is not None:  # its creator's rounds share one quota (Retention)
+            header = {**header, "owner": owner_key(address)}
 
         def failed(reason: str) -> None:
             self.stats["rounds_not_saved"] += 1
@@ -481,7 +521,10 @@ class GameServer:
             "storage": self.storage_snapshot(),
             "cpu_s": time.process_time() - self._cpu0,
             "clients": len(self.clients),
-            "headroom": {**vars(self.headroom.last), "busy": self.headroom.busy},
+            "headroom": {**vars(self.headroom.last), "busy": self.headroom.busy,
+                         "outside": self.headroom.outside, "cores": self.headroom.cores,
+                         "load": self.headroom.load,
+                         "room_cost": {n: self.headroom.cost(s) for n, s in self.scenes.items()}},
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             "rooms": rooms,

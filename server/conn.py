@@ -93,7 +93,7 @@ class Conn:
         addr = ws.remote_address
         self.address: str = address or (str(addr[0]) if addr else "?")
         self.house = house
-        self.last_in = time.monotonic()  # when the client last sent a message
+        self.last_in = time.monotonic()  # its last control message other than a ping
         self.role = "lobby"  # "lobby", "player", "spectator"
         self.room: Room | None = None
         self.seat: int | None = None

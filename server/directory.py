@@ -4,7 +4,11 @@ Each process (``clothball host --workers N`` runs N of them) publishes, every
 ``PUBLISH_S``, its own address, its load (rooms, clients) and its rooms' public info, and
 reads back everyone's. A process that stops publishing for ``ttl`` seconds (it died) drops
 out with its rooms. Listing, joining and placing a room use the last snapshot read, so a
-websocket handler never waits on the store. A private room is listed for routing only
+websocket handler never waits on the store, and the event loop never calls it: every call
+runs on the server's directory threads with a timeout (``IO_TIMEOUT_S``). A join for a room
+the snapshot lacks (made elsewhere since the last read) waits, that connection alone, for
+the next read (``OnDemand``: one read for every join waiting, at most one every
+``MIN_READ_GAP_S``), never a read of its own. A private room is listed for routing only
 (its id and where it lives); its join code never leaves its process.
 
 ``SqliteDirectory`` keeps it in one SQLite file in the data directory: the processes of
@@ -13,11 +17,13 @@ one machine share it with no server to run.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import sqlite3
 import threading
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -26,6 +32,66 @@ log = logging.getLogger("clothball.server")
 
 PUBLISH_S = 0.5  # s between a process's publications (and reads of the others')
 DEFAULT_TTL = 5.0  # s without a publication after which a process counts as gone
+# s a directory call may take (Redis' socket timeout; a join's wait for a fresh read): a
+# hung store costs a join at most this, and the rooms and /healthz nothing.
+IO_TIMEOUT_S = 1.0
+MIN_READ_GAP_S = 0.1  # s between reads made for joins (a flood of them shares each read)
+
+
+class NotInView(Exception):
+    """A room id the directory's last snapshot lacks, while another process may have made
+    it since: the request is answered after the next read (``Lobby.get``)."""
+
+    def __init__(self, room_id: str) -> None:
+        super().__init__(f"room {room_id!r} not in the directory's last snapshot")
+        self.room_id = room_id
+
+
+class OnDemand:
+    """Runs ``fn`` (a coroutine function) for whoever asks, coalesced: ``after_now`` returns
+    once a run begun after the call has ended (or ``timeout`` has passed: False), however
+    many ask meanwhile; runs are at least ``min_gap_s`` apart. Used for the directory reads
+    that joins wait for and the publication a new room waits for, so that a flood of them
+    costs the store a few calls a second, not one each."""
+
+    def __init__(self, fn: Callable[[], Awaitable[None]], min_gap_s: float = 0.0) -> None:
+        self.fn = fn
+        self.min_gap_s = min_gap_s
+        self.runs = 0
+        self._next: asyncio.Future[None] | None = None  # the run not yet begun
+        self._task: asyncio.Task[None] | None = None
+
+    async def after_now(self, timeout: float) -> bool:
+        if self._next is None:
+            self._next = asyncio.get_running_loop().create_future()
+        fut = self._next
+        if self._task is None or self._task.done():
+            self._task = asyncio.create_task(self._serve())
+        try:
+            async with asyncio.timeout(timeout):  # (wait_for may swallow a cancellation)
+                await asyncio.shield(fut)
+        except TimeoutError:
+            return False
+        return True
+
+    async def _serve(self) -> None:
+        loop = asyncio.get_running_loop()
+        while self._next is not None:
+            fut, self._next = self._next, None
+            began = loop.time()
+            try:
+                await self.fn()
+            except Exception as e:  # the store is away: the waiting requests go on
+                log.debug("directory call failed: %s", e)
+            finally:
+                self.runs += 1
+                if not fut.done():
+                    fut.set_result(None)
+            await asyncio.sleep(max(0.0, began + self.min_gap_s - loop.time()))
+
+    def cancel(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
 
 
 class Moved(Exception):
@@ -183,7 +249,8 @@ class RedisDirectory:
         self.url = url
         self.ttl = ttl
         self.prefix = prefix
-        self._redis = redis.Redis.from_url(url, socket_timeout=2.0, socket_connect_timeout=2.0)
+        self._redis = redis.Redis.from_url(url, socket_timeout=IO_TIMEOUT_S,
+                                           socket_connect_timeout=IO_TIMEOUT_S)
         self._last_rooms: dict[str, str] = {}
         self.conflicts: list[str] = []  # room ids this host found held by another
 
@@ -261,6 +328,18 @@ class RedisDirectory:
         pipe.publish(f"{p}lobby", host_id)
         pipe.execute()
         self._last_rooms = {}
+
+    def check(self) -> None:
+        """Raises ``ValueError`` (one line: what went wrong) unless a Redis answers PING at
+        ``url`` now: nothing listening, another service there, a password wanted."""
+        try:
+            ok = self._redis.ping()
+        except Exception as e:
+            first = (str(e).splitlines() or [""])[0][:160]
+            raise ValueError(f"{type(e).__name__}: {first}" if first else type(e).__name__
+                             ) from None
+        if ok is not True:
+            raise ValueError(f"PING answered {ok!r}, not as a Redis does")
 
     def changes(self) -> Any:
         """A pub/sub subscription to lobby changes (``get_message`` polls it)."""

@@ -1,26 +1,84 @@
-"""How much more this server can take, measured by itself: the admission control.
+"""How much more this server can take: the admission control.
 
-Every ``WINDOW_S`` the server looks at what its rooms did since the last look: the frame
-lateness of its simulation workers (p99 of every pass: when a frame's state was ready
-against its deadline), frames they had to skip, and the CPU the process used. It is *busy*
+A new room is admitted or refused *before it exists*, from what it will cost: each scene's
+room costs the cores ``room_cost`` measured for it on this machine and backend (once per
+process, at start-up: four rooms stepped as a worker steps them, timed by the CPU the
+stepping thread used, so CPU stolen by neighbours does not inflate it). Every open room
+counts, asleep or awake (a sleeping room wakes the moment someone joins it). A room fits
+while the rooms' cost stays within ``admit_load`` of the cores the process may use, and
+within ``admit_load`` of one core for the rooms one simulation thread steps (one per scene,
+``server.sim``). A burst of ``create_room`` is therefore refused at once past the capacity,
+with the numbers; an empty server always admits its first room.
+
+Besides the model, every ``WINDOW_S`` the server looks at what its rooms did since the last
+look: the frame lateness of its simulation workers (p99 of every pass), frames they had to
+skip, the CPU the process used and the machine's stolen CPU (``/proc/stat``). It is *busy*
 while each of the last ``SUSTAINED`` windows had a lateness p99 past ``admit_lateness_ms``
-or skipped frames (a hiccup is not saturation; an overload lasts):
-then a new room, or anyone waking a sleeping room, is refused with ``server_busy`` and the
-reason, before the rooms already running degrade further; and a host that is busy takes
-no new rooms from the others (``docs/cluster.md``).
+or skipped frames *and* the server carried load of its own: it used at least
+``OWN_LOAD_CORES``, or its awake rooms cost that much by the model. Late frames of a server
+that is doing little are not its load (CPU steal, neighbours), and refusing rooms would
+not help them. While busy, a new room or the waking of a sleeping one is
+refused with ``server_busy`` and the reason, and a host that is busy takes no new rooms
+from the others (``docs/cluster.md``).
 """
 
 from __future__ import annotations
 
+import json
+import math
+import os
+import threading
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
 
-from .sim import SimPool
+from ..game.sim.batch import ClothBatch
+from ..game.sim.cloth import resolve_backend
+from ..game.sim.scene import Scene
+from .sim import WORKER_CAPACITY, SimPool
 
 WINDOW_S = 1.0
 SUSTAINED = 3  # windows in a row over the limit that make the server busy
+# The process used at least this many cores in a late window: the lateness is its own
+# load. Less: something else took the CPU (steal, neighbours).
+OWN_LOAD_CORES = 0.5
+CALIBRATE_S = 0.15  # s of stepping that measure one scene's room cost
+CALIBRATE_ROOMS = 4
+
+_costs: dict[tuple[str, str, str], float] = {}
+_costs_lock = threading.Lock()
+
+
+def _key(scene: Scene, backend: str) -> tuple[str, str, str]:
+    resolved, precision, _ = resolve_backend(scene, backend, None)
+    return json.dumps(scene.to_dict(), sort_keys=True), resolved, precision
+
+
+def room_cost(scene: Scene, backend: str) -> float:
+    """Cores one room of ``scene`` keeps busy on ``backend`` at real time (measured once per
+    process; blocking: call it off the event loop)."""
+    key = _key(scene, backend)
+    with _costs_lock:
+        if key in _costs:
+            return _costs[key]
+    batch = ClothBatch(scene, CALIBRATE_ROOMS, key[1], key[2], threads=1)
+    for _ in range(CALIBRATE_ROOMS):
+        batch.add()
+    batch.step(2)  # first-call costs (allocation, JIT of nothing) out of the measure
+    # The CPU backend's cost is the stepping thread's own CPU time (not inflated by time
+    # stolen from it); a GPU's is the wall time of a step, which the thread waits out.
+    clock = time.thread_time if key[1] == "cpu" else time.perf_counter
+    wall0, t0, frames = time.perf_counter(), clock(), 0
+    while frames < 2000 and time.perf_counter() - wall0 < CALIBRATE_S:
+        batch.step(1)
+        batch.corners_all()
+        frames += 1
+    cost = (clock() - t0) / max(frames, 1) / CALIBRATE_ROOMS / batch.frame_dt
+    with _costs_lock:
+        _costs[key] = cost
+    return cost
 
 
 @dataclass
@@ -28,20 +86,82 @@ class Sample:
     lateness_p99_ms: float = 0.0
     skipped_frames: int = 0
     cpu_cores: float = 0.0  # process CPU time over wall time in the window
+    carried_cores: float = 0.0  # what its awake rooms cost by the model
+    steal: float = 0.0  # share of the machine's CPU time stolen by the hypervisor (Linux)
+
+
+def _cpu_times() -> tuple[int, int] | None:
+    """(steal, total) jiffies of the machine so far; None where /proc/stat is not."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    return (fields[7] if len(fields) > 7 else 0), sum(fields[:8])
+
+
+def usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
 
 
 class Headroom:
-    def __init__(self, sims: SimPool, lateness_ms: float) -> None:
+    def __init__(self, sims: SimPool, lateness_ms: float, *, load: float = 0.75,
+                 cores: float = 0.0, backend: str = "auto") -> None:
+        """``lateness_ms``: the measured signal's limit (0: off); ``load``: the share of the
+        ``cores`` (0: those this process may use) the rooms' cost may take (0: no cost
+        model)."""
         self.sims = sims
         self.lateness_ms = lateness_ms
+        self.load = load
+        self.cores = cores or float(usable_cores())
+        self.backend = backend
         self.last = Sample()
         self.recent: list[Sample] = []  # the last SUSTAINED windows, newest last
         self._cpu = time.process_time()
         self._wall = time.perf_counter()
+        self._steal = _cpu_times()
         self._seen: dict[int, tuple[int, int]] = {}  # worker id -> (lateness seen, skipped)
 
-    def sample(self) -> Sample:
-        """Look at the window since the last call (the server calls it every WINDOW_S)."""
+    # --- the cost model ---------------------------------------------------------------------
+    def measure(self, scenes: Iterable[Scene]) -> None:
+        """Every scene's room cost measured now (blocking: at start-up, off the loop)."""
+        for scene in scenes:
+            room_cost(scene, self.backend)
+
+    def cost(self, scene: Scene) -> float:
+        """A room of ``scene``'s cost in cores (as measured; 0 if not measured yet)."""
+        with _costs_lock:
+            return _costs.get(_key(scene, self.backend), 0.0)
+
+    def refusal(self, scene: Scene, rooms: list[Scene]) -> str | None:
+        """Why a new room of ``scene`` would not fit beside the open ``rooms`` (their
+        scenes), or None. Then the measured signal (``busy``)."""
+        if self.load > 0 and rooms:
+            need = self.cost(scene)
+            total = sum(self.cost(s) for s in rooms)
+            budget = self.load * self.cores
+            if total + need > budget:
+                return (f"this server is at capacity: its {len(rooms)} rooms need about "
+                        f"{total:.2f} of the {budget:.2f} cores it gives rooms "
+                        f"({self.load:.0%} of {self.cores:g}) and a {scene.name} room "
+                        f"{need:.2f} more; try again later or another server")
+            key = _key(scene, self.backend)
+            same = [s for s in rooms if _key(s, self.backend) == key]
+            on_thread = len(same) % WORKER_CAPACITY  # the rooms its thread already steps
+            if on_thread and (on_thread + 1) * need > self.load:
+                return (f"this server is at capacity for {scene.name}: its simulation "
+                        f"thread steps {on_thread} such rooms at about {need:.2f} of a core "
+                        f"each, and may use {self.load:.0%} of one; try another scene, "
+                        "later, or another server")
+        return self.busy
+
+    # --- the measured signal ----------------------------------------------------------------
+    def sample(self, awake: Iterable[Scene] = ()) -> Sample:
+        """Look at the window since the last call (the server calls it every WINDOW_S, with
+        the scenes of its awake rooms)."""
         late: list[np.ndarray] = []
         skipped = 0
         seen: dict[int, tuple[int, int]] = {}
@@ -56,21 +176,41 @@ class Headroom:
         cpu, wall = time.process_time(), time.perf_counter()
         cores = (cpu - self._cpu) / max(wall - self._wall, 1e-9)
         self._cpu, self._wall = cpu, wall
+        steal = 0.0
+        now = _cpu_times()
+        if now is not None and self._steal is not None and now[1] > self._steal[1]:
+            steal = (now[0] - self._steal[0]) / (now[1] - self._steal[1])
+        self._steal = now
         window = np.concatenate(late) if late else np.zeros(0)
         p99 = float(np.percentile(window, 99)) * 1e3 if window.size else 0.0
-        self.last = Sample(p99, skipped, cores)
+        self.last = Sample(p99, skipped, cores, sum(self.cost(s) for s in awake),
+                           steal if math.isfinite(steal) else 0.0)
         self.recent = [*self.recent, self.last][-SUSTAINED:]
         return self.last
 
-    def _over(self, s: Sample) -> bool:
+    def _late(self, s: Sample) -> bool:
         return s.skipped_frames > 0 or s.lateness_p99_ms > self.lateness_ms
+
+    @staticmethod
+    def _own(s: Sample) -> bool:
+        return max(s.cpu_cores, s.carried_cores) >= OWN_LOAD_CORES
+
+    @property
+    def outside(self) -> str | None:
+        """Late frames that are not this server's load (it carries little), or None."""
+        s = self.last
+        if self.lateness_ms <= 0 or not self._late(s) or self._own(s):
+            return None
+        return (f"frames late (p99 {s.lateness_p99_ms:.1f} ms) while this server used "
+                f"{s.cpu_cores:.2f} cores and its rooms cost {s.carried_cores:.2f}: CPU "
+                f"taken from outside ({s.steal:.0%} stolen)")
 
     @property
     def busy(self) -> str | None:
-        """Why no more rooms fit now (None: there is room)."""
+        """Why no more rooms fit now by the measured signal (None: there is room)."""
         if self.lateness_ms <= 0 or len(self.recent) < SUSTAINED:
             return None
-        if not all(self._over(s) for s in self.recent):
+        if not all(self._late(s) and self._own(s) for s in self.recent):
             return None
         s = self.last
         return (f"this server is at capacity: for {SUSTAINED} s its frames were late (p99 "

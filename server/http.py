@@ -168,6 +168,7 @@ class HttpHost(Protocol):
     """What the HTTP surface reads of its server (``server.app.GameServer``)."""
 
     clients: set[Conn]
+    per_address: collections.Counter[str]  # connections per client address
     limits: Limits
     lobby: Lobby
     origins: tuple[str, ...] | None
@@ -311,13 +312,16 @@ class HttpSurface:
                 self.srv.house_key.encode())
             connection.client_address = address  # type: ignore[attr-defined]
             connection.house = house  # type: ignore[attr-defined]
-            if not house and len(self.srv.clients) >= self.srv.limits.max_clients:
+            full = None if house else self.srv.limits.full_for(
+                len(self.srv.clients), self.srv.per_address.get(address, 0))
+            if full is not None:
                 self.srv.stats["refused_connections"] += 1
-                return self._error(503, f"server full ({self.srv.limits.max_clients} connections)")
+                return self._error(503, full)
             return None
         if path == "/healthz":  # on the loop: never behind files or index queries
             return self._response(200, b"ok\n", "text/plain; charset=utf-8")
         if path == "/api/rooms":  # live state: read on the loop that changes it
+            self.srv.lobby.shown()
             msg = self.srv.lobby.rooms_message()
             del msg["type"]
             return self._json(msg)

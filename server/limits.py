@@ -29,6 +29,9 @@ class Limits:
     abuse_window: float = 2.0
     # --- connections and rooms ---------------------------------------------------------------
     max_clients: int = 512  # websocket connections in all (more: HTTP 503)
+    # The last slots of max_clients (at most an eighth of them) are kept for addresses that
+    # hold no connection: a newcomer gets in while others' many connections fill the rest.
+    reserved_slots: int = 16
     conns_per_address: int = 32  # from one IP address (more: closed 1008)
     max_rooms: int = 32  # rooms in all (more: server_busy)
     rooms_per_address: int = 4  # rooms created from one IP address and still open
@@ -36,9 +39,14 @@ class Limits:
     # A room nobody is in (no human player, no spectator) sleeps at once and closes after
     # this long (its creator's seat and a reconnect have this long to come back).
     room_idle_close_s: float = 15.0
-    # Admission: while the frame lateness p99 passes this (or frames are skipped) three
-    # seconds running, new rooms and wake-ups of sleeping rooms are refused (server_busy);
-    # 0: no admission control.
+    # Admission (server.headroom): a new room is refused (server_busy) when the open rooms'
+    # measured cost and its own would pass admit_load of admit_cores (0: the cores this
+    # process may use), or of one core for the rooms of one scene; 0: no cost model.
+    admit_load: float = 0.75
+    admit_cores: float = 0.0
+    # And while the frame lateness p99 passes this (or frames are skipped) three seconds
+    # running with the server itself using half a core or more, new rooms and wake-ups of
+    # sleeping rooms are refused (server_busy); 0: off.
     admit_lateness_ms: float = 5.0
     # --- the replay index over HTTP (/api/replays...), per IP address -----------------------
     index_rate: float = 50.0  # queries a second (token bucket; more: HTTP 429)
@@ -49,6 +57,10 @@ class Limits:
     download_stall_s: float = 30.0  # s a download may wait for its client to read (else cut)
     # --- the replay store's retention (oldest rounds pruned first, file and index row) -------
     replays_max_mib: float = 2048.0  # MiB of recorded rounds kept in all
+    # The share of replays_max_mib the rounds of the rooms one address created may keep
+    # (past it, that address's oldest go, never anyone else's).
+    replays_address_share: float = 0.25
+    record_cap_max_s: float = 600.0  # the longest record_cap_s a create_room may ask for
     replays_max_days: float = 30.0  # days a recorded round is kept
     # --- the data directory --------------------------------------------------------------------
     storage_min_free_mib: float = 64.0  # free MiB below which recording pauses ("full")
@@ -65,6 +77,17 @@ class Limits:
     lobby_idle_s: float = 60.0  # s a lobby connection may send nothing (else closed 1008)
     ping_interval: float = 20.0  # s between keep-alive pings
     ping_timeout: float = 20.0  # s without a pong: the client is gone (closed 1011)
+
+    def full_for(self, clients: int, held: int) -> str | None:
+        """Why a new connection is refused (HTTP 503) with ``clients`` connected and
+        ``held`` of them from its address; None: it may connect."""
+        if clients >= self.max_clients:
+            return f"server full ({self.max_clients} connections)"
+        reserved = min(self.reserved_slots, self.max_clients // 8)
+        if held and clients >= self.max_clients - reserved:
+            return (f"server full for addresses that already hold a connection (the last "
+                    f"{reserved} of {self.max_clients} are kept for new addresses)")
+        return None
 
     def replace(self, **changes: float | int) -> Limits:
         return dataclasses.replace(self, **changes)
@@ -92,7 +115,8 @@ class Limits:
         return self.replace(**{name: v})
 
 
-MAY_BE_OFF = frozenset({"admit_lateness_ms"})  # limits that 0 turns off
+# Limits that 0 turns off (admit_cores 0: the cores this process may use).
+MAY_BE_OFF = frozenset({"admit_lateness_ms", "admit_load", "admit_cores"})
 
 
 def parse_origins(origins: list[str] | None) -> tuple[str, ...] | None:

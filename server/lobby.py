@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import secrets
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
 
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
-from .directory import HostEntry, Moved, Snapshot
+from .directory import HostEntry, Moved, NotInView, Snapshot
 from .room import Room, RoomHost, RoomSettings
 from .sim import SimPool
 
@@ -41,14 +42,19 @@ class Lobby:
         self.me: HostEntry | None = None
         self.peers: Snapshot | None = None
         self.directory_error: str | None = None  # why the others' rooms are not listed
-        # Reads the directory now (a room made elsewhere since the last read): used only
-        # when a room asked for is not known here.
-        self.read_directory: Callable[[], Snapshot | None] = lambda: None
-        # Publishes this process's rooms now: a new room is in the directory before anyone
-        # is told its id (else another process could answer a join with unknown_room).
-        self.publish_now: Callable[[], None] = lambda: None
+        # A read of the directory begun after now, shared by every join waiting for one
+        # (a room made elsewhere since the last read): True once read, False timed out.
+        self.fresh_view: Callable[[], Awaitable[bool]] | None = None
+        self._fresh = False  # lookups now are answered from a view read after they came
+        # Publishes this process's rooms soon; a new room's reply waits for it, so the room
+        # is in the directory before anyone is told its id (else another process could
+        # answer a join with unknown_room). None: nothing to wait for.
+        self.publish_now: Callable[[], Awaitable[bool] | None] = lambda: None
         # Why no room more fits on this server now (server.headroom); None: room to spare.
         self.busy: Callable[[], str | None] = lambda: None
+        # Why a new room of this scene would not fit beside the open ones (the same, and
+        # what the room would cost); None: it fits.
+        self.admit: Callable[[Scene], str | None] = lambda scene: None
         # Why the shared replay index cannot be written now (rounds wait as files), or None.
         self.index_error: Callable[[], str | None] = lambda: None
 
@@ -61,7 +67,7 @@ class Lobby:
         scene_name = self.scene_name(scene)
         if len(self.rooms) >= self.max_rooms:
             raise ProtocolError("server_busy", f"this server already runs {self.max_rooms} rooms")
-        why = None if permanent else self.busy()
+        why = None if permanent else self.admit(self.scenes[scene_name])
         if why is not None:
             raise ProtocolError("server_busy", why)
         if room_id is None:
@@ -78,7 +84,7 @@ class Lobby:
         if self.me is not None:
             self.me.rooms = len(self.rooms)  # placement sees this room before it is published
         room.start()
-        self.publish_now()
+        room.published = self.publish_now()
         log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
                  "public" if public else "private")
         return room
@@ -100,14 +106,21 @@ class Lobby:
             return self.rooms[room_id]
         if isinstance(room_id, str) and self.peers is not None and self.me is not None:
             there = self.peers.locate(room_id)
-            if there is None:  # perhaps made on another process since the last read
-                fresh = self.read_directory()
-                if fresh is not None:
-                    self.peers = fresh
-                    there = fresh.locate(room_id)
+            if there is None and not self._fresh and self.fresh_view is not None:
+                raise NotInView(room_id)  # perhaps made elsewhere since the last read
             if there is not None and there.host_id != self.me.host_id:
                 raise Moved(there.address, f"room {room_id} lives at {there.address}")
         raise ProtocolError("unknown_room", f"no room {room_id!r}")
+
+    @contextlib.contextmanager
+    def viewed_fresh(self) -> Iterator[None]:
+        """Lookups within are answered from the view as it is (a read made after the
+        request came, or none in time): ``get`` raises no ``NotInView``."""
+        self._fresh = True
+        try:
+            yield
+        finally:
+            self._fresh = False
 
     def place(self, clients: int) -> None:
         """Where a new room goes: here, or ``Moved`` to the least-loaded process or host
@@ -116,7 +129,7 @@ class Lobby:
         if self.peers is None or self.me is None:
             return
         self.me.rooms, self.me.clients = len(self.rooms), clients
-        self.me.busy = self.busy() is not None
+        self.me.busy = self.admit(self.scenes[self.default_scene]) is not None
         hosts = dict(self.peers.hosts)
         hosts[self.me.host_id] = self.me  # this process's own load as of now
         best = min(hosts.values(), key=lambda h: (h.load, h.host_id != self.me.host_id))
@@ -167,10 +180,18 @@ class Lobby:
         return [(rid, r.public, r.info() if r.public else {"id": rid})
                 for rid, r in self.rooms.items()]
 
+    def shown(self) -> None:
+        """Someone listed the rooms (a lobby client, ``/api/rooms``): the host's show room
+        wakes for a while, so its listing is live (``Room.shown``)."""
+        for room in self.rooms.values():
+            room.shown()
+
     async def close_idle(self, now: float, after: float) -> None:
-        """Close the rooms nobody has been in for ``after`` s (not the host's own)."""
+        """Close the rooms nobody has been in for ``after`` s (not the host's own, which
+        sleeps again once no one has listed the rooms for a while)."""
         for rid, room in list(self.rooms.items()):
             if room.permanent:
+                room.update_awake()
                 continue
             if room.is_empty() and now - room.last_active > after:
                 if any(s.kind == "bot" for s in room.seats) and room.spectators:

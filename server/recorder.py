@@ -13,6 +13,7 @@ is recorded up to the cap and marked cut. ``records()`` reads the spool back in 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
@@ -215,7 +216,5 @@ class Recording:
         if self._file is not None:
             self._file.close()
             self._file = None
-        try:
+        with contextlib.suppress(OSError):  # gone with its directory, or never made
             self.path.unlink(missing_ok=True)
-        except OSError:  # no spool to remove: its directory could not be made (not a dir)
-            pass

@@ -13,11 +13,14 @@ by another program (``clothball replays prune``, an ``sqlite3`` shell) waits: SQ
 round whose index row could not be written keeps its file and is indexed at the next start.
 
 Retention (``Retention``): the store keeps at most ``max_bytes`` of indexed rounds and none
-older than ``max_age_s``; after each save (and when the server starts) the oldest rounds
-go first, each one's index row and file together (``_remove``: the file renamed aside,
-the row's deletion committed, the file removed; a crash in between is resolved at the next
-start). The newest round is never pruned for size, so the last round played can always be
-watched.
+older than ``max_age_s``; the oldest rounds go first, each one's index row and file together
+(``_remove``: the files renamed aside, the rows' deletion committed, the files removed; a
+crash in between is resolved at the next start), at most ``PRUNE_BATCH`` rounds a call: the
+server prunes after each save and, in the background, until the backlog is gone (a store
+opened over a large backlog serves at once). The newest round is never pruned for size, so
+the last round played can always be watched. The rounds of one owner (the address whose
+room played them, kept only as ``owner_key``, never listed) keep at most
+``max_owner_bytes``: past that, that owner's oldest go, never another's.
 
 A private room's rounds carry ``access`` (``access_key(room, code)``) in their header and
 index row: they are listed and served only to a request that names the room's code.
@@ -49,6 +52,7 @@ log = logging.getLogger("clothball.server")
 
 BUSY_TIMEOUT_S = 5.0  # SQLite's own wait for a lock (busy_timeout), per attempt
 LOCK_WAIT_S = 60.0  # how long a write keeps retrying a locked index in all
+PRUNE_BATCH = 200  # rounds removed by one prune call (one transaction)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS rounds (
@@ -66,7 +70,8 @@ CREATE TABLE IF NOT EXISTS rounds (
     duration_s REAL NOT NULL,
     file TEXT NOT NULL,
     bytes INTEGER NOT NULL,
-    access TEXT
+    access TEXT,
+    owner TEXT
 );
 CREATE INDEX IF NOT EXISTS rounds_ended ON rounds (ended_at);
 """
@@ -98,7 +103,12 @@ INDEX_VERSION = 1  # PRAGMA user_version once ``round_players`` holds every roun
 
 COLUMNS = ("id", "room_id", "room_name", "scene", "round", "players", "conceded_edge",
            "conceded_by", "scores", "started_at", "ended_at", "duration_s", "file", "bytes",
-           "access")
+           "access", "owner")
+# Added to an index made before the column existed (SQLite, PostgreSQL). No index of its
+# own: a quota check reads one owner's rows once per saved round, on the writer thread,
+# and an index more would not fit a nearly full disk's first write (tests/server/
+# test_faults.py).
+OWNER_DDL = "ALTER TABLE rounds ADD COLUMN owner TEXT"
 
 
 class IndexUnavailable(Exception):
@@ -123,14 +133,24 @@ class Retention:
 
     max_bytes: int = 2 << 30
     max_age_s: float = 30 * 86400.0
+    max_owner_bytes: int | None = None  # one owner's rounds (None: only max_bytes)
 
     @classmethod
     def from_limits(cls, limits: Any) -> Retention:
-        """From ``server.limits.Limits``' ``replays_max_mib`` and ``replays_max_days``."""
-        return cls(int(limits.replays_max_mib * 2**20), limits.replays_max_days * 86400.0)
+        """From ``server.limits.Limits``' ``replays_max_mib``, ``replays_max_days`` and
+        ``replays_address_share``."""
+        total = int(limits.replays_max_mib * 2**20)
+        return cls(total, limits.replays_max_days * 86400.0,
+                   int(total * limits.replays_address_share))
 
     def describe(self) -> str:
         return f"at most {self.max_bytes / 2**20:g} MiB, {self.max_age_s / 86400:g} days"
+
+
+def owner_key(address: str) -> str:
+    """What a round's owner (the address that created its room) is kept as: a hash, so the
+    index holds no address; it is never listed."""
+    return hashlib.sha256(f"clothball-owner:{address}".encode()).hexdigest()[:32]
 
 
 def access_key(room_id: str, code: str) -> str:
@@ -157,7 +177,7 @@ class ReplayStore:
 
     def __init__(self, data_dir: Path | str, *, lock_wait_s: float = LOCK_WAIT_S,
                  retention: Retention | None = None, recover: bool = True,
-                 read_only: bool = False) -> None:
+                 read_only: bool = False, prune_at_open: bool = True) -> None:
         """``recover``: remove leftover ``.tmp`` files and index unindexed rounds (what the
         server does at start; a command run beside a live server must not: its ``.tmp``
         files are rounds being written). ``retention``: pruned after each save; None keeps
@@ -174,6 +194,8 @@ class ReplayStore:
         try:
             if self._wdb.execute("PRAGMA user_version").fetchone()[0] < INDEX_VERSION:
                 self._write(self._migrate)
+            if not self._has_owner():
+                self._write(self._add_owner)
             self._db = self._connect()
             # 32 MiB of pages (default 2): a count over 100 000 rounds' index entries then
             # reads memory, not the OS's file cache (~6 ms instead of ~9).
@@ -184,8 +206,8 @@ class ReplayStore:
         self.identity = self._identity()
         if recover:
             self._recover()
-            if retention is not None:
-                self.prune(retention)
+            if retention is not None and prune_at_open:
+                self.prune_all(retention)
         self.refresh_usage()
 
     def _setup(self, data_dir: Path | str, lock_wait_s: float, retention: Retention | None,
@@ -295,6 +317,8 @@ class ReplayStore:
         have = {r[1] for r in db.execute("PRAGMA table_info(rounds)")}
         if "access" not in have:  # an index from before private rounds were locked
             db.execute("ALTER TABLE rounds ADD COLUMN access TEXT")
+        if "owner" not in have:  # from before per-address quotas
+            db.execute(OWNER_DDL)
         for stmt in _statements(INDEXES):
             db.execute(stmt)
         db.execute("DELETE FROM round_players")
@@ -304,6 +328,17 @@ class ReplayStore:
             " rounds.access, rounds.ended_at FROM rounds, json_each(rounds.players) AS p"
             " WHERE json_extract(p.value, '$.name') IS NOT NULL")
         db.execute(f"PRAGMA user_version = {INDEX_VERSION}")
+
+    def _has_owner(self) -> bool:
+        """The index has the ``owner`` column (an index of this version may not: it came
+        later). Read, not written: a disk that refuses writes still opens the index."""
+        assert self._wdb is not None
+        return "owner" in {r[1] for r in self._wdb.execute("PRAGMA table_info(rounds)")}
+
+    def _add_owner(self) -> None:
+        assert self._wdb is not None
+        if not self._has_owner():
+            self._wdb.execute(OWNER_DDL)
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[None]:
@@ -397,7 +432,7 @@ class ReplayStore:
             header.get("conceded_edge"), header.get("conceded_by"),
             json.dumps(header["scores"]), float(header["started_at"]),
             float(header["ended_at"]), float(header["duration_s"]), name, size,
-            header.get("access"),
+            header.get("access"), header.get("owner"),
         )
         return row + ((self.host,) if "host" in self.columns else ())
 
@@ -440,11 +475,13 @@ class ReplayStore:
         if self.read_only:
             raise sqlite3.OperationalError("the replay index is open read-only")
         path = self.replays / f"{rid}.cbr"
-        write_replay(path, header, records)
+        # The owner goes into the index only: a replay file is anyone's to download.
+        write_replay(path, {k: v for k, v in header.items() if k != "owner"}, records)
         self._index(header, path)
         row = self.get(rid)
         assert row is not None
         if self.retention is not None:
+            self.prune_owner(self.retention, header.get("owner"))
             self.prune(self.retention)
         else:
             self.refresh_usage()
@@ -458,64 +495,98 @@ class ReplayStore:
         self.rounds, self.bytes = int(n), int(b)
 
     def prune(self, retention: Retention, *, now: float | None = None,
-              dry_run: bool = False) -> list[dict[str, Any]]:
-        """Removes the rounds ``retention`` does not keep, oldest first: every round that
-        ended more than ``max_age_s`` ago, then the oldest until the rest fit in
-        ``max_bytes`` (never the newest). Each round's row and file go together (see the
-        module's docstring). Returns the rounds removed (or, ``dry_run``, that would be)."""
+              dry_run: bool = False, limit: int | None = PRUNE_BATCH) -> list[dict[str, Any]]:
+        """Removes rounds ``retention`` does not keep, oldest first, at most ``limit`` (None:
+        all): every round that ended more than ``max_age_s`` ago, then the oldest until the
+        rest fit in ``max_bytes`` (never the newest). Each round's row and file go together
+        (see the module's docstring). Returns the rounds removed (or, ``dry_run``, that
+        would be); fewer than ``limit``: nothing more is due."""
         now = time.time() if now is None else now
         mine, margs = self._mine()
-        total, oldest = self._fetch(
-            "SELECT COALESCE(SUM(bytes), 0), MIN(ended_at) FROM rounds WHERE " + mine, margs)[0]
+        n, total, oldest = self._fetch(
+            "SELECT COUNT(*), COALESCE(SUM(bytes), 0), MIN(ended_at) FROM rounds WHERE "
+            + mine, margs)[0]
         if total <= retention.max_bytes and (oldest is None or
                                              oldest >= now - retention.max_age_s):
             self.refresh_usage()
             return []  # the usual case after a save: nothing to read row by row
+        # The oldest rows only, as many as may go: what is left must fit, newest kept.
+        want = n if limit is None else min(n, limit)
         rows = self._fetch(f"SELECT id, ended_at, bytes FROM rounds WHERE {mine} "
-                           "ORDER BY ended_at DESC, id DESC", margs)
-        keep, total, doomed = True, 0, []
+                           "ORDER BY ended_at, id LIMIT ?", [*margs, want])
+        excess, doomed = total - retention.max_bytes, []
         for i, (rid, ended_at, size) in enumerate(rows):
             too_old = ended_at < now - retention.max_age_s
-            if too_old or (i > 0 and (not keep or total + size > retention.max_bytes)):
-                keep = False  # everything older than a round pruned for size goes too
-                doomed.append(rid)
-            else:
-                total += size
-        out = []
-        for rid in reversed(doomed):  # the oldest first: a prune cut short keeps the newest
-            row = self.get(rid)
-            if row is None:
-                continue
-            if not dry_run:
-                self._remove(rid)
-            out.append(row)
-        if out and not dry_run:
-            log.info("pruned %d replays (%.1f MiB) to keep %s", len(out),
-                     sum(r["bytes"] for r in out) / 2**20, retention.describe())
+            if not (too_old or (excess > 0 and i < n - 1)):
+                break
+            doomed.append(rid)
+            excess -= size
+        out = self._prune_rows(doomed, dry_run, retention.describe())
         self.refresh_usage()
         return out
 
+    def prune_all(self, retention: Retention) -> list[dict[str, Any]]:
+        """``prune`` until nothing more is due (``clothball replays prune``; a server
+        prunes batch by batch in the background instead)."""
+        out: list[dict[str, Any]] = []
+        while True:
+            batch = self.prune(retention)
+            out += batch
+            if len(batch) < PRUNE_BATCH:
+                return out
+
+    def prune_owner(self, retention: Retention, owner: str | None) -> list[dict[str, Any]]:
+        """Removes ``owner``'s oldest rounds (never its newest) until its rounds fit in
+        ``max_owner_bytes``: one owner's excess never costs another owner's rounds."""
+        cap = retention.max_owner_bytes
+        if owner is None or cap is None:
+            return []
+        rows = self._fetch("SELECT id, bytes FROM rounds WHERE owner = ? "
+                           "ORDER BY ended_at DESC, id DESC", [owner])
+        kept, doomed = 0, []
+        for i, (rid, size) in enumerate(rows):
+            if i > 0 and (doomed or kept + size > cap):
+                doomed.append(rid)
+            else:
+                kept += size
+        return self._prune_rows(doomed[::-1], False, f"at most {cap / 2**20:g} MiB of one "
+                                "address's rooms")
+
+    def _prune_rows(self, rids: list[str], dry_run: bool, why: str) -> list[dict[str, Any]]:
+        out = [row for row in (self.get(rid) for rid in rids) if row is not None]
+        if out and not dry_run:
+            self._remove_many([r["id"] for r in out])
+            log.info("pruned %d replays (%.1f MiB) to keep %s", len(out),
+                     sum(r["bytes"] for r in out) / 2**20, why)
+        return out
+
     def _remove(self, rid: str) -> None:
-        """Deletes the round's row and its file, both or neither: the file is renamed
-        aside (``.cbr.del``), the row's deletion committed, then the file removed. If the
-        commit fails the file is put back; after a crash, the next start puts back a file
+        self._remove_many([rid])
+
+    def _remove_many(self, rids: list[str]) -> None:
+        """Deletes the rounds' rows and their files, all or none: the files are renamed
+        aside (``.cbr.del``), the rows' deletion committed, then the files removed. If the
+        commit fails the files are put back; after a crash, the next start puts back a file
         whose row is still there and removes one whose row is gone (``_recover``)."""
-        path = self.replays / f"{rid}.cbr"
-        aside = self.replays / f"{rid}.cbr.del"
+        paths = [(self.replays / f"{rid}.cbr", self.replays / f"{rid}.cbr.del") for rid in rids]
+        keys = [(rid,) for rid in rids]
 
         def remove() -> None:
-            with contextlib.suppress(FileNotFoundError):  # already gone: the row goes
-                os.replace(path, aside)
-            self._x("DELETE FROM round_players WHERE round_id = ?", (rid,))
-            self._x("DELETE FROM rounds WHERE id = ?", (rid,))
+            for path, aside in paths:
+                with contextlib.suppress(FileNotFoundError):  # already gone: the row goes
+                    os.replace(path, aside)
+            self._xmany("DELETE FROM round_players WHERE round_id = ?", keys)
+            self._xmany("DELETE FROM rounds WHERE id = ?", keys)
 
         try:
             self._write(remove)
         except BaseException:
-            if aside.exists() and not path.exists():
-                os.replace(aside, path)
+            for path, aside in paths:
+                if aside.exists() and not path.exists():
+                    os.replace(aside, path)
             raise
-        self._discard(aside)
+        for _, aside in paths:
+            self._discard(aside)
 
     @staticmethod
     def _discard(path: Path) -> None:
@@ -672,7 +743,7 @@ class ReplayStore:
         d["players"] = json.loads(d["players"])
         d["scores"] = json.loads(d["scores"])
         d["private"] = d.pop("access") is not None
-        del d["file"]
+        del d["file"], d["owner"]  # who played is listed; which address made the room, not
         return d
 
     def close(self) -> None:
@@ -704,14 +775,17 @@ def _postgres_ddl() -> list[str]:
     swaps = [(" REAL ", " DOUBLE PRECISION "), ("bytes INTEGER", "bytes BIGINT"),
              ("id TEXT PRIMARY KEY", 'id TEXT COLLATE "C" PRIMARY KEY'),
              ("round_id TEXT NOT NULL", 'round_id TEXT COLLATE "C" NOT NULL'),
-             ("    access TEXT\n);", "    access TEXT,\n    host TEXT\n);"),
+             ("    owner TEXT\n);", "    owner TEXT,\n    host TEXT\n);"),
              (") WITHOUT ROWID;", ");")]
     text = SCHEMA + INDEXES
     for old, new in swaps:
         assert old in text, old
         text = text.replace(old, new)
     out = [s for s in _statements(text) if not s.startswith("CREATE TRIGGER")]
-    return [*out, "CREATE INDEX IF NOT EXISTS rounds_host ON rounds (host, ended_at)"]
+    # A table from before per-owner quotas gets the column before any index names it.
+    owner = OWNER_DDL.replace("ADD COLUMN", "ADD COLUMN IF NOT EXISTS")
+    return [out[0], owner, *out[1:],
+            "CREATE INDEX IF NOT EXISTS rounds_host ON rounds (host, ended_at)"]
 
 
 class PostgresReplayStore(ReplayStore):
@@ -733,7 +807,8 @@ class PostgresReplayStore(ReplayStore):
     def __init__(self, data_dir: Path | str, url: str, *, host: str,
                  retention: Retention | None = None, recover: bool = True,
                  read_only: bool = False, lock_wait_s: float = LOCK_WAIT_S,
-                 max_pending: int = 1000, connect_timeout_s: float = 2.0) -> None:
+                 max_pending: int = 1000, connect_timeout_s: float = 2.0,
+                 prune_at_open: bool = True) -> None:
         import psycopg  # the shared index's driver: needed only with --db
 
         self._pg = psycopg
@@ -754,8 +829,8 @@ class PostgresReplayStore(ReplayStore):
         try:
             if recover:
                 self._recover()
-                if retention is not None:
-                    self.prune(retention)
+                if retention is not None and prune_at_open:
+                    self.prune_all(retention)
             self.refresh_usage()
         except IndexUnavailable:
             self._rescan = recover  # the files the index may lack: indexed once it answers
@@ -962,6 +1037,21 @@ class Storage:
     async def check(self) -> None:
         await self._run(self.check_now)
 
+    async def prune_some(self) -> int:
+        """One batch of the rounds retention does not keep removed (on the writer thread,
+        so saves go on between batches); how many (``PRUNE_BATCH``: more may be due)."""
+        return await self._run(self._prune_now)
+
+    def _prune_now(self) -> int:
+        store = self.store
+        if store is None or store.read_only or self.retention is None:
+            return 0
+        try:
+            return len(store.prune(self.retention))
+        except (OSError, sqlite3.Error, IndexUnavailable) as e:
+            log.warning("pruning the replays failed: %s", e)
+            return 0
+
     async def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]
                    ) -> dict[str, Any]:
         """Records one round (on the writer thread); ``StorageOff`` naming why not."""
@@ -1040,7 +1130,9 @@ class Storage:
                         "ran: recording goes on in a new index there (the rounds listed "
                         "before are gone)", self.dir)
         try:
+            # A backlog over retention is pruned in the background (``prune_some``).
             new = self._open_store(retention=self.retention, lock_wait_s=self.lock_wait_s,
+                                   prune_at_open=False,
                                    recover=first)
             if not first:
                 # Not .tmp files: the rounds being written now are someone's.

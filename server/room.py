@@ -12,7 +12,7 @@ import logging
 import math
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -30,6 +30,8 @@ log = logging.getLogger("clothball.server")
 
 REACH_FRACTION = 0.3  # a hand may move this fraction of the cloth's size from its anchor
 RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
+# s the host's show room steps, with no one in it and no bots, after the rooms were listed
+SHOWN_AWAKE_S = 30.0
 MESH_FANOUT_CHUNK = 8  # connections offered a new MESH per pass of the event loop
 
 
@@ -155,9 +157,14 @@ class Room:
         self._reach_hi = [tuple((a + self.half_extent + 1e-6).tolist()) for a in self.anchors]
         self.created = time.time()
         self.last_active = self.loop.time()
-        # The host's own room (the --bots demo): never closed for idleness, and it steps
-        # even with no one in it, for show.
+        # The host's own room (the --bots demo): never closed for idleness; with no one in
+        # it, it steps while its bots play or for SHOWN_AWAKE_S after the rooms were listed
+        # (its frame counter moves for whoever looks), else it sleeps like any room.
         self.permanent = False
+        self._shown_at: float | None = None
+        # Its publication to a shared directory (``Lobby.create``): its id is given out
+        # once that is done. None: nothing to wait for.
+        self.published: Awaitable[bool] | None = None
         self._task: asyncio.Task[None] | None = None  # the countdown / restart in progress
         self._finishing: set[asyncio.Task[None]] = set()  # rounds' recordings being ended
         self._recording: RoundRecord | None = None
@@ -168,13 +175,26 @@ class Room:
 
     # --- life -----------------------------------------------------------------------------
     def start(self) -> None:
-        self._update_awake()
+        self.update_awake()
         self.sim.start()
 
-    def _update_awake(self) -> None:
+    def update_awake(self) -> None:
         """A room steps while a human holds a seat or someone watches it; else it sleeps
-        (no CPU), except the host's own room (``permanent``: the --bots demo)."""
-        self.sim.set_awake(self.permanent or not self.is_empty())
+        (no CPU), except the host's own room (``permanent``) while bots play in it or for a
+        while after the rooms were listed (``shown``)."""
+        awake = not self.is_empty()
+        if self.permanent and not awake:
+            shown = self._shown_at is not None and \
+                self.loop.time() - self._shown_at < SHOWN_AWAKE_S
+            awake = shown or any(s.kind == "bot" for s in self.seats)
+        if awake == self.sim.asleep:
+            self.sim.set_awake(awake)
+
+    def shown(self) -> None:
+        """Someone listed the rooms: the host's show room steps for ``SHOWN_AWAKE_S``."""
+        if self.permanent:
+            self._shown_at = self.loop.time()
+            self.update_awake()
 
     async def close(self) -> None:
         self._closed = True
@@ -248,7 +268,7 @@ class Room:
 
     def broadcast_state(self) -> None:
         # Every change of who is in the room comes through here.
-        self._update_awake()
+        self.update_awake()
         self.broadcast({"type": "room", **self.info()})
 
     def event(self, kind: str, /, **fields: Any) -> None:

@@ -15,7 +15,8 @@ import logging
 import socket
 import time
 import urllib.parse
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from websockets.asyncio.server import ServerConnection
@@ -25,7 +26,7 @@ from ..game.net.fastpath import BinaryHook
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from .conn import Conn
-from .directory import Moved
+from .directory import IO_TIMEOUT_S, Moved, NotInView
 from .limits import Limits
 from .lobby import Lobby, parse_settings
 from .room import Room
@@ -72,6 +73,18 @@ def hello_joins(msg: dict[str, Any]) -> bool:
     return role != "lobby" or "token" in msg
 
 
+@dataclass
+class Later:
+    """A handler's reply that waits, that connection alone, for ``wait`` (a new room's
+    publication to the shared directory), then is ``reply()``."""
+
+    wait: Awaitable[Any]
+    reply: Callable[[], dict[str, Any] | None]
+
+
+Reply = dict[str, Any] | Later | None  # what a handler returns
+
+
 def token_room(token: str) -> str | None:
     """The room a reconnect token was given in (``Room._new_token``: id, dot, secret);
     None for a token of another form."""
@@ -96,7 +109,7 @@ class WsEndpoint:
 
     def __init__(self, srv: WsHost) -> None:
         self.srv = srv
-        self.handlers: dict[str, Callable[[Conn, dict[str, Any]], dict[str, Any] | None]] = {
+        self.handlers: dict[str, Callable[[Conn, dict[str, Any]], Reply]] = {
             "hello": self._msg_hello,
             "ping": self._msg_ping,
             "list_rooms": self._msg_list_rooms,
@@ -150,11 +163,12 @@ class WsEndpoint:
             async for message in ws:
                 self.srv.stats["messages_in"] += 1
                 conn.received += 1
-                conn.last_in = time.monotonic()
                 if isinstance(message, bytes):
                     self._on_binary(conn, message)
                 else:
-                    self._on_text(conn, message)
+                    waiting = self._on_text(conn, message)
+                    if waiting is not None:  # the directory: this client's next message waits
+                        await waiting
                 if conn.closed:
                     break
         except ConnectionClosed:
@@ -173,16 +187,17 @@ class WsEndpoint:
             await conn.finish()
 
     async def sweep_idle(self) -> None:
-        """Closes lobby connections that have sent nothing for ``Limits.lobby_idle_s``
-        (1008, saying so), so that idle clients cannot hold the server's slots; players and
-        spectators are not idle in this sense (they watch). Runs until the server stops."""
+        """Closes lobby connections that have sent no request (pings and binary messages do
+        not count) for ``Limits.lobby_idle_s`` (1008, saying so), so that idle clients
+        cannot hold the server's slots; players and spectators are not idle in this sense
+        (they watch). Runs until the server stops."""
         while True:
             limit = self.srv.limits.lobby_idle_s
             await asyncio.sleep(min(5.0, limit / 4))
             now = time.monotonic()
             for c in list(self.srv.clients):
                 if c.role == "lobby" and c.hello_done and now - c.last_in > limit:
-                    c.drop(f"idle: nothing sent for {limit:g} s in the lobby")
+                    c.drop(f"idle: no request but pings for {limit:g} s in the lobby")
 
     async def _hello(self, conn: Conn, first: str | bytes) -> bool:
         """The first message must be a hello. True when the connection may go on."""
@@ -213,6 +228,7 @@ class WsEndpoint:
             conn.error(e)
             return False
         conn.hello_done = True
+        self.srv.lobby.shown()
         conn.send_json({
             "type": "welcome",
             "version": P.PROTOCOL_VERSION,
@@ -224,10 +240,12 @@ class WsEndpoint:
             "re": re,
         })
         if joins:  # hello may carry a join: the same fields as a join message
-            self._on_control(conn, {**msg, "type": "join"})
+            waiting = self._on_control(conn, {**msg, "type": "join"})
+            if waiting is not None:
+                await waiting
         return True
 
-    def _on_text(self, conn: Conn, text: str) -> None:
+    def _on_text(self, conn: Conn, text: str) -> Awaitable[None] | None:
         if not conn.control_bucket.take():
             self.srv.stats["bad_messages"] += 1
             conn.error("rate_limited", f"at most {conn.control_bucket.rate:g} control "
@@ -240,8 +258,8 @@ class WsEndpoint:
         except ProtocolError as e:
             self.srv.stats["bad_messages"] += 1
             conn.error(e)
-            return
-        self._on_control(conn, msg)
+            return None
+        return self._on_control(conn, msg)
 
     def _on_binary_now(self, conn: Conn, data: bytes) -> None:
         """A binary message handed over by ``Connection`` as it arrives: what the read loop
@@ -250,7 +268,6 @@ class WsEndpoint:
             return
         self.srv.stats["messages_in"] += 1
         conn.received += 1
-        conn.last_in = time.monotonic()
         try:
             self._on_binary(conn, data)
         except Exception:  # pragma: no cover - a bug: like a failing handler, close 1011
@@ -275,19 +292,40 @@ class WsEndpoint:
             self.srv.stats["bad_messages"] += 1
             conn.error(e)
 
-    def _on_control(self, conn: Conn, msg: dict[str, Any]) -> None:
+    def _on_control(self, conn: Conn, msg: dict[str, Any]) -> Awaitable[None] | None:
+        """Answers a control message; an awaitable when the answer waits for the shared
+        directory (the caller awaits it before reading the client's next message)."""
         t = msg["type"]
+        if t != "ping":  # a keep-alive is not activity (Limits.lobby_idle_s)
+            conn.last_in = time.monotonic()
         handler = self.handlers.get(t)
-        re = None
         try:
             re = P.request_id(msg)  # a bad id is refused before anything is done
+        except ProtocolError as e:
+            self.srv.stats["bad_messages"] += 1
+            conn.error(e)
+            return None
+
+        def call() -> Reply:
             if handler is None:
                 raise ProtocolError("unknown_type", f"unknown message type {t!r}")
-            reply = handler(conn, msg)
+            return handler(conn, msg)
+
+        return self._answer(conn, re, call)
+
+    def _answer(self, conn: Conn, re: object, call: Callable[[], Reply]
+                ) -> Awaitable[None] | None:
+        try:
+            reply = call()
+            if isinstance(reply, Later):
+                return self._answer_later(conn, re, reply.wait, reply.reply, fresh=False)
+        except NotInView:  # a room made elsewhere since the last read: asked once it is read
+            assert self.srv.lobby.fresh_view is not None
+            return self._answer_later(conn, re, self.srv.lobby.fresh_view(), call, fresh=True)
         except ProtocolError as e:
             self.srv.stats["bad_messages"] += 1
             conn.error(e, re=re)
-            return
+            return None
         except Moved as m:  # the room lives elsewhere: the client sends this request there
             reply = {"type": "redirect", "url": self._as_seen_by(conn, m.url),
                      "reason": m.reason}
@@ -299,6 +337,23 @@ class WsEndpoint:
             if re is not None:
                 reply["re"] = re
             conn.send_json(reply)
+        return None
+
+    async def _answer_later(self, conn: Conn, re: object, wait: Awaitable[Any],
+                            call: Callable[[], Reply], fresh: bool
+                            ) -> None:
+        try:
+            async with asyncio.timeout(3 * IO_TIMEOUT_S):
+                await wait
+        except Exception:  # away or slow: answered from the view as it is
+            pass
+        if conn.closed:
+            return
+        if fresh:
+            with self.srv.lobby.viewed_fresh():
+                self._answer(conn, re, call)
+        else:
+            self._answer(conn, re, call)
 
     # --- control messages (the table in __init__ names them) -----------------------------
     def _msg_hello(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
@@ -309,13 +364,20 @@ class WsEndpoint:
         return {"type": "pong", "t": t, "server_time": time.perf_counter() - self.srv.epoch}
 
     def _msg_list_rooms(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+        self.srv.lobby.shown()
         return self.srv.lobby.rooms_message()
 
-    def _msg_create_room(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any]:
+    def _msg_create_room(self, conn: Conn, msg: dict[str, Any]) -> dict[str, Any] | Later:
         name = P.field_str(msg, "name", "room", max_len=48) or "room"
         scene = P.field_str(msg, "scene", None, max_len=64)
         public = P.field_bool(msg, "public", True)
         settings = parse_settings(msg)
+        cap = self.srv.limits.record_cap_max_s
+        if settings.record_cap_s > cap:
+            if "record_cap_s" in msg:
+                raise ProtocolError("bad_message", f"record_cap_s {settings.record_cap_s:g} "
+                                    f"is over this server's limit of {cap:g} s")
+            settings.record_cap_s = cap
         self.srv.lobby.scene_name(scene)  # a bad request is refused here, not sent on
         # Moved: another process or host takes new rooms now (unless one sent it here). The
         # asking client is not counted: it leaves with the request.
@@ -327,7 +389,8 @@ class WsEndpoint:
                                 f"(limit {self.srv.limits.rooms_per_address}); close one first")
         room = self.srv.lobby.create(name, scene, public=public, settings=settings, owner=conn.id,
                                  address=conn.address)
-        return {"type": "room_created", "room": room.id, "code": room.code, "state": room.info()}
+        reply = {"type": "room_created", "room": room.id, "code": room.code, "state": room.info()}
+        return reply if room.published is None else Later(room.published, lambda: reply)
 
     def _room_options(self, conn: Conn, msg: dict[str, Any]) -> None:
         rate = P.field_float(msg, "corner_rate", 1000.0, 1.0, 1000.0)

@@ -30,6 +30,7 @@ from typing import Any
 from ...server import loops
 from ...server.app import GameServer, default_data_dir
 from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
+from ...server.headroom import usable_cores
 from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ..sim.scene import Scene, SceneError
@@ -70,7 +71,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              f"(default: one per core, here {os.cpu_count() or 1})")
     parser.add_argument("--cluster", type=redis_url, default=None, metavar="redis://HOST:PORT/DB",
                         help="join the hosts sharing this Redis as one service: one lobby, "
-                             "rooms placed on the least-loaded host (docs/cluster.md)")
+                             "rooms placed on the least-loaded host (docs/cluster.md); a "
+                             "Redis that does not answer at start is an error")
+    parser.add_argument("--cluster-optional", action="store_true",
+                        help="with --cluster: when its Redis does not answer at start, run "
+                             "standalone (saying so) instead of stopping")
     parser.add_argument("--advertise", type=ws_url, default=None, metavar="ws://HOST:PORT/ws",
                         help="the address other hosts give out for this host's rooms "
                              "(default: the listen address)")
@@ -102,9 +107,23 @@ async def serve(args: argparse.Namespace) -> int:
     settings = RoomSettings(first_to=args.first_to, autoplay=True)
     worker = args.worker_index
     directory: Directory | None = None
+    clustered = False
     if args.cluster:
-        directory = RedisDirectory(args.cluster)
-    elif worker is not None:
+        redis_dir = RedisDirectory(args.cluster)
+        try:
+            await asyncio.to_thread(redis_dir.check)
+            directory, clustered = redis_dir, True
+        except ValueError as e:
+            redis_dir.close()
+            where = _without_password(args.cluster)
+            if not args.cluster_optional:
+                print(f"clothball host: the cluster's Redis at {where} does not answer ({e}); "
+                      "start it, fix --cluster, or add --cluster-optional to run standalone",
+                      flush=True)
+                return 1
+            print(f"NOT in a cluster: the Redis at {where} does not answer ({e}); running "
+                  "standalone (--cluster-optional)", flush=True)
+    if directory is None and worker is not None:
         directory = SqliteDirectory(args.rooms_file or Path(data) / DIRECTORY_FILE)
     server = GameServer(data, scenes=scenes, backend=args.backend, host=args.host,
                         port=0 if worker is not None else args.port,
@@ -144,8 +163,9 @@ async def serve(args: argparse.Namespace) -> int:
         state = server.storage.index_error or "reachable"
         print(f"replay index in {_without_password(args.db)} ({state}), shared with the "
               f"other hosts; this host's files named as {server.advertised_http_url}")
-    if args.cluster:
-        print(f"in the cluster at {args.cluster} as {server.advertised_url}")
+    if clustered:
+        print(f"in the cluster at {_without_password(args.cluster)} as "
+              f"{server.advertised_url}")
     await _until_stopped()
     print("stopping: finishing the writes in progress...")
     await server.stop()
@@ -254,6 +274,9 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
     data = Path(args.data or default_data_dir())
     rooms_file, spare = _rooms_file(data)
     base = [sys.executable, "-m", "clothball.game.cli", *args.argv]
+    if not any(s.replace("-", "_").startswith("admit_cores=") for s in args.limit):
+        # Admission: each process's rooms may use its share of the machine's cores.
+        base += ["--limit", f"admit_cores={usable_cores() / workers:.3g}"]
     procs = [_Worker(k, [*base, "--data", str(data), "--port", str(port), "--workers", "1",
                          "--worker-index", str(k), "--shared-port", str(port),
                          "--rooms-file", str(rooms_file)])

@@ -110,7 +110,7 @@ def _list(store: ReplayStore, args: argparse.Namespace) -> int:
 
 def _prune(store: ReplayStore, args: argparse.Namespace) -> int:
     keep = Retention(int(args.max_mib * 2**20), args.max_days * 86400.0)
-    gone = store.prune(keep, dry_run=args.dry_run)
+    gone = store.prune(keep, dry_run=args.dry_run, limit=None)
     for r in gone:
         print(("would remove " if args.dry_run else "removed ") + _line(r))
     mib = sum(r["bytes"] for r in gone) / 2**20

@@ -97,7 +97,7 @@ def no_admission(limits: Limits | None) -> Limits:
     """The limits with admission control off: a test of something else must not depend on
     how much spare capacity a loaded test machine has (tests/server/test_admission.py tests
     admission, with the default)."""
-    return (limits or Limits()).replace(admit_lateness_ms=0.0)
+    return (limits or Limits()).replace(admit_lateness_ms=0.0, admit_load=0.0)
 
 
 # --- a server on a thread, for blocking test code, with the errors it logs ---------------

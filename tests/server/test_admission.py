@@ -24,7 +24,10 @@ def test_rooms_are_refused_once_the_server_measures_itself_at_capacity(tmp_path)
     async def main() -> None:
         srv = GameServer(tmp_path, scenes={"heavy": HEAVY, "tiny": TINY}, backend="cpu",
                          port=0, default_room=False,
-                         limits=Limits().replace(rooms_per_address=16, max_rooms=16),
+                         # The measured signal alone (the cost model refuses the second
+                         # heavy room at once: test_hostile_load.py).
+                         limits=Limits().replace(rooms_per_address=16, max_rooms=16,
+                                                 admit_load=0),
                          room_settings=RoomSettings())
         await srv.start()
         clients = []
