@@ -568,8 +568,9 @@ class Room:
         if result.corners:
             self.frame, self.server_time = result.frame, result.server_time
             for s in self.seats:
-                if s.conn is not None:
-                    s.conn.offer_corner(result.corners[s.index], result.server_time)
+                corner = result.corners[s.index]
+                if s.conn is not None and corner is not None:
+                    s.conn.offer_corner(corner, result.server_time)
         if result.mesh is not None:
             self._fan_out_mesh(result.mesh, self.conns(), 0)
         if result.sim_error is not None:

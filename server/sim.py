@@ -58,10 +58,12 @@ class FrameResult:
 
     frame: int
     server_time: float
-    corners: list[bytes]  # one CORNER message per seat
+    corners: list[bytes | None]  # one CORNER message per seat (None: not for its occupant)
     mesh: bytes | None = None  # newest MESH message, when one was made since the last delivery
     exit: tuple[int, int, list[float]] | None = None  # (edge, frame, ball position)
     sim_error: str | None = None
+    # Per seat, the occupant the CORNER's HIP echo belongs to (RoomSim.set_hip's count).
+    occupants: tuple[int, ...] = ()
 
     def merge_older(self, prev: FrameResult) -> None:
         """Coalesce: keep this (newer) frame, but never lose a mesh, an exit or an error."""
@@ -146,8 +148,13 @@ class RoomSim:
         self.mesh_every = max(1, round(1.0 / (mesh_hz * self.frame_dt)))
         self.track_every = max(1, round(1.0 / (track_hz * self.frame_dt)))
         self._deliver = deliver
-        self._hip_slots: list[tuple[Any, int, float] | None] = [None] * 4
+        self._hip_slots: list[tuple[Any, int, float, int] | None] = [None] * 4
         self._applied: list[tuple[int, float]] = [(0, math.nan)] * 4
+        # Per seat, how many times its hand was cleared (an occupant left): a CORNER made
+        # from an earlier occupant's HIP is not given to the next one (docs/protocol.md:
+        # `seq` is the last HIP the server applied for this seat).
+        self._occupant = [0] * 4
+        self._applied_occupant = [0] * 4
         self._awake = True
         self._stopped = threading.Event()
         self.stats = SimStats()
@@ -207,8 +214,18 @@ class RoomSim:
     def set_hip(self, seat: int, position: Any, seq: int = 0,
                 client_time: float = math.nan) -> None:
         """The latest hand position for a seat, three floats (an array or a tuple; None:
-        the corner rests at its anchor)."""
-        self._hip_slots[seat] = None if position is None else (position, seq, client_time)
+        the corner rests at its anchor, and the seat's occupant changed: its HIP echo
+        starts again from seq 0)."""
+        if position is None:
+            self._occupant[seat] += 1
+            self._hip_slots[seat] = None
+        else:
+            self._hip_slots[seat] = (position, seq, client_time, self._occupant[seat])
+
+    def hip_echo(self, seat: int) -> tuple[int, float]:
+        """The (seq, client time) of the seat's HIP the newest frame applied (0, NaN: none
+        since its occupant took it), as its CORNER echoes them."""
+        return self._applied[seat]
 
     def command(self, name: str, arg: Any = None) -> None:
         """Queue a command for the worker: ``reset_ball`` ((pos, vel)), ``arm``, ``disarm``,
@@ -250,10 +267,16 @@ class RoomSim:
     def fill_hips(self, out: np.ndarray) -> None:
         """This frame's hands into ``out`` (4, 3): the newest HIP per seat, else the anchor."""
         out[:] = self.anchors
-        for s, slot in enumerate(self._hip_slots):
-            if slot is not None:
+        for s in range(4):
+            occupant = self._occupant[s]  # read before the slot: see set_hip
+            slot = self._hip_slots[s]
+            if slot is None:
+                self._applied[s] = (0, math.nan)
+                self._applied_occupant[s] = occupant
+            else:
                 out[s] = slot[0]
                 self._applied[s] = (slot[1], slot[2])
+                self._applied_occupant[s] = slot[3]
 
     def woke(self) -> None:
         """Pace from now, a mesh at once; the slept time is not replayed."""
@@ -272,7 +295,8 @@ class RoomSim:
         pl, bpl = pos.tolist(), bp.tolist()
         corners = P.encode_corners(frame, server_time, pl, vel.tolist(), force.tolist(),
                                    self.stiffness, bpl, bv.tolist(), self._applied)
-        result = FrameResult(frame, server_time, corners)
+        result = FrameResult(frame, server_time, corners,
+                             occupants=tuple(self._applied_occupant))
         if self.has_ball:
             if self._armed:
                 # Plain floats and a cheap exact pre-test: the full test (NumPy, ~30 us)
@@ -297,6 +321,9 @@ class RoomSim:
 
     def deliver(self, result: FrameResult) -> None:
         if self._deliver is not None and not self._stopped.is_set():
+            for s, occupant in enumerate(result.occupants):
+                if occupant != self._occupant[s]:  # made before the seat changed hands
+                    result.corners[s] = None
             self._deliver(result)
 
 
