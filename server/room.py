@@ -31,6 +31,8 @@ log = logging.getLogger("clothball.server")
 REACH_FRACTION = 0.3  # a hand may move this fraction of the cloth's size from its anchor
 RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
 MESH_FANOUT_CHUNK = 8  # connections offered a new MESH per pass of the event loop
+# s between deliveries of a room no player sits in (the native loop; spectators get MESH)
+IDLE_CORNER_INTERVAL = 0.01
 
 
 class Peer(Protocol):
@@ -167,6 +169,13 @@ class Room:
         (no CPU), except the host's own room (``permanent``: the --bots demo)."""
         self.sim.set_awake(self.permanent or not self.is_empty())
 
+    def _update_corner_interval(self) -> None:
+        """The native frame loop wakes this room at its fastest player's CORNER rate
+        (``corner_rate``), else at ``IDLE_CORNER_INTERVAL`` (the room's frame for its
+        events; exits and failures wake it at once)."""
+        rates = [s.conn.corner_interval for s in self.seats if s.conn is not None]
+        self.sim.corner_interval = min(rates) if rates else IDLE_CORNER_INTERVAL
+
     async def close(self) -> None:
         self._closed = True
         if self._task is not None:
@@ -240,10 +249,11 @@ class Room:
     def broadcast_state(self) -> None:
         # Every change of who is in the room comes through here.
         self._update_awake()
+        self._update_corner_interval()
         self.broadcast({"type": "room", **self.info()})
 
     def event(self, kind: str, /, **fields: Any) -> None:
-        msg = {"type": "event", "event": kind, "room": self.id, "frame": self.frame,
+        msg = {"type": "event", "event": kind, "room": self.id, "frame": self.sim.frame,
                "time": self.sim.now(), **fields}
         self.broadcast(msg)
         self.sim.command("record_event", P.encode_json(msg).encode())  # kept if recording
