@@ -21,7 +21,7 @@ import math
 import os
 import queue
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -30,12 +30,13 @@ from ..game.sim.stability import substep_speed_limits
 from ..game.wire import protocol as P
 from .frames import FrameResult
 
-if TYPE_CHECKING:
-    from .sim import RoomSim, SimPool, SimWorker
+# server.sim makes the workers and imports this module: its types (SimPool, SimWorker,
+# RoomSim) are named here only as strings, without an import (no cycle).
+RoomSim = SimPool = SimWorker = Any
 
 log = logging.getLogger("clothball.server")
 
-FRAME_LOOP_ENV = "CLOTHBALL_FRAME_LOOP"  # "native" (default) or "python" (sim.SimWorker)
+FRAME_LOOP_ENV = "CLOTHBALL_FRAME_LOOP"  # "python" (default: sim.SimWorker) or "native"
 LAYOUT: dict[str, Any] = _native.frame_block_layout()
 EVENT = LAYOUT["events"]
 
@@ -58,7 +59,7 @@ ROOM_OUT_DTYPE = _dtype([f for f in LAYOUT["room"]
 
 def frame_loop_wanted() -> bool:
     """Whether sim workers run the native frame loop (``CLOTHBALL_FRAME_LOOP``)."""
-    v = os.environ.get(FRAME_LOOP_ENV, "native").strip().lower()
+    v = os.environ.get(FRAME_LOOP_ENV, "python").strip().lower()
     if v not in ("native", "python"):
         raise ValueError(f"{FRAME_LOOP_ENV} must be 'native' or 'python', got {v!r}")
     return v == "native"
@@ -317,6 +318,8 @@ class NativeWorker:
     def _room_events(self, room: RoomSim, slot: int, bits: int) -> None:
         rec = np.frombuffer(self._loop.read_room(slot), dtype=ROOM_OUT_DTYPE)[0]
         frame, server_time = int(rec["frame"]), float(rec["server_time"])
+        if frame <= room.delivered and not bits & (EVENT["exit"] | EVENT["failed"]):
+            return  # this frame was delivered by an earlier wake-up
         applied = [(int(q), float(t)) for q, t in zip(rec["applied_seq"].tolist(),
                                                       rec["applied_time"].tolist(),
                                                       strict=True)]
@@ -340,6 +343,9 @@ class NativeWorker:
             result = FrameResult(fail, server_time, [], sim_error=room.error)
         if room.slot is not None:  # the next CORNER is due one interval on (inf: none wanted)
             self._loop.set_corner_due(slot, server_time + room.corner_interval)
+        if frame <= room.delivered:  # an exit or failure of a frame delivered already
+            result.corners, result.occupants = [], ()
+        room.delivered = max(room.delivered, frame)
         room.deliver(result)
 
     # --- the service thread: recordings, tracks, meshes -----------------------------------
@@ -359,7 +365,11 @@ class NativeWorker:
                 room, name, arg = self._inbox.get_nowait()
             except queue.Empty:
                 return
-            room.apply(name, arg)
+            try:
+                room.apply(name, arg)
+            except OSError as e:  # e.g. a spool that cannot be removed: the others go on
+                log.warning("room command %s failed: %s", name, e)
+                continue
             if room.slot is not None and name in ("record_start", "record_stop", "remove"):
                 self._loop.set_recording(room.slot, bool(room._recordings))
             if name == "record_start" and room.slot is not None:

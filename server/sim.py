@@ -116,6 +116,7 @@ class RoomSim:
         # s between this room's CORNER deliveries on the native loop (0: every frame; inf:
         # none wanted); the Python loop delivers every pass.
         self.corner_interval = 0.0
+        self.delivered = -1  # the newest frame the native loop delivered
         self.worker: Any = pool.worker_for(scene, backend, room=self)
         self._native = getattr(self.worker, "native", False)
         self.backend = self.worker.batch.backend
