@@ -10,6 +10,7 @@ import math
 import time
 
 import numpy as np
+import pytest
 from clothball import _native
 from clothball.game.rules import exit_edge
 from clothball.game.sim.cloth import corners_of, rest_positions
@@ -18,6 +19,12 @@ from clothball.server import frameloop
 from clothball.server.sim import RoomSim, SimPool
 
 from tests.server.conftest import TINY, run, until
+
+
+@pytest.fixture(autouse=True)
+def native_loop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These tests are of the native loop, whatever the default."""
+    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
 
 
 def _random_states(rng: np.random.Generator, count: int):
