@@ -183,11 +183,16 @@ void FrameLoop::set_corner_due(int slot, double server_time) {
 }
 
 int FrameLoop::take_events(std::vector<int>& slots, std::vector<std::uint32_t>& bits) {
-  // Cleared first: an event set after this read writes the eventfd again.
-  store(signalled_, std::uint32_t(0));
+  // The eventfd drained first, then the flag cleared, then the rooms read: an event set
+  // after the flag is cleared writes the eventfd again (and is read now or on that wake-up);
+  // one set before it is in the rooms read below. (Clearing the flag before draining could
+  // swallow a write whose events this read has taken and leave the flag set: no wake-up
+  // ever again.)
   std::uint64_t drained;
   while (read(efd_, &drained, sizeof(drained)) > 0) {
   }
+  store(signalled_, std::uint32_t(0));
+  fence();
   slots.clear();
   bits.clear();
   for (int s = 0; s < cap_; ++s) {
