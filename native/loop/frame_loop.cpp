@@ -3,6 +3,7 @@
 
 #include <sys/eventfd.h>
 #include <sys/mman.h>
+#include <sys/resource.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -50,13 +51,21 @@ FrameLoop::FrameLoop(Batch& batch, LoopConfig cfg)
   if (cfg_.fixed_substeps <= 0 && cfg_.substep_speeds.empty())
     throw std::invalid_argument("automatic substeps need substep_speeds");
   bytes_ = block_bytes(cap_);
-  // A memfd, so that another process may map the same block (docs/frameloop.md).
-  memfd_ = int(memfd_create("clothball-frames", MFD_CLOEXEC));
-  if (memfd_ < 0 || ftruncate(memfd_, off_t(bytes_)) != 0)
-    throw std::runtime_error(std::string("frame block: ") + std::strerror(errno));
-  base_ = mmap(nullptr, bytes_, PROT_READ | PROT_WRITE, MAP_SHARED, memfd_, 0);
+  // A memfd, so that another process may map the same block (docs/frameloop.md), unless
+  // the process may not make a file that large (RLIMIT_FSIZE: growing it would raise
+  // SIGXFSZ): then shared anonymous memory, the same layout, no fd.
+  rlimit fsize{};
+  getrlimit(RLIMIT_FSIZE, &fsize);
+  if (fsize.rlim_cur == RLIM_INFINITY || fsize.rlim_cur >= rlim_t(bytes_)) {
+    memfd_ = int(memfd_create("clothball-frames", MFD_CLOEXEC));
+    if (memfd_ < 0 || ftruncate(memfd_, off_t(bytes_)) != 0)
+      throw std::runtime_error(std::string("frame block: ") + std::strerror(errno));
+  }
+  base_ = memfd_ >= 0
+              ? mmap(nullptr, bytes_, PROT_READ | PROT_WRITE, MAP_SHARED, memfd_, 0)
+              : mmap(nullptr, bytes_, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
   if (base_ == MAP_FAILED) {
-    close(memfd_);
+    if (memfd_ >= 0) close(memfd_);
     throw std::runtime_error(std::string("frame block mmap: ") + std::strerror(errno));
   }
   auto* bytes = static_cast<unsigned char*>(base_);
