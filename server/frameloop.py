@@ -28,7 +28,7 @@ import numpy as np
 from .. import _native  # type: ignore[attr-defined]
 from ..game.sim.stability import substep_speed_limits
 from ..game.wire import protocol as P
-from .frames import FrameResult
+from .frames import FrameResult, Samples
 
 # server.sim makes the workers and imports this module: its types (SimPool, SimWorker,
 # RoomSim) are named here only as strings, without an import (no cycle).
@@ -36,7 +36,7 @@ RoomSim = SimPool = SimWorker = Any
 
 log = logging.getLogger("clothball.server")
 
-FRAME_LOOP_ENV = "CLOTHBALL_FRAME_LOOP"  # "python" (default: sim.SimWorker) or "native"
+FRAME_LOOP_ENV = "CLOTHBALL_FRAME_LOOP"  # "native" (default) or "python" (sim.SimWorker)
 LAYOUT: dict[str, Any] = _native.frame_block_layout()
 EVENT = LAYOUT["events"]
 
@@ -59,45 +59,34 @@ ROOM_OUT_DTYPE = _dtype([f for f in LAYOUT["room"]
 
 def frame_loop_wanted() -> bool:
     """Whether sim workers run the native frame loop (``CLOTHBALL_FRAME_LOOP``)."""
-    v = os.environ.get(FRAME_LOOP_ENV, "python").strip().lower()
+    v = os.environ.get(FRAME_LOOP_ENV, "native").strip().lower()
     if v not in ("native", "python"):
         raise ValueError(f"{FRAME_LOOP_ENV} must be 'native' or 'python', got {v!r}")
     return v == "native"
 
 
-class RingSamples:
-    """The engine's lateness ring in the block, with ``sim.Samples``' reading API: the
-    newest samples since the start, or since ``clear()`` (which moves this view's start;
-    each view, the worker's and each room's, has its own)."""
+class RingSamples(Samples):
+    """The engine's lateness ring in the block, read as ``Samples``: the newest samples
+    since the start, or since ``clear()`` (which moves this view's start; each view, the
+    worker's and each room's, has its own). The loop appends; this view only reads."""
 
     def __init__(self, engine: np.ndarray) -> None:
-        self._count = engine["lateness_count"]  # views of the EngineRecord (one element)
-        self._ring = engine["lateness"][0]
-        self._base = self._total()
+        self._total = engine["lateness_count"]  # views of the EngineRecord (one element)
+        self._a = engine["lateness"][0]
+        self._base = self._end()
 
-    def _total(self) -> int:
-        return int(self._count[0])
+    def _end(self) -> int:
+        return int(self._total[0])
 
     @property
-    def count(self) -> int:
-        return self._total() - self._base
+    def count(self) -> int:  # type: ignore[override]
+        return self._end() - self._base
 
-    def __len__(self) -> int:
-        return min(self.count, len(self._ring))
-
-    def since(self, count: int) -> np.ndarray:
-        n = min(self.count - count, len(self)) if count <= self.count else len(self)
-        return self.newest(n)
-
-    def newest(self, n: int | None = None) -> np.ndarray:
-        total = self._total()
-        k = min(total - self._base, len(self._ring))
-        k = k if n is None else max(0, min(n, k))
-        idx = np.arange(total - k, total) % len(self._ring)
-        return self._ring[idx].copy()
+    def append(self, value: float) -> None:
+        raise TypeError("the frame loop appends lateness samples; this view only reads")
 
     def clear(self) -> None:
-        self._base = self._total()
+        self._base = self._end()
 
 
 class NativeStats:

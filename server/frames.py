@@ -52,9 +52,14 @@ class Samples:
         n = min(self.count - count, len(self)) if count <= self.count else len(self)
         return self.newest(n)
 
+    def _end(self) -> int:
+        """The ring position after the newest sample, counted from the ring's start."""
+        return self.count
+
     def newest(self, n: int | None = None) -> np.ndarray:
         k = len(self) if n is None else max(0, min(n, len(self)))
-        idx = np.arange(self.count - k, self.count) % len(self._a)
+        end = self._end()
+        idx = np.arange(end - k, end) % len(self._a)
         return self._a[idx]
 
     def clear(self) -> None:

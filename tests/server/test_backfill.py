@@ -4,19 +4,27 @@ may take; a seat held by a human is never taken."""
 
 from __future__ import annotations
 
+from typing import Any
+
 from clothball.game.net.client import NetClient, ServerError
 from clothball.server.room import RoomSettings
 
 from tests.server.conftest import run, server, until
 
 
+async def four_bots_seated(srv: Any) -> Any:
+    """The demo room of a server started with four bots, once they all sit in it."""
+    room = srv.main_room
+    assert room is not None
+    await until(lambda: all(s.kind == "bot" and s.connected for s in room.seats), 20,
+                "four bots seated")
+    return room
+
+
 def test_a_human_takes_a_bots_seat_in_the_demo_room(tmp_path) -> None:
     async def main() -> None:
         async with server(tmp_path, bots=4, settings=RoomSettings(autoplay=True)) as srv:
-            room = srv.main_room
-            assert room is not None
-            await until(lambda: all(s.kind == "bot" and s.connected for s in room.seats), 20,
-                        "four bots seated")
+            room = await four_bots_seated(srv)
             lobby = await NetClient.connect(srv.ws_url)
             listed = (await lobby.request("list_rooms"))["rooms"][0]["seats"]
             assert [s["open"] for s in listed] == [True] * 4  # every bot's corner can be taken
@@ -58,10 +66,7 @@ def test_the_first_corner_after_taking_a_bots_seat_echoes_no_hip_of_the_bot(tmp_
 
     async def main() -> None:
         async with server(tmp_path, bots=4, settings=RoomSettings(autoplay=True)) as srv:
-            room = srv.main_room
-            assert room is not None
-            await until(lambda: all(s.kind == "bot" and s.connected for s in room.seats), 20,
-                        "four bots seated")
+            room = await four_bots_seated(srv)
             # the bots' HIPs are being applied (their seq echoes in the room's corners)
             await until(lambda: room.sim.hip_echo(0)[0] > 0, 10, "the bot's HIPs applied")
             ann = await NetClient.connect(srv.ws_url, name="ann")
