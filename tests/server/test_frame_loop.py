@@ -98,13 +98,14 @@ def test_the_block_layout_is_the_bindings_and_the_block_says_so() -> None:
         pool.close()
 
 
-def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball() -> None:
+def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backend: str) -> None:
+    """On each backend (CUDA: the batch's graph a frame and its gather copy for meshes)."""
     async def main() -> None:
         got: list = []
         pool = SimPool()
-        sim = RoomSim(TINY, "cpu", pool=pool, deliver=got.append)
+        sim = RoomSim(TINY, backend, pool=pool, deliver=got.append)
         try:
-            assert sim._native
+            assert sim._native and sim.backend == backend
             sim.start()
             hand = sim.anchors[1] + np.array([0.0, 0.05, 0.0])
             sim.set_hip(1, hand, 7, 12.5)
@@ -127,7 +128,10 @@ def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball() -> 
             assert sim.frame == f
             sim.set_awake(True)
             await until(lambda: sim.frame > f + 50, 10, "awake again")
-            await until(lambda: sim.stats.meshes > 0, 10, "a mesh")
+            await until(lambda: any(r.mesh for r in got), 10, "a mesh")
+            mesh = P.decode_mesh([r.mesh for r in got if r.mesh][-1])
+            assert mesh.positions.shape == (TINY.n, TINY.n, 3)
+            assert np.all(np.isfinite(mesh.positions)) and sim.stats.meshes > 0
         finally:
             sim.stop()
             pool.close()
