@@ -169,7 +169,8 @@ def test_meshes_come_from_the_loop_for_every_room_at_its_rate() -> None:
 
 def test_a_stalled_event_loop_loses_no_frames_and_gets_the_newest_late() -> None:
     """The event loop blocks 200 ms: the native loop keeps pace (frames advance, none
-    skipped); the stall shows as one late delivery of the newest frame."""
+    skipped); the stall shows as one late delivery of the newest frame, and an exit found
+    during it is delivered after it, not lost."""
     async def stall() -> None:
         pool = SimPool()
         got: list = []
@@ -180,11 +181,22 @@ def test_a_stalled_event_loop_loses_no_frames_and_gets_the_newest_late() -> None
             skipped0 = sim.stats.skipped_frames
             f0 = sim.frame
             delivered0 = max(r.frame for r in got if r.corners)
+            # a ball below the floor and far off the cloth, armed: it exits at once, while
+            # the event loop is stalled
+            off = np.array([10.0 * sim.size, sim.floor_y - 1.0, 0.0])
+            sim.command("reset_ball", (off, np.zeros(3)))
+            sim.command("arm")
             time.sleep(0.2)  # the event loop is blocked: no delivery can happen
             f1 = sim.frame
             assert max(r.frame for r in got if r.corners) == delivered0  # nothing delivered
+            assert not any(r.exit for r in got)
             await asyncio.sleep(0)  # the loop runs again: the newest frame arrives
             await until(lambda: max(r.frame for r in got if r.corners) >= f1, 5, "delivery")
+            # the exit found during the stall is delivered after it, with its own frame
+            exits = [r.exit for r in got if r.exit]
+            assert len(exits) == 1
+            edge, frame, ball = exits[0]
+            assert delivered0 < frame < f1 and edge in range(4) and ball[1] < sim.floor_y
             # ~200 frames went by during the stall, none dropped
             assert f1 - f0 >= 150, (f0, f1)
             assert sim.stats.skipped_frames == skipped0
