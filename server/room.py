@@ -33,6 +33,8 @@ RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
 # s the host's show room steps, with no one in it and no bots, after the rooms were listed
 SHOWN_AWAKE_S = 30.0
 MESH_FANOUT_CHUNK = 8  # connections offered a new MESH per pass of the event loop
+# s between deliveries of a room no player sits in (the native loop; spectators get MESH)
+IDLE_CORNER_INTERVAL = 0.01
 
 
 class Peer(Protocol):
@@ -196,6 +198,13 @@ class Room:
             self._shown_at = self.loop.time()
             self.update_awake()
 
+    def _update_corner_interval(self) -> None:
+        """The native frame loop wakes this room at its fastest player's CORNER rate
+        (``corner_rate``), else at ``IDLE_CORNER_INTERVAL`` (the room's frame for its
+        events; exits and failures wake it at once)."""
+        rates = [s.conn.corner_interval for s in self.seats if s.conn is not None]
+        self.sim.corner_interval = min(rates) if rates else IDLE_CORNER_INTERVAL
+
     async def close(self) -> None:
         self._closed = True
         if self._task is not None:
@@ -269,10 +278,11 @@ class Room:
     def broadcast_state(self) -> None:
         # Every change of who is in the room comes through here.
         self.update_awake()
+        self._update_corner_interval()
         self.broadcast({"type": "room", **self.info()})
 
     def event(self, kind: str, /, **fields: Any) -> None:
-        msg = {"type": "event", "event": kind, "room": self.id, "frame": self.frame,
+        msg = {"type": "event", "event": kind, "room": self.id, "frame": self.sim.frame,
                "time": self.sim.now(), **fields}
         self.broadcast(msg)
         self.sim.command("record_event", P.encode_json(msg).encode())  # kept if recording
@@ -605,8 +615,9 @@ class Room:
         if result.corners:
             self.frame, self.server_time = result.frame, result.server_time
             for s in self.seats:
-                if s.conn is not None:
-                    s.conn.offer_corner(result.corners[s.index], result.server_time)
+                corner = result.corners[s.index]
+                if s.conn is not None and corner is not None:
+                    s.conn.offer_corner(corner, result.server_time)
         if result.mesh is not None:
             self._fan_out_mesh(result.mesh, self.conns(), 0)
         if result.sim_error is not None:

@@ -2,17 +2,22 @@
 one scene stepped by one call.
 
 A ``SimPool`` holds the server's sim workers, one per (scene, backend, precision). A worker
-owns a ``ClothBatch`` (each room is one slot) and one thread that keeps the pace whatever the
-event loop or the network does: it sleeps until the next frame is due, applies every room's
-latest hand positions (latest wins) in one call, steps every frame that is due for all its
-rooms in one call (catching up at most ``max_catchup`` frames after a hiccup; older time is
-dropped and counted), reads back all corners and balls in one call, checks each room's ball
-against its edges, and hands the results to the event loop *coalesced*: at most one delivery
-per room is pending at a time and it carries the newest frame, so a busy loop never builds a
-queue, and one loop wake-up carries every room's result. Every ``1/mesh_hz`` s a room's mesh
-is quantised into a MESH message (once for all its spectators, on the worker's encoder
-thread), and while a round is recorded the room keeps the MESH messages and a TRACK message
-every ``1/track_hz`` s.
+owns a ``ClothBatch`` (each room is one slot). By default its frames run in the native
+frame loop (``server.frameloop``, docs/frameloop.md): one C++ thread per worker that paces
+the frames, reads every room's hands from a shared memory block, steps, publishes and checks
+exits without the interpreter lock, and wakes the event loop through an eventfd at event
+and network rates. ``CLOTHBALL_FRAME_LOOP=python`` (and a pool with a test's clock, or a
+scene with wind gusts) selects the Python loop below, ``SimWorker``: one thread that keeps
+the pace whatever the event loop or the network does: it sleeps until the next frame is
+due, applies every room's latest hand positions (latest wins) in one call, steps every frame
+that is due for all its rooms in one call (catching up at most ``max_catchup`` frames after
+a hiccup; older time is dropped and counted), reads back all corners and balls in one call,
+checks each room's ball against its edges, and hands the results to the event loop
+*coalesced*: at most one delivery per room is pending at a time and it carries the newest
+frame, so a busy loop never builds a queue, and one loop wake-up carries every room's
+result. Both loops make a room's mesh every ``1/mesh_hz`` s (quantised into a MESH message
+once for all its spectators, on the worker's encoder thread), and while a round is recorded
+the room keeps the MESH messages and a TRACK message every ``1/track_hz`` s.
 
 The event loop talks to a room only through its ``RoomSim``: ``set_hip`` (an atomic slot
 per seat) and ``command`` (a queue the worker drains between frames). A room nobody is in
@@ -41,6 +46,8 @@ from ..game.sim.batch import ClothBatch
 from ..game.sim.cloth import corners_of, resolve_backend, rest_positions
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
+from .frameloop import NativeWorker, frame_loop_wanted
+from .frames import FrameResult, Samples
 from .recorder import Recording
 
 log = logging.getLogger("clothball.server")
@@ -50,56 +57,6 @@ log = logging.getLogger("clothball.server")
 TIMER_SLACK = 50e-6
 # Rooms one worker's batch holds; a pool opens another worker of the same scene beyond it.
 WORKER_CAPACITY = 64
-
-
-@dataclass
-class FrameResult:
-    """The state after the newest frame, as the event loop receives it."""
-
-    frame: int
-    server_time: float
-    corners: list[bytes]  # one CORNER message per seat
-    mesh: bytes | None = None  # newest MESH message, when one was made since the last delivery
-    exit: tuple[int, int, list[float]] | None = None  # (edge, frame, ball position)
-    sim_error: str | None = None
-
-    def merge_older(self, prev: FrameResult) -> None:
-        """Coalesce: keep this (newer) frame, but never lose a mesh, an exit or an error."""
-        if self.mesh is None:
-            self.mesh = prev.mesh
-        if self.exit is None:
-            self.exit = prev.exit
-        if self.sim_error is None:
-            self.sim_error = prev.sim_error
-
-
-class Samples:
-    """The newest ``capacity`` float samples in a ring of fixed size: the memory is taken
-    once, whatever the number of samples (a list grew and shrank with them)."""
-
-    def __init__(self, capacity: int) -> None:
-        self._a = np.zeros(capacity)
-        self.count = 0  # samples appended since the last clear
-
-    def append(self, value: float) -> None:
-        self._a[self.count % len(self._a)] = value
-        self.count += 1
-
-    def __len__(self) -> int:
-        return min(self.count, len(self._a))
-
-    def since(self, count: int) -> np.ndarray:
-        """The samples appended after the first ``count`` (the newest ones kept), in order."""
-        n = min(self.count - count, len(self)) if count <= self.count else len(self)
-        return self.newest(n)
-
-    def newest(self, n: int | None = None) -> np.ndarray:
-        k = len(self) if n is None else max(0, min(n, len(self)))
-        idx = np.arange(self.count - k, self.count) % len(self._a)
-        return self._a[idx]
-
-    def clear(self) -> None:
-        self.count = 0
 
 
 LATENESS_SAMPLES = 100_000  # per room and per worker: 0.8 MB each, taken once
@@ -146,12 +103,22 @@ class RoomSim:
         self.mesh_every = max(1, round(1.0 / (mesh_hz * self.frame_dt)))
         self.track_every = max(1, round(1.0 / (track_hz * self.frame_dt)))
         self._deliver = deliver
-        self._hip_slots: list[tuple[Any, int, float] | None] = [None] * 4
+        self._hip_slots: list[tuple[Any, int, float, int] | None] = [None] * 4
         self._applied: list[tuple[int, float]] = [(0, math.nan)] * 4
+        # Per seat, how many times its hand was cleared (an occupant left): a CORNER made
+        # from an earlier occupant's HIP is not given to the next one (docs/protocol.md:
+        # `seq` is the last HIP the server applied for this seat).
+        self._occupant = [0] * 4
+        self._applied_occupant = [0] * 4
         self._awake = True
         self._stopped = threading.Event()
-        self.stats = SimStats()
-        self.worker = pool.worker_for(scene, backend)
+        self.stats: Any = SimStats()  # a NativeStats on the native loop (same fields)
+        # s between this room's CORNER deliveries on the native loop (0: every frame; inf:
+        # none wanted); the Python loop delivers every pass.
+        self.corner_interval = 0.0
+        self.delivered = -1  # the newest frame the native loop delivered
+        self.worker: Any = pool.worker_for(scene, backend, room=self)
+        self._native = getattr(self.worker, "native", False)
         self.backend = self.worker.batch.backend
         # Worker-thread state.
         self.slot: int | None = None
@@ -164,14 +131,22 @@ class RoomSim:
 
     # --- event-loop side ------------------------------------------------------------------
     def start(self) -> None:
-        self.worker.post(self, "add", None)
+        if self._native:
+            self.worker.add(self)
+        else:
+            self.worker.post(self, "add", None)
 
     def stop(self) -> None:
         """Take the room off its worker (waits for the worker to let go of it)."""
         if not self._stopped.is_set():
-            self.worker.post(self, "remove", None)
-            if not (self.worker.running and self._stopped.wait(timeout=5.0)):
+            if self._native:
+                self.worker.remove(self)
+                self.worker.post(self, "drop", None)  # recordings, on the service thread
                 self._stopped.set()
+            else:
+                self.worker.post(self, "remove", None)
+                if not (self.worker.running and self._stopped.wait(timeout=5.0)):
+                    self._stopped.set()
             self.worker.members -= 1
         if self._own_pool:
             self.pool.close()
@@ -180,7 +155,10 @@ class RoomSim:
         """Step the room (True) or let it sleep (False): no stepping, no CPU, until woken;
         it then starts afresh from the state it slept in, at once."""
         self._awake = bool(awake)
-        self.worker.post(self, "awake", self._awake)
+        if self._native:
+            self.worker.set_awake(self, self._awake)
+        else:
+            self.worker.post(self, "awake", self._awake)
 
     @property
     def asleep(self) -> bool:
@@ -193,7 +171,7 @@ class RoomSim:
 
     @property
     def substeps(self) -> int:
-        return self.worker.batch.substeps
+        return self.worker.substeps if self._native else self.worker.batch.substeps
 
     @property
     def frame(self) -> int:
@@ -207,8 +185,20 @@ class RoomSim:
     def set_hip(self, seat: int, position: Any, seq: int = 0,
                 client_time: float = math.nan) -> None:
         """The latest hand position for a seat, three floats (an array or a tuple; None:
-        the corner rests at its anchor)."""
-        self._hip_slots[seat] = None if position is None else (position, seq, client_time)
+        the corner rests at its anchor, and the seat's occupant changed: its HIP echo
+        starts again from seq 0)."""
+        if position is None:
+            self._occupant[seat] += 1
+            self._hip_slots[seat] = None
+        else:
+            self._hip_slots[seat] = (position, seq, client_time, self._occupant[seat])
+        if self._native:
+            self.worker.set_hip(self, seat, self._hip_slots[seat])
+
+    def hip_echo(self, seat: int) -> tuple[int, float]:
+        """The (seq, client time) of the seat's HIP the newest frame applied (0, NaN: none
+        since its occupant took it), as its CORNER echoes them."""
+        return self.worker.applied(self, seat) if self._native else self._applied[seat]
 
     def command(self, name: str, arg: Any = None) -> None:
         """Queue a command for the worker: ``reset_ball`` ((pos, vel)), ``arm``, ``disarm``,
@@ -216,7 +206,12 @@ class RoomSim:
         progress), ``record_stop`` ((id, callback): the callback gets that ``Recording``,
         or None, on the worker's thread). Recordings may overlap (a round's tail and the
         next round's start). A recording spools to disk as it goes (``server.recorder``)."""
-        self.worker.post(self, name, arg)
+        if self._native and name == "reset_ball":
+            self.worker.set_ball(self, arg[0], arg[1])
+        elif self._native and name in ("arm", "disarm"):
+            self.worker.set_armed(self, name == "arm")
+        else:
+            self.worker.post(self, name, arg)
 
     # --- worker side (called on the worker's thread only) ------------------------------------
     def apply(self, name: str, arg: Any) -> None:
@@ -240,6 +235,8 @@ class RoomSim:
         elif name == "record_stop":
             rid, callback = arg
             callback(self._recordings.pop(rid, None))
+        elif name == "drop":
+            self.drop_recordings()
 
     def drop_recordings(self) -> None:
         """The room is gone: recordings in progress are discarded."""
@@ -250,10 +247,16 @@ class RoomSim:
     def fill_hips(self, out: np.ndarray) -> None:
         """This frame's hands into ``out`` (4, 3): the newest HIP per seat, else the anchor."""
         out[:] = self.anchors
-        for s, slot in enumerate(self._hip_slots):
-            if slot is not None:
+        for s in range(4):
+            occupant = self._occupant[s]  # read before the slot: see set_hip
+            slot = self._hip_slots[s]
+            if slot is None:
+                self._applied[s] = (0, math.nan)
+                self._applied_occupant[s] = occupant
+            else:
                 out[s] = slot[0]
                 self._applied[s] = (slot[1], slot[2])
+                self._applied_occupant[s] = slot[3]
 
     def woke(self) -> None:
         """Pace from now, a mesh at once; the slept time is not replayed."""
@@ -272,7 +275,8 @@ class RoomSim:
         pl, bpl = pos.tolist(), bp.tolist()
         corners = P.encode_corners(frame, server_time, pl, vel.tolist(), force.tolist(),
                                    self.stiffness, bpl, bv.tolist(), self._applied)
-        result = FrameResult(frame, server_time, corners)
+        result = FrameResult(frame, server_time, corners,
+                             occupants=tuple(self._applied_occupant))
         if self.has_ball:
             if self._armed:
                 # Plain floats and a cheap exact pre-test: the full test (NumPy, ~30 us)
@@ -297,6 +301,9 @@ class RoomSim:
 
     def deliver(self, result: FrameResult) -> None:
         if self._deliver is not None and not self._stopped.is_set():
+            for s, occupant in enumerate(result.occupants):
+                if occupant != self._occupant[s]:  # made before the seat changed hands
+                    result.corners[s] = None
             self._deliver(result)
 
 
@@ -563,15 +570,20 @@ class SimPool:
     def now(self) -> float:
         return self.clock() - self.epoch
 
-    def worker_for(self, scene: Scene, backend: str) -> SimWorker:
-        """A worker with room for one more room of ``scene`` (started if new)."""
+    def worker_for(self, scene: Scene, backend: str, room: RoomSim | None = None) -> Any:
+        """A worker with room for one more room of ``scene`` (started if new): a native
+        frame loop's (``server.frameloop``) unless ``CLOTHBALL_FRAME_LOOP=python``, the
+        pool's clock is not the monotonic clock the loop keeps (a test's), or the scene's
+        wind gusts (set per frame by Python); else a ``SimWorker``."""
         if self.loop is None:
             try:  # results are handed to the loop the rooms are made on
                 self.loop = asyncio.get_running_loop()
             except RuntimeError:
                 pass
         resolved, precision, _ = resolve_backend(scene, backend, None)
-        key = (json.dumps(scene.to_dict(), sort_keys=True), resolved, precision)
+        native = room is not None and self.native_for(scene)
+        key = (json.dumps(scene.to_dict(), sort_keys=True), resolved, precision,
+               (room.mesh_every, room.track_every) if native and room is not None else None)
         with self._lock:
             workers = self._workers.setdefault(key, [])
             for w in workers:
@@ -579,13 +591,19 @@ class SimPool:
                     break
             else:
                 w = SimWorker(self, scene, resolved, self.capacity)
+                if native:
+                    w = NativeWorker(self, w, room)
                 workers.append(w)
                 w.start()
             w.members += 1
             return w
 
+    def native_for(self, scene: Scene) -> bool:
+        gusts = "wind" in scene.effects and scene["wind"]["gust_amplitude"] > 0.0
+        return frame_loop_wanted() and self.clock is time.perf_counter and not gusts
+
     @property
-    def workers(self) -> list[SimWorker]:
+    def workers(self) -> list[Any]:
         with self._lock:
             return [w for ws in self._workers.values() for w in ws]
 

@@ -160,6 +160,13 @@ class ClothBatch:
         return int(self._slot_substeps[live].max())
 
     @property
+    def native_engine(self) -> object:
+        """The native batch, for a native driver that steps it without Python (the server's
+        frame loop, ``_native.FrameLoop``). While one runs, this facade's calls are made
+        only under the driver's lock, and its frame counts and substeps go stale."""
+        return self._engine
+
+    @property
     def dt(self) -> float:
         return self._frame_dt / self.substeps
 
@@ -273,6 +280,11 @@ class ClothBatch:
 
     def positions(self, slot: int) -> np.ndarray:
         return self._engine.positions(self._check(slot))
+
+    def gather_positions(self, slots: list[int]) -> np.ndarray:
+        """The positions of several slots, (len(slots), n, n, 3), in one transfer (CUDA: one
+        gather copy; the server's meshes)."""
+        return self._engine.gather_positions([self._check(s) for s in slots])
 
     def velocities(self, slot: int) -> np.ndarray:
         return self._engine.velocities(self._check(slot))

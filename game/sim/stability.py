@@ -121,3 +121,21 @@ def auto_substeps_all(scene: Scene, ball_speeds: np.ndarray) -> np.ndarray:
     frame = scene["sim"]["frame_dt"]
     return np.maximum(1, np.ceil(frame / stable_dts(scene, ball_speeds) - 1e-9)).astype(
         np.int64)
+
+
+def substep_speed_limits(scene: Scene, most: int = 256) -> np.ndarray:
+    """``auto_substeps`` as a table, for an engine that picks substeps without Python (the
+    server's native frame loop): entry ``k - 1`` is the fastest ball speed (m/s) that ``k``
+    substeps hold, ascending (-1: ``k`` never suffices), found by bisecting
+    ``auto_substeps_all`` itself, so the rule has one home. Speeds past the last entry get
+    ``most`` substeps."""
+    k = np.arange(1, most + 1)
+    lo = np.zeros(most)
+    hi = np.full(most, 1e6)
+    ok0 = auto_substeps_all(scene, lo) <= k
+    for _ in range(80):  # to the nearest float64 of the boundary
+        mid = 0.5 * (lo + hi)
+        fits = auto_substeps_all(scene, mid) <= k
+        lo = np.where(fits, mid, lo)
+        hi = np.where(fits, hi, mid)
+    return np.where(ok0, lo, -1.0)

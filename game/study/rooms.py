@@ -2,7 +2,9 @@
 
 A room here is a slot of a ``ClothBatch``: every frame, each room's four hands go in
 (``set_hips_all``), every room steps one frame, and each room's corners and ball come out
-(``corners_all``), with no network. The number of rooms grows (doubling, then bisecting)
+(``corners_all``), with no network. Beside it, what a room's MESH costs the engine: every
+room's nodes read back in one gather (``gather_positions``, the server's frame loop's
+copy), per room. The number of rooms grows (doubling, then bisecting)
 until the p99 of that frame time passes the 1 ms a 1 kHz frame has; the largest count that
 stays within it is the count held.
 """
@@ -33,9 +35,10 @@ def room_scene(base: Scene, n: int) -> Scene:
 
 
 def frame_times(scene: Scene, rooms: int, backend: str, precision: str, frames: int,
-                warmup: int = 30) -> np.ndarray:
+                warmup: int = 30) -> tuple[np.ndarray, float]:
     """Microseconds of each of ``frames`` frames for ``rooms`` rooms: hands in, one step,
-    corners and balls out."""
+    corners and balls out; and the median microseconds per room of reading every room's
+    nodes back in one gather (a MESH's copy)."""
     batch = ClothBatch(scene, capacity=rooms, backend=backend, precision=precision)
     for _ in range(rooms):
         batch.add()
@@ -50,15 +53,22 @@ def frame_times(scene: Scene, rooms: int, backend: str, precision: str, frames: 
         batch.corners_all()
         if f >= 0:
             out[f] = (time.perf_counter() - t0) * 1e6
-    return out
+    slots = list(range(rooms))
+    gathers = np.empty(max(5, frames // 100))
+    for k in range(gathers.size):
+        t0 = time.perf_counter()
+        batch.gather_positions(slots)
+        gathers[k] = (time.perf_counter() - t0) * 1e6 / rooms
+    return out, float(np.median(gathers))
 
 
 def row(backend: str, precision: str, n: int, rooms: int, times: np.ndarray,
-        substeps: int) -> dict[str, Any]:
+        substeps: int, mesh_us: float) -> dict[str, Any]:
     p50, p99 = np.percentile(times, [50, 99])
     return {"backend": backend, "precision": precision, "n": n, "rooms": rooms,
             "substeps": substeps, "frames": int(times.size), "frame_us_p50": float(p50),
-            "frame_us_p99": float(p99), "held": bool(p99 <= FRAME_BUDGET_US)}
+            "frame_us_p99": float(p99), "mesh_us_per_room": mesh_us,
+            "held": bool(p99 <= FRAME_BUDGET_US)}
 
 
 def counts(max_rooms: int, held: Callable[[int], bool]) -> Iterator[int]:
@@ -92,8 +102,9 @@ def run_rooms(base: Scene, cases: list[tuple[str, str, int]], frames: int, max_r
 
         def held(k: int, backend: str = backend, precision: str = precision, n: int = n,
                  scene: Scene = scene, results: dict[int, dict[str, Any]] = results) -> bool:
-            times = frame_times(scene, k, backend, precision, frames)
-            results[k] = row(backend, precision, n, k, times, int(scene["sim"]["substeps"]))
+            times, mesh_us = frame_times(scene, k, backend, precision, frames)
+            results[k] = row(backend, precision, n, k, times, int(scene["sim"]["substeps"]),
+                             mesh_us)
             progress(f"{backend} {precision} n={n}: {k} rooms, p99 "
                      f"{results[k]['frame_us_p99']:.0f} us")
             return results[k]["held"]
@@ -117,11 +128,11 @@ def held_counts(rows: list[dict[str, Any]]) -> dict[tuple[str, str, int], int]:
 
 def print_rooms(rows: list[dict[str, Any]]) -> None:
     print(f"{'backend':8} {'precision':9} {'n':>5} {'rooms':>6} {'substeps':>8} "
-          f"{'p50 us':>8} {'p99 us':>8}  held")
+          f"{'p50 us':>8} {'p99 us':>8} {'mesh us/room':>12}  held")
     for r in rows:
         print(f"{r['backend']:8} {r['precision']:9} {r['n']:5d} {r['rooms']:6d} "
-              f"{r['substeps']:8d} {r['frame_us_p50']:8.1f} {r['frame_us_p99']:8.1f}  "
-              f"{'yes' if r['held'] else 'no'}")
+              f"{r['substeps']:8d} {r['frame_us_p50']:8.1f} {r['frame_us_p99']:8.1f} "
+              f"{r['mesh_us_per_room']:12.2f}  {'yes' if r['held'] else 'no'}")
     best = held_counts(rows)
     print("\nrooms held at 1 kHz (frame p99 <= 1 ms):")
     for (backend, precision, n), k in best.items():

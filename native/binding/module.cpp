@@ -11,6 +11,7 @@
 
 namespace py = pybind11;
 void bind_batch(py::module_& m);  // binding/batch.cpp
+void bind_loop(py::module_& m);   // binding/loop.cpp
 using cbind::Array;
 
 namespace {
@@ -100,6 +101,7 @@ PYBIND11_MODULE(_native, m) {
       .def("step", &Engine::step, py::arg("frames"), py::arg("substeps"), py::arg("dt"));
 
   bind_batch(m);
+  bind_loop(m);
 
   py::dict effects;
   effects["structural"] = unsigned(cb::STRUCTURAL);

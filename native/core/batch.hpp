@@ -97,6 +97,15 @@ class Batch {
     }
   }
 
+  // The node positions of the occupied slots[0..m) into out (m x n*n x 3, row-major
+  // nodes): a mesh for each, in one transfer where the stepper offers it (CUDA: one gather
+  // copy of all the slots), else one pass over the slots (CPU: a copy each).
+  void gather_positions(const int* slots, int m, double* out) {
+    if (stepper_ && stepper_->gather_positions(slots, m, out)) return;
+    const size_t per = 3 * size_t(cfg_.n) * size_t(cfg_.n);
+    for (int k = 0; k < m; ++k) at(slots[k]).get_positions(out + per * size_t(k));
+  }
+
   // Every occupied, active slot advances `frames` frames; finite[s] is 1 for a slot whose
   // state is still finite (and for free or inactive slots), else 0. A slot that fails does
   // not stop the others.

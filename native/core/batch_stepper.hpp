@@ -19,6 +19,11 @@ class BatchStepper {
   // Every slot of slots[0..m) (attached, ascending) advances `frames` frames, as each
   // backend's own step would have it.
   virtual void step(const int* slots, int m, int frames, int substeps, double dt) = 0;
+  // The node positions of slots[0..m) into out (m x nodes x 3, float64) in one transfer;
+  // false where the stepper has no such copy (the batch then reads slot by slot).
+  virtual bool gather_positions(const int* /*slots*/, int /*m*/, double* /*out*/) {
+    return false;
+  }
 };
 
 // For a batch of up to `capacity` CUDA backends of `first`'s configuration (and real type):

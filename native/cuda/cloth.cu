@@ -71,6 +71,20 @@ __global__ void normals_kernel(int n, Planes<R> pos, R* out) {
   out[3 * q] = nr.x; out[3 * q + 1] = nr.y; out[3 * q + 2] = nr.z;
 }
 
+// Several slots' node positions into one array, node-major (3 values a node, a slot after
+// another): what a batch's mesh gather copies back in one transfer. src[k]: slot k's x
+// plane, followed by its y and z planes (N values each).
+template <class R>
+__global__ void gather_positions_kernel(const R* const* __restrict__ src, int N, int m,
+                                        R* __restrict__ out) {
+  const size_t per = 3 * size_t(N), total = per * size_t(m);
+  for (size_t i = size_t(blockIdx.x) * blockDim.x + threadIdx.x; i < total;
+       i += size_t(gridDim.x) * blockDim.x) {
+    const size_t k = i / per, r = i % per;
+    out[i] = src[k][(r % 3) * size_t(N) + r / 3];
+  }
+}
+
 template <class R>
 using KernelFn = void (*)(Params<R>, DevBuf<R>, DevBuf<R>, const FrameInputs<R>*,
                           SubstepBall<R>, int*, R);
@@ -507,6 +521,9 @@ class CudaBatch final : public BatchStepper {
 
   ~CudaBatch() override {
     drop_graphs();
+    cudaFree(gather_src_);
+    cudaFree(gather_dev_);
+    cudaFreeHost(gather_host_);
     cudaFree(table_);
     cudaFreeHost(fin_host_);
     cudaFreeHost(readback_host_);
@@ -543,6 +560,39 @@ class CudaBatch final : public BatchStepper {
     CB_CUDA(cudaStreamSynchronize(stream_));
     for (size_t k = 0; k < built_.size(); ++k)
       cloths_[size_t(built_[k])]->cur_ = built_cur_[k] ^ flip_;
+  }
+
+  // The meshes due at a frame: one kernel gathers the slots' current positions into one
+  // device array and one copy brings it back (a copy a slot cost ~10 ms for 256 slots).
+  bool gather_positions(const int* slots, int m, double* out) override {
+    if (m <= 0) return true;
+    const size_t per = 3 * size_t(N_), count = per * size_t(m);
+    std::vector<const R*> src(static_cast<size_t>(m));
+    for (int k = 0; k < m; ++k) {
+      const CudaCloth<R>* c = cloths_.at(size_t(slots[k]));
+      if (c == nullptr)
+        throw std::logic_error("CudaBatch: slot " + std::to_string(slots[k]) + " is not attached");
+      src[size_t(k)] = c->buf(c->cur_);
+    }
+    if (size_t(m) > gather_slots_) {  // grown to the most slots asked at once, then kept
+      cudaFree(gather_src_);
+      cudaFree(gather_dev_);
+      cudaFreeHost(gather_host_);
+      CB_CUDA(cudaMalloc(&gather_src_, sizeof(R*) * size_t(m)));
+      CB_CUDA(cudaMalloc(&gather_dev_, sizeof(R) * count));
+      CB_CUDA(cudaHostAlloc(&gather_host_, sizeof(R) * count, cudaHostAllocDefault));
+      gather_slots_ = size_t(m);
+    }
+    CB_CUDA(cudaMemcpyAsync(gather_src_, src.data(), sizeof(R*) * src.size(),
+                            cudaMemcpyHostToDevice, stream_));
+    const unsigned blocks = unsigned(std::min<size_t>((count + kBlock - 1) / kBlock, 4096));
+    gather_positions_kernel<R><<<blocks, kBlock, 0, stream_>>>(gather_src_, N_, m, gather_dev_);
+    CB_CUDA(cudaGetLastError());
+    CB_CUDA(cudaMemcpyAsync(gather_host_, gather_dev_, sizeof(R) * count,
+                            cudaMemcpyDeviceToHost, stream_));
+    CB_CUDA(cudaStreamSynchronize(stream_));
+    for (size_t i = 0; i < count; ++i) out[i] = double(gather_host_[i]);
+    return true;
   }
 
  private:
@@ -675,6 +725,10 @@ class CudaBatch final : public BatchStepper {
   FrameInputs<R>* fin_mapped_ = nullptr;
   R* readback_host_ = nullptr;          // kReadback values a slot, mapped
   R* readback_mapped_ = nullptr;
+  const R** gather_src_ = nullptr;      // gather_positions: the slots' planes (device)
+  R* gather_dev_ = nullptr;             // their positions, gathered
+  R* gather_host_ = nullptr;            // and copied back (pinned)
+  size_t gather_slots_ = 0;             // slots the gather buffers hold
   std::vector<int> built_;              // the slots in table_, in its order
   std::vector<int> built_cur_;          // each one's current buffer when the table was built
   int flip_ = 0;                        // table buffer the next frame starts from

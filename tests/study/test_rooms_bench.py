@@ -39,9 +39,10 @@ def test_bench_rooms_writes_its_rows(tmp_path) -> None:
     assert [row["rooms"] for row in rows][:1] == [1]
     for row in rows:
         assert {"backend", "precision", "n", "rooms", "frame_us_p50", "frame_us_p99",
-                "held"} <= set(row)
+                "mesh_us_per_room", "held"} <= set(row)
         assert row["backend"] == "cpu" and row["n"] == 8 and row["precision"] == "float32"
         assert 0 < row["frame_us_p50"] <= row["frame_us_p99"]
+        assert row["mesh_us_per_room"] > 0
     assert "rooms held at 1 kHz" in r.stdout
 
 

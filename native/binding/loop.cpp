@@ -1,0 +1,221 @@
+// pybind11 declarations of the native frame loop (native/loop/): its block's layout, the
+// loop over a BatchEngine's batch, and the exit check. Calls that wait (a lock, the
+// encoder's wait, stopping) release the GIL. The Python side is clothball.server.frameloop.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <cstddef>
+#include <memory>
+#include <vector>
+
+#include "binding/arrays.hpp"
+#include "binding/batch_engine.hpp"
+#include "loop/block.hpp"
+#include "loop/exit.hpp"
+#include "loop/frame_loop.hpp"
+
+namespace py = pybind11;
+using cbind::Array;
+using cbind::BatchEngine;
+namespace lp = cb::loop;
+
+namespace {
+
+py::list fields(const lp::Field* f, int count) {
+  py::list out;
+  for (int k = 0; k < count; ++k) {
+    py::tuple shape;
+    if (f[k].count > 1)
+      shape = f[k].dims[1] == 0 ? py::tuple(py::make_tuple(f[k].dims[0]))
+                                : py::tuple(py::make_tuple(f[k].dims[0], f[k].dims[1]));
+    out.append(py::make_tuple(f[k].name, f[k].offset, f[k].type, shape));
+  }
+  return out;
+}
+
+// The block's layout, as block.hpp defines it: what Python builds its NumPy views from.
+py::dict layout() {
+  py::dict d;
+  int n = 0;
+  d["magic"] = lp::kBlockMagic;
+  d["version"] = lp::kBlockVersion;
+  d["header_bytes"] = sizeof(lp::Header);
+  d["room_bytes"] = sizeof(lp::RoomRecord);
+  d["engine_bytes"] = sizeof(lp::EngineRecord);
+  d["room_out_bytes"] = offsetof(lp::RoomRecord, events);  // what read_room copies
+  d["track_ring"] = lp::kTrackRing;
+  d["lateness_ring"] = lp::kLatenessRing;
+  const lp::Field* rf = lp::room_fields(&n);
+  d["room"] = fields(rf, n);
+  const lp::Field* ef = lp::engine_fields(&n);
+  d["engine"] = fields(ef, n);
+  d["events"] = py::dict(py::arg("corner") = int(lp::kEventCorner),
+                         py::arg("exit") = int(lp::kEventExit),
+                         py::arg("failed") = int(lp::kEventFailed),
+                         py::arg("mesh") = int(lp::kEventMesh));
+  return d;
+}
+
+class Loop {
+ public:
+  Loop(BatchEngine& engine, lp::LoopConfig cfg) : engine_(engine) {
+    cfg.nodes = engine.n() * engine.n();
+    loop_ = std::make_unique<lp::FrameLoop>(engine.batch(), std::move(cfg));
+  }
+  ~Loop() {
+    py::gil_scoped_release release;
+    loop_.reset();
+  }
+  void start() { loop_->start(); }
+  void stop() {
+    py::gil_scoped_release release;
+    loop_->stop();
+  }
+  void lock() {
+    py::gil_scoped_release release;
+    loop_->mutex().lock();
+  }
+  void unlock() { loop_->mutex().unlock(); }
+  void add_room(int slot, bool awake) { loop_->add_room(check(slot), awake); }
+  void remove_room(int slot) { loop_->remove_room(check(slot)); }
+  void set_awake(int slot, bool awake) {
+    check(slot);
+    py::gil_scoped_release release;
+    loop_->set_awake(slot, awake);
+  }
+  void set_hip(int slot, int seat, double x, double y, double z, std::uint64_t seq,
+               double time, std::uint64_t occupant) {
+    const double p[3] = {x, y, z};
+    loop_->set_hip(check(slot), check_seat(seat), p, seq, time, occupant);
+  }
+  void clear_hip(int slot, int seat, std::uint64_t occupant) {
+    loop_->clear_hip(check(slot), check_seat(seat), occupant);
+  }
+  void set_armed(int slot, bool on) { loop_->set_armed(check(slot), on); }
+  void set_recording(int slot, bool on) { loop_->set_recording(check(slot), on); }
+  void set_corner_due(int slot, double t) { loop_->set_corner_due(check(slot), t); }
+  int event_fd() const { return loop_->event_fd(); }
+  py::tuple take_events() {
+    loop_->take_events(slots_, bits_);
+    py::array_t<int> s(py::ssize_t(slots_.size()), slots_.data());
+    py::array_t<std::uint32_t> b(py::ssize_t(bits_.size()), bits_.data());
+    return py::make_tuple(s, b);
+  }
+  py::bytes read_room(int slot) {
+    lp::RoomRecord& r = scratch_;
+    loop_->read_room(check(slot), r);
+    return py::bytes(reinterpret_cast<const char*>(&r), offsetof(lp::RoomRecord, events));
+  }
+  bool wait_service(double timeout) {
+    py::gil_scoped_release release;
+    return loop_->wait_service(timeout);
+  }
+  void notify_service() { loop_->notify_service(); }
+  py::list take_meshes() {
+    std::vector<lp::MeshSnapshot> got;
+    {
+      py::gil_scoped_release release;
+      got = loop_->take_meshes();
+    }
+    py::list out;
+    const int n = engine_.n();
+    for (auto& m : got) {
+      Array pos({n, n, 3});
+      std::copy(m.positions.begin(), m.positions.end(), pos.mutable_data());
+      Array ball(6, m.ball);
+      Array hips({4, 3});
+      std::copy(m.hips, m.hips + 12, hips.mutable_data());
+      out.append(py::make_tuple(m.slot, m.frame, m.server_time, ball, hips, pos));
+    }
+    return out;
+  }
+  py::memoryview block() {
+    return py::memoryview::from_memory(loop_->block(), py::ssize_t(loop_->block_size()));
+  }
+  int block_fd() const { return loop_->block_fd(); }
+
+ private:
+  int check(int slot) const {
+    if (slot < 0 || slot >= loop_->capacity())
+      throw py::value_error("slot " + std::to_string(slot) + " is not in 0.." +
+                            std::to_string(loop_->capacity() - 1));
+    return slot;
+  }
+  static int check_seat(int seat) {
+    if (seat < 0 || seat >= lp::kSeats) throw py::value_error("seat must be 0..3");
+    return seat;
+  }
+  BatchEngine& engine_;
+  std::unique_ptr<lp::FrameLoop> loop_;
+  std::vector<int> slots_;
+  std::vector<std::uint32_t> bits_;
+  lp::RoomRecord scratch_{};
+};
+
+std::vector<double> values(Array a, size_t size, const char* what) {
+  cbind::sized(a, size, what);
+  return {a.data(), a.data() + size};
+}
+
+}  // namespace
+
+void bind_loop(py::module_& m) {
+  py::class_<lp::LoopConfig>(m, "FrameLoopConfig")
+      .def(py::init<>())
+      .def_readwrite("frame_dt", &lp::LoopConfig::frame_dt)
+      .def_readwrite("epoch", &lp::LoopConfig::epoch)
+      .def_readwrite("timer_slack", &lp::LoopConfig::timer_slack)
+      .def_readwrite("max_catchup", &lp::LoopConfig::max_catchup)
+      .def_readwrite("fixed_substeps", &lp::LoopConfig::fixed_substeps)
+      .def_readwrite("substep_speeds", &lp::LoopConfig::substep_speeds)
+      .def_readwrite("max_frames_per_call", &lp::LoopConfig::max_frames_per_call)
+      .def_readwrite("has_ball", &lp::LoopConfig::has_ball)
+      .def_readwrite("floor_y", &lp::LoopConfig::floor_y)
+      .def_readwrite("lost_ball_y", &lp::LoopConfig::lost_ball_y)
+      .def_readwrite("stiffness", &lp::LoopConfig::stiffness)
+      .def_readwrite("mesh_every", &lp::LoopConfig::mesh_every)
+      .def_readwrite("track_every", &lp::LoopConfig::track_every)
+      .def_property(
+          "ball_start", [](const lp::LoopConfig& c) { return std::vector<double>(c.ball_start, c.ball_start + 3); },
+          [](lp::LoopConfig& c, Array a) {
+            auto v = values(a, 3, "ball_start");
+            std::copy(v.begin(), v.end(), c.ball_start);
+          })
+      .def_property(
+          "anchors", [](const lp::LoopConfig& c) { return std::vector<double>(c.anchors, c.anchors + 12); },
+          [](lp::LoopConfig& c, Array a) {
+            auto v = values(a, 12, "anchors");
+            std::copy(v.begin(), v.end(), c.anchors);
+          });
+  py::class_<Loop>(m, "FrameLoop")
+      .def(py::init<BatchEngine&, lp::LoopConfig>(), py::arg("engine"), py::arg("config"),
+           py::keep_alive<1, 2>())
+      .def("start", &Loop::start)
+      .def("stop", &Loop::stop)
+      .def("lock", &Loop::lock)
+      .def("unlock", &Loop::unlock)
+      .def("add_room", &Loop::add_room, py::arg("slot"), py::arg("awake"))
+      .def("remove_room", &Loop::remove_room)
+      .def("set_awake", &Loop::set_awake)
+      .def("set_hip", &Loop::set_hip, py::arg("slot"), py::arg("seat"), py::arg("x"),
+           py::arg("y"), py::arg("z"), py::arg("seq"), py::arg("time"), py::arg("occupant"))
+      .def("clear_hip", &Loop::clear_hip)
+      .def("set_armed", &Loop::set_armed)
+      .def("set_recording", &Loop::set_recording)
+      .def("set_corner_due", &Loop::set_corner_due)
+      .def("event_fd", &Loop::event_fd)
+      .def("take_events", &Loop::take_events)
+      .def("read_room", &Loop::read_room)
+      .def("wait_service", &Loop::wait_service, py::arg("timeout"))
+      .def("notify_service", &Loop::notify_service)
+      .def("take_meshes", &Loop::take_meshes)
+      .def("block", &Loop::block)
+      .def("block_fd", &Loop::block_fd);
+  m.def("frame_block_layout", &layout);
+  m.def("monotonic_now", &lp::monotonic_now);
+  m.def("exit_edge", [](Array ball, Array corners, double floor_y) {
+    return lp::exit_edge(cbind::sized(ball, 3, "ball").data(),
+                         cbind::sized(corners, 12, "corners").data(), floor_y);
+  }, py::arg("ball"), py::arg("corners"), py::arg("floor_y"));
+}

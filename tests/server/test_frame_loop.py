@@ -1,0 +1,209 @@
+"""The native frame loop (native/loop, server/frameloop.py; docs/frameloop.md): its exit
+check against ``game.rules.exit_edge``, its block's layout as the binding exports it, its
+rooms stepped and published without Python, its meshes (one gather of the due rooms'
+nodes) against the batch's own, and a stalled event loop that loses nothing."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+
+import numpy as np
+import pytest
+from clothball import _native
+from clothball.game.rules import exit_edge
+from clothball.game.sim.cloth import corners_of, rest_positions
+from clothball.game.wire import protocol as P
+from clothball.server import frameloop
+from clothball.server.sim import RoomSim, SimPool
+
+from tests.server.conftest import TINY, run, until
+
+
+@pytest.fixture(autouse=True)
+def native_loop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These tests are of the native loop, whatever the default."""
+    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+
+
+def _random_states(rng: np.random.Generator, count: int):
+    """Corner quadrilaterals around the rest square (some nearly degenerate), and balls
+    anywhere over and around them: on the cloth, just inside and just outside an edge's
+    line (1e-9 .. 1e-3 m), at an edge's height, at the floor, far off."""
+    rest = corners_of(rest_positions(TINY))
+    size = float(TINY["cloth"]["size"])
+    floor_y = float(TINY["cloth"]["height"]) - 1.5 * size
+    for k in range(count):
+        corners = rest + rng.normal(0.0, 0.1 * size, (4, 3))
+        if k % 17 == 0:  # two corners nearly on one another: an edge of ~zero length
+            corners[1] = corners[0] + rng.normal(0.0, 1e-13, 3)
+        kind = k % 5
+        if kind == 0:  # anywhere around
+            ball = np.array([rng.uniform(-1.5, 1.5) * size, rng.uniform(floor_y - 0.2, 1.0),
+                             rng.uniform(-1.5, 1.5) * size])
+        else:  # near an edge's line: inside or outside by a small amount
+            e = int(rng.integers(4))
+            a, b = corners[e], corners[(e + 1) % 4]
+            t = rng.uniform(-0.1, 1.1)
+            p = a + t * (b - a)
+            centre = corners.mean(axis=0)
+            out = p - centre
+            out[1] = 0.0
+            out /= max(np.linalg.norm(out), 1e-12)
+            p = p + out * rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(-9, -3)
+            height = p[1]
+            if kind == 1:
+                p[1] = height + rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(-9, -2)
+            elif kind == 2:
+                p[1] = floor_y + rng.choice([-1.0, 1.0, 0.0]) * 10.0 ** rng.uniform(-9, -2)
+            else:
+                p[1] = rng.uniform(floor_y - 0.1, height + 0.1)
+            ball = p
+        yield ball, corners, floor_y
+
+
+def test_the_native_exit_check_gives_exit_edges_answer_over_random_states() -> None:
+    rng = np.random.default_rng(32)
+    counts = {e: 0 for e in (-1, 0, 1, 2, 3)}
+    for ball, corners, floor_y in _random_states(rng, 5000):
+        want = exit_edge(ball, corners, floor_y)
+        got = _native.exit_edge(ball, corners, floor_y)
+        assert got == (-1 if want is None else want), (ball.tolist(), corners.tolist(), floor_y)
+        counts[got] += 1
+    # every answer was exercised, in play and each edge
+    assert all(n > 100 for n in counts.values()), counts
+
+
+def test_the_block_layout_is_the_bindings_and_the_block_says_so() -> None:
+    layout = frameloop.LAYOUT
+    assert frameloop.ROOM_DTYPE.itemsize == layout["room_bytes"]
+    assert frameloop.ROOM_DTYPE.fields["hip_pos"][0].shape == (4, 3)
+    assert frameloop.ENGINE_DTYPE.fields["lateness"][0].shape == (layout["lateness_ring"],)
+    pool = SimPool()
+    sample = RoomSim(TINY, "cpu", pool=pool)
+    try:
+        w = sample.worker
+        assert isinstance(w, frameloop.NativeWorker)
+        head = np.frombuffer(w._loop.block(), dtype=np.uint8)
+        magic = int(head[:8].view(np.uint64)[0])
+        version = int(head[8:12].view(np.uint32)[0])
+        assert (magic, version) == (layout["magic"], layout["version"])
+        assert b"CLOTBLK1" == head[:8].tobytes()
+        total = len(head)
+        assert total == layout["header_bytes"] + w.batch.capacity * layout["room_bytes"] + \
+            layout["engine_bytes"]
+    finally:
+        sample.stop()
+        pool.close()
+
+
+def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backend: str) -> None:
+    """On each backend (CUDA: the batch's graph a frame and its gather copy for meshes)."""
+    async def main() -> None:
+        got: list = []
+        pool = SimPool()
+        sim = RoomSim(TINY, backend, pool=pool, deliver=got.append)
+        try:
+            assert sim._native and sim.backend == backend
+            sim.start()
+            hand = sim.anchors[1] + np.array([0.0, 0.05, 0.0])
+            sim.set_hip(1, hand, 7, 12.5)
+            await until(lambda: sim.frame > 200, 10, "frames")
+            await until(lambda: any(r.corners for r in got), 5, "a delivery")
+            r = [r for r in got if r.corners][-1]
+            c = P.decode_corner(r.corners[1])
+            assert c.hip_seq == 7 and c.hip_time == 12.5  # the HIP applied, echoed
+            # -K (h - c), from the corner the message reports
+            assert np.allclose(c.force, -sim.stiffness * (hand - c.position), atol=1e-3)
+            c0 = P.decode_corner(r.corners[0])
+            assert c0.hip_seq == 0 and math.isnan(c0.hip_time)
+            assert sim.stats.steps > 0 and sim.stats.skipped_frames >= 0
+            assert len(sim.worker.lateness) > 0 and len(sim.stats.lateness) > 0
+            # asleep: the frames stop; awake: they go on
+            sim.set_awake(False)
+            await asyncio.sleep(0.05)
+            f = sim.frame
+            await asyncio.sleep(0.1)
+            assert sim.frame == f
+            sim.set_awake(True)
+            await until(lambda: sim.frame > f + 50, 10, "awake again")
+            await until(lambda: any(r.mesh for r in got), 10, "a mesh")
+            mesh = P.decode_mesh([r.mesh for r in got if r.mesh][-1])
+            assert mesh.positions.shape == (TINY.n, TINY.n, 3)
+            assert np.all(np.isfinite(mesh.positions)) and sim.stats.meshes > 0
+        finally:
+            sim.stop()
+            pool.close()
+
+    run(main())
+
+
+def test_meshes_come_from_the_loop_for_every_room_at_its_rate() -> None:
+    """Each room's MESH, made from the loop's one gather of the due rooms' nodes (checked
+    against each slot's own positions in tests/engine/test_batch_gather.py), arrives for
+    every room, newest frame first, decodable."""
+    async def main() -> None:
+        pool = SimPool()
+        got: dict[int, list] = {0: [], 1: []}
+        sims = [RoomSim(TINY, "cpu", pool=pool, deliver=lambda r, k=k: got[k].append(r))
+                for k in range(2)]
+        try:
+            for s in sims:
+                s.start()
+            await until(lambda: all(sum(1 for r in m if r.mesh) >= 3 for m in got.values()),
+                        10, "meshes of both rooms")
+            for k, s in enumerate(sims):
+                meshes = [P.decode_mesh(r.mesh) for r in got[k] if r.mesh]
+                frames = [m.frame for m in meshes]
+                assert frames == sorted(frames) and len(set(frames)) == len(frames)
+                assert all(m.positions.shape == (TINY.n, TINY.n, 3) for m in meshes)
+                assert s.stats.meshes >= len(meshes)
+        finally:
+            for s in sims:
+                s.stop()
+            pool.close()
+
+    run(main())
+
+
+def test_a_stalled_event_loop_loses_no_frames_and_gets_the_newest_late() -> None:
+    """The event loop blocks 200 ms: the native loop keeps pace (frames advance, none
+    skipped); the stall shows as one late delivery of the newest frame, and an exit found
+    during it is delivered after it, not lost."""
+    async def stall() -> None:
+        pool = SimPool()
+        got: list = []
+        sim = RoomSim(TINY, "cpu", pool=pool, deliver=got.append)
+        try:
+            sim.start()
+            await until(lambda: sim.frame > 100, 10, "frames")
+            skipped0 = sim.stats.skipped_frames
+            f0 = sim.frame
+            delivered0 = max(r.frame for r in got if r.corners)
+            # a ball below the floor and far off the cloth, armed: it exits at once, while
+            # the event loop is stalled
+            off = np.array([10.0 * sim.size, sim.floor_y - 1.0, 0.0])
+            sim.command("reset_ball", (off, np.zeros(3)))
+            sim.command("arm")
+            time.sleep(0.2)  # the event loop is blocked: no delivery can happen
+            f1 = sim.frame
+            assert max(r.frame for r in got if r.corners) == delivered0  # nothing delivered
+            assert not any(r.exit for r in got)
+            await asyncio.sleep(0)  # the loop runs again: the newest frame arrives
+            await until(lambda: max(r.frame for r in got if r.corners) >= f1, 5, "delivery")
+            # the exit found during the stall is delivered after it, with its own frame
+            exits = [r.exit for r in got if r.exit]
+            assert len(exits) == 1
+            edge, frame, ball = exits[0]
+            assert delivered0 < frame < f1 and edge in range(4) and ball[1] < sim.floor_y
+            # ~200 frames went by during the stall, none dropped
+            assert f1 - f0 >= 150, (f0, f1)
+            assert sim.stats.skipped_frames == skipped0
+            assert sim.worker.skipped_frames == 0
+        finally:
+            sim.stop()
+            pool.close()
+
+    run(stall())
+
