@@ -3,7 +3,8 @@
 A new room is admitted or refused *before it exists*, from what it will cost: each scene's
 room costs the cores ``room_cost`` measured for it on this machine and backend (once per
 process, at start-up: four rooms stepped as a worker steps them, timed by the CPU the
-stepping thread used, so CPU stolen by neighbours does not inflate it). Every open room
+stepping thread used, so CPU stolen by neighbours does not inflate it; on a GPU also 64
+rooms, so that the launch all of a worker's rooms share counts once per thread). Every open room
 counts, asleep or awake (a sleeping room wakes the moment someone joins it). A room fits
 while the rooms' cost stays within ``admit_load`` of the cores the process may use, and
 within ``admit_load`` of one core for the rooms one simulation thread steps (one per scene,
@@ -46,8 +47,14 @@ SUSTAINED = 3  # windows in a row over the limit that make the server busy
 OWN_LOAD_CORES = 0.5
 CALIBRATE_S = 0.15  # s of stepping that measure one scene's room cost
 CALIBRATE_ROOMS = 4
+# A GPU steps every room of a worker in one launch: most of a frame's cost is the launch,
+# whatever the rooms. It is measured at two sizes, so the launch counts once per thread and
+# a room only its share beyond it (at 4 rooms alone the launch made a room look ~20 times
+# dearer on an H100: 20 rooms a thread instead of the hundreds it steps).
+CALIBRATE_ROOMS_GPU = 64
 
-_costs: dict[tuple[str, str, str], float] = {}
+# key -> (cores the stepping thread costs whatever its rooms, cores a room adds)
+_costs: dict[tuple[str, str, str], tuple[float, float]] = {}
 _costs_lock = threading.Lock()
 
 
@@ -56,15 +63,10 @@ def _key(scene: Scene, backend: str) -> tuple[str, str, str]:
     return json.dumps(scene.to_dict(), sort_keys=True), resolved, precision
 
 
-def room_cost(scene: Scene, backend: str) -> float:
-    """Cores one room of ``scene`` keeps busy on ``backend`` at real time (measured once per
-    process; blocking: call it off the event loop)."""
-    key = _key(scene, backend)
-    with _costs_lock:
-        if key in _costs:
-            return _costs[key]
-    batch = ClothBatch(scene, CALIBRATE_ROOMS, key[1], key[2], threads=1)
-    for _ in range(CALIBRATE_ROOMS):
+def _frame_cost(scene: Scene, key: tuple[str, str, str], rooms: int) -> float:
+    """Cores a worker's thread spends stepping ``rooms`` rooms of ``scene`` at real time."""
+    batch = ClothBatch(scene, rooms, key[1], key[2], threads=1)
+    for _ in range(rooms):
         batch.add()
     batch.step(2)  # first-call costs (allocation, JIT of nothing) out of the measure
     # The CPU backend's cost is the stepping thread's own CPU time (not inflated by time
@@ -75,10 +77,30 @@ def room_cost(scene: Scene, backend: str) -> float:
         batch.step(1)
         batch.corners_all()
         frames += 1
-    cost = (clock() - t0) / max(frames, 1) / CALIBRATE_ROOMS / batch.frame_dt
+    return (clock() - t0) / max(frames, 1) / batch.frame_dt
+
+
+def _measure(scene: Scene, backend: str) -> tuple[float, float]:
+    key = _key(scene, backend)
+    with _costs_lock:
+        if key in _costs:
+            return _costs[key]
+    small = _frame_cost(scene, key, CALIBRATE_ROOMS)
+    if key[1] == "cpu":  # a slot is its own work: the cost is the rooms'
+        cost = (0.0, small / CALIBRATE_ROOMS)
+    else:
+        large = _frame_cost(scene, key, CALIBRATE_ROOMS_GPU)
+        per_room = max(large - small, 0.0) / (CALIBRATE_ROOMS_GPU - CALIBRATE_ROOMS)
+        cost = (max(small - CALIBRATE_ROOMS * per_room, 0.0), per_room)
     with _costs_lock:
         _costs[key] = cost
     return cost
+
+
+def room_cost(scene: Scene, backend: str) -> float:
+    """Cores one room of ``scene`` adds on ``backend`` at real time (measured once per
+    process; blocking: call it off the event loop)."""
+    return _measure(scene, backend)[1]
 
 
 @dataclass
@@ -129,19 +151,28 @@ class Headroom:
     def measure(self, scenes: Iterable[Scene]) -> None:
         """Every scene's room cost measured now (blocking: at start-up, off the loop)."""
         for scene in scenes:
-            room_cost(scene, self.backend)
+            _measure(scene, self.backend)
 
     def cost(self, scene: Scene) -> float:
         """A room of ``scene``'s cost in cores (as measured; 0 if not measured yet)."""
         with _costs_lock:
-            return _costs.get(_key(scene, self.backend), 0.0)
+            return _costs.get(_key(scene, self.backend), (0.0, 0.0))[1]
+
+    def thread_cost(self, scene: Scene) -> float:
+        """What the thread that steps ``scene``'s rooms costs whatever their number (a
+        GPU's launch; 0 on the CPU or if not measured yet)."""
+        with _costs_lock:
+            return _costs.get(_key(scene, self.backend), (0.0, 0.0))[0]
 
     def refusal(self, scene: Scene, rooms: list[Scene]) -> str | None:
         """Why a new room of ``scene`` would not fit beside the open ``rooms`` (their
         scenes), or None. Then the measured signal (``busy``)."""
         if self.load > 0 and rooms:
             need = self.cost(scene)
-            total = sum(self.cost(s) for s in rooms)
+            # Each scene's rooms share one stepping thread (its fixed cost counted once).
+            by_key = {_key(s, self.backend): s for s in [*rooms, scene]}
+            total = sum(self.cost(s) for s in rooms) + sum(
+                self.thread_cost(s) for s in by_key.values())
             budget = self.load * self.cores
             if total + need > budget:
                 return (f"this server is at capacity: its {len(rooms)} rooms need about "
@@ -151,11 +182,12 @@ class Headroom:
             key = _key(scene, self.backend)
             same = [s for s in rooms if _key(s, self.backend) == key]
             on_thread = len(same) % WORKER_CAPACITY  # the rooms its thread already steps
-            if on_thread and (on_thread + 1) * need > self.load:
+            fixed = self.thread_cost(scene)
+            if on_thread and fixed + (on_thread + 1) * need > self.load:
                 return (f"this server is at capacity for {scene.name}: its simulation "
-                        f"thread steps {on_thread} such rooms at about {need:.2f} of a core "
-                        f"each, and may use {self.load:.0%} of one; try another scene, "
-                        "later, or another server")
+                        f"thread steps {on_thread} such rooms at about {need:.3f} of a core "
+                        f"each (and {fixed:.2f} whatever their number), and may use "
+                        f"{self.load:.0%} of one; try another scene, later, or another server")
         return self.busy
 
     # --- the measured signal ----------------------------------------------------------------
