@@ -18,6 +18,7 @@ import asyncio
 import collections
 import ipaddress
 import logging
+import math
 import secrets
 import time
 from typing import TYPE_CHECKING, Any
@@ -105,7 +106,7 @@ class Conn:
         self._control: collections.deque[str] = collections.deque()
         self._corner: bytes | None = None
         self._mesh: bytes | None = None
-        self._last_corner_time = -1e9
+        self.corner_due = -math.inf  # server time its next CORNER may be sent
         self._wake = asyncio.Event()
         self.control_bucket = TokenBucket(limits.control_rate, limits.control_burst)
         self.binary_bucket = TokenBucket(limits.binary_rate, limits.binary_burst)
@@ -139,11 +140,16 @@ class Conn:
         return False
 
     def offer_corner(self, data: bytes, server_time: float) -> None:
-        if self.closed or server_time - self._last_corner_time < self.corner_interval:
+        if self.closed or server_time < self.corner_due:
             return
         if self._stuck():
             return
-        self._last_corner_time = server_time
+        # The next is due an interval after this one was due, not after it was sent: timed
+        # from each send, a rate that is no whole number of 1 ms frames lost up to a frame a
+        # message (corner_rate 120 gave 111 a second). A stream a whole interval behind (its
+        # start, a stall) starts afresh from now, with no burst to catch up.
+        due = self.corner_due + self.corner_interval
+        self.corner_due = due if server_time < due else server_time + self.corner_interval
         if self._send_now(data):
             return
         if self._corner is not None:

@@ -330,12 +330,16 @@ class NativeWorker:
             log.error("room simulation stopped: %s", room.error)
             self.remove(room)
             result = FrameResult(fail, server_time, [], sim_error=room.error)
-        if room.slot is not None:  # the next CORNER is due one interval on (inf: none wanted)
-            self._loop.set_corner_due(slot, server_time + room.corner_interval)
         if frame <= room.delivered:  # an exit or failure of a frame delivered already
             result.corners, result.occupants = [], ()
         room.delivered = max(room.delivered, frame)
         room.deliver(result)
+        if room.slot is not None:
+            # The next wake-up: when the room's players' next CORNER is due (their own
+            # schedules, Conn.offer_corner), else one interval on (inf: none wanted).
+            due = room.corner_due
+            self._loop.set_corner_due(slot, due if due > server_time
+                                      else server_time + room.corner_interval)
 
     # --- the service thread: recordings, tracks, meshes -----------------------------------
     def _serve(self) -> None:

@@ -47,6 +47,8 @@ class Peer(Protocol):
     role: str  # "lobby", "player" or "spectator"
 
     def send_json(self, msg: dict[str, Any]) -> None: ...
+    corner_due: float  # server time its next CORNER may be sent
+
     def offer_corner(self, data: bytes, server_time: float) -> None: ...
     def offer_mesh(self, data: bytes) -> None: ...
     def error(self, err: ProtocolError | str, message: str = "", re: object = None) -> None: ...
@@ -618,6 +620,9 @@ class Room:
                 corner = result.corners[s.index]
                 if s.conn is not None and corner is not None:
                     s.conn.offer_corner(corner, result.server_time)
+            # The native loop wakes the room again when its first player's next CORNER is due.
+            dues = [s.conn.corner_due for s in self.seats if s.conn is not None]
+            self.sim.corner_due = min(dues) if dues else -math.inf
         if result.mesh is not None:
             self._fan_out_mesh(result.mesh, self.conns(), 0)
         if result.sim_error is not None:

@@ -116,6 +116,9 @@ class RoomSim:
         # s between this room's CORNER deliveries on the native loop (0: every frame; inf:
         # none wanted); the Python loop delivers every pass.
         self.corner_interval = 0.0
+        # server time the room's first player's next CORNER is due (its Room sets it as it
+        # offers them; -inf: not known, the native loop then waits corner_interval)
+        self.corner_due = -math.inf
         self.delivered = -1  # the newest frame the native loop delivered
         self.worker: Any = pool.worker_for(scene, backend, room=self)
         self._native = getattr(self.worker, "native", False)
