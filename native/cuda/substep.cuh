@@ -178,16 +178,40 @@ __device__ __forceinline__ V3<R> se_kick_touch(const Params<R>& p, const G& P, c
   }
 }
 
-// The drift of the node's substep (x to its new position), with its finite check and the
-// squared distance of the node nearest the ball (`near2`, for contact_possible).
+// The squared distance of the node nearest the ball (`near2`, for contact_possible), given
+// a node's new position x.
+template <class R, unsigned E>
+__device__ __forceinline__ void track_nearest(const BallNow<R>& now, V3<R> x, R& near2) {
+  if constexpr ((E & BALL) != 0) {
+    const V3<R> d = x - now.b.p;
+    near2 = fmin(near2, dot(d, d));
+  }
+}
+
+// The drift of the node's substep (x to its new position), with its finite check and
+// track_nearest.
 template <class R, unsigned E>
 __device__ __forceinline__ void se_drift_tracked(const BallNow<R>& now, V3<R>& x, V3<R> v, R dt,
                                                  R& check, R& near2) {
   euler_drift(x, v, dt);
   check_finite(check, x, v);
+  track_nearest<R, E>(now, x, near2);
+}
+
+// A node's whole substep (se_node_step: kick and drift) from the views (P, V), compiled
+// without contact while no node can touch the ball, as se_kick_touch. Each branch is the
+// whole step, so that without contact it is the very code of a scene without a ball (bit
+// for bit: split at the kick, the two kernels' drifts were contracted differently).
+template <class R, unsigned E, class G>
+__device__ __forceinline__ V3<R> se_step_touch(const Params<R>& p, const G& P, const G& V,
+                                               const FrameInputs<R>& fin, const BallNow<R>& now,
+                                               int i, int j, R dt, R& check, V3<R>& x, V3<R>& v) {
   if constexpr ((E & BALL) != 0) {
-    const V3<R> d = x - now.b.p;
-    near2 = fmin(near2, dot(d, d));
+    if (now.touch) return se_node_step<R, E>(p, P, V, fin, now.b.p, i, j, dt, check, x, v);
+    se_node_step<R, (E & ~BALL)>(p, P, V, fin, now.b.p, i, j, dt, check, x, v);
+    return {R(0), R(0), R(0)};
+  } else {
+    return se_node_step<R, E>(p, P, V, fin, now.b.p, i, j, dt, check, x, v);
   }
 }
 
@@ -235,8 +259,8 @@ __device__ __forceinline__ void se_substep_body(Params<R> p, DevBuf<R> in,
   for (int q = first; q < n * n; q += blocks * blockDim.x) {
     const int i = q / n, j = q - i * n;
     V3<R> x, v;
-    contact += se_kick_touch<R, E>(p, in.pos, in.vel, *fin, now, i, j, dt, x, v);
-    se_drift_tracked<R, E>(now, x, v, dt, check, near2);
+    contact += se_step_touch<R, E>(p, in.pos, in.vel, *fin, now, i, j, dt, check, x, v);
+    track_nearest<R, E>(now, x, near2);
     out.pos.set(q, x);
     out.vel.set(q, v);
   }
