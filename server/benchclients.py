@@ -433,7 +433,7 @@ def raise_fd_limit() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m clothball.server.leanclient")
+    p = argparse.ArgumentParser(prog="python -m clothball.server.benchclients")
     p.add_argument("--hip-rate", type=float, required=True)
     p.add_argument("--corner-rate", type=float, required=True)
     p.add_argument("--spectators", type=int, required=True)

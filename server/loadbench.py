@@ -12,7 +12,7 @@ second in and out of the server, spectator mesh rates, and CPU use of each proce
 desktop client: HIP at ``--hip-rate``, 120 Hz, ``corner_rate`` ``--corner-rate``, 120, MESH
 on) and ``--load-spectators`` spectators each are added a step at a time (1 room, then
 ``--rooms-step`` K more each step) and measured for ``--load-seconds``. The clients are the
-lean ones of ``server/leanclient.py``, many rooms to a process (``--client-procs``), so that
+lean ones of ``server/benchclients.py``, many rooms to a process (``--client-procs``), so that
 they cost a small part of what they measure; their CPU is reported beside the server's.
 A step holds while every room's frame lateness p99 is within ``--lateness-target`` (2 ms)
 and the players receive at least 90 % of the CORNER rate they asked; the first step that
@@ -56,8 +56,8 @@ from typing import Any
 import numpy as np
 
 from . import loops
+from .benchclients import HIST_BIN_S, raise_fd_limit
 from .hostproc import free_port, get_json, start_redis
-from .leanclient import HIST_BIN_S, raise_fd_limit
 
 TARGET_LATENCY_P99_MS = 5.0
 TARGET_LATENESS_P99_MS = 5.0
@@ -523,11 +523,11 @@ def _server_env(args: argparse.Namespace) -> dict[str, str]:
 
 
 class _Clients:
-    """The lean client processes (``server/leanclient.py``): rooms are given to them in
+    """The lean client processes (``server/benchclients.py``): rooms are given to them in
     turn; each answers one JSON line per command."""
 
     def __init__(self, args: argparse.Namespace, n: int) -> None:
-        cmd = [sys.executable, "-m", "clothball.server.leanclient",
+        cmd = [sys.executable, "-m", "clothball.server.benchclients",
                "--hip-rate", repr(args.hip_rate), "--corner-rate", repr(args.corner_rate),
                "--spectators", str(args.load_spectators)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -846,7 +846,7 @@ def _client_step(c0: list[dict[str, Any]], c1: list[dict[str, Any]], args: argpa
 
 
 def _hist_ms(hist: Counter[int], q: float) -> float | None:
-    """The ``q`` quantile (ms) of a latency histogram of ``leanclient.HIST_BIN_S`` bins
+    """The ``q`` quantile (ms) of a latency histogram of ``benchclients.HIST_BIN_S`` bins
     (the middle of its bin); None without samples."""
     total = sum(hist.values())
     if total == 0:

@@ -4,23 +4,48 @@
 # bench over one server process on CUDA, the Python loop and the native one in the same run.
 # Usage (on a machine with an NVIDIA GPU; websockets etc. carried in .whl/):
 #   OUT=results bash tools/gpu_server.sh
+# TESTS: the test paths (default tests/engine tests/study and the frame loop's); BASE: a
+# source tree (e.g. `git archive` of an older commit) built beside this one, whose
+# `bench --rooms` alternates with this tree's (REPEATS times) on the same machine.
 OUT=${OUT:-gpu-results}
+mkdir -p "$OUT/run"
+if [ -n "${BASE:-}" ]; then
+  python3 -m pip install -q --no-build-isolation --no-deps -Cbuild-dir=/tmp/cb-base \
+    -Ccmake.define.CLOTHBALL_CUDA=ON -Ccmake.define.CMAKE_CUDA_ARCHITECTURES=90 \
+    --target /tmp/base "$BASE" >"$OUT/run/build_base.log" 2>&1 &
+  base_build=$!
+fi
 source "$(dirname "$0")/gpu_build.sh"
 root=$PWD
+tests=${TESTS:-tests/engine tests/study tests/server/test_frame_loop.py}
 cd /tmp  # import the installed package, not the source tree
+# shellcheck disable=SC2086  # the paths are words
 OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout "${TESTS_S:-300}" python3 -m pytest -q \
   -p no:cacheprovider -p no:benchmark -n 8 -c "$root/setup.cfg" --rootdir "$root" \
-  "$root/tests/engine" "$root/tests/study" "$root/tests/server/test_frame_loop.py" \
-  2>&1 | tee "$OUT/gpu_tests.txt" | tail -8
+  $(for t in $tests; do echo "$root/$t"; done) 2>&1 | tee "$OUT/run/gpu_tests.txt" | tail -8
 tests_rc=${PIPESTATUS[0]}
 cd "$root"
-timeout 120 python3 -m clothball.game.cli bench --rooms --backends cuda --sizes 16,60 \
-  --json "$OUT/rooms.json" 2>>"$OUT/bench.err" | tee "$OUT/rooms.txt" | tail -6
-for loop in python native; do
+rooms() {  # $1: label; the rest: environment for the command
+  local label=$1; shift
+  env "$@" timeout 120 python3 -m clothball.game.cli bench --rooms --backends cuda \
+    --sizes "${ROOMS_SIZES:-16,60}" --json "$OUT/run/rooms_$label.json" \
+    2>>"$OUT/run/bench.err" | tee "$OUT/run/rooms_$label.txt" | tail -3
+}
+if [ -n "${BASE:-}" ]; then
+  wait "$base_build" || { tail -20 "$OUT/run/build_base.log"; exit 1; }
+  for k in $(seq "${REPEATS:-2}"); do
+    rooms "head_$k" PYTHONPATH="${PYTHONPATH:-}"
+    rooms "base_$k" PYTHONPATH="/tmp/base${PYTHONPATH:+:$PYTHONPATH}"
+  done
+else
+  rooms head PYTHONPATH="${PYTHONPATH:-}"
+fi
+for loop in ${LOOPS:-python native}; do
   timeout "${LOAD_S:-240}" python3 -m clothball.game.cli bench --load --server-backend cuda \
     --workers 1 --scene default --rooms-step "${ROOMS_STEP:-8}" \
     --load-max-rooms "${MAX_ROOMS:-64}" --load-seconds 5 --steps-past 1 --frame-loop "$loop" \
-    --json "$OUT/load_cuda_$loop.json" 2>>"$OUT/bench.err" | tee "$OUT/load_cuda_$loop.txt" \
-    | tail -4
+    --json "$OUT/run/load_cuda_$loop.json" 2>>"$OUT/run/bench.err" \
+    | tee "$OUT/run/load_cuda_$loop.txt" | tail -4
 done
+tar czf "$OUT/results.tgz" -C "$OUT" run
 exit "$tests_rc"

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from clothball.game import cli
 from clothball.game.wire import protocol as P
-from clothball.server import leanclient, loadbench
+from clothball.server import benchclients, loadbench
 from clothball.server.room import Room
 from websockets.frames import Frame, Opcode
 from websockets.streams import StreamReader
@@ -219,12 +219,12 @@ def test_latency_quantiles_match_numpy_within_a_bin() -> None:
     x = rng.lognormal(np.log(4e-3), 0.6, 20_000)  # seconds, a few ms like HIP -> CORNER
     hist: dict[int, int] = {}
     for v in x:  # binned as the lean client bins them
-        i = min(int(v / leanclient.HIST_BIN_S), leanclient.HIST_BINS)
+        i = min(int(v / benchclients.HIST_BIN_S), benchclients.HIST_BINS)
         hist[i] = hist.get(i, 0) + 1
     for q in (0.5, 0.99):
         want = float(np.percentile(x, q * 100, method="inverted_cdf")) * 1e3
         got = loadbench._hist_ms(Counter(hist), q)
-        assert got is not None and abs(got - want) <= leanclient.HIST_BIN_S * 1e3 / 2 + 1e-12
+        assert got is not None and abs(got - want) <= benchclients.HIST_BIN_S * 1e3 / 2 + 1e-12
     assert loadbench._hist_ms(Counter(), 0.5) is None
 
 
@@ -282,9 +282,9 @@ def test_lean_client_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
     mesh_mid = bytes([P.MESH]) + bytes(5000)  # 16-bit length
     mesh_big = bytes([P.MESH]) + bytes(70_000)  # 64-bit length
 
-    async def feed() -> tuple[leanclient.Conn, _Transport]:
-        hist = [0] * (leanclient.HIST_BINS + 1)
-        conn = leanclient.Conn(hist)
+    async def feed() -> tuple[benchclients.Conn, _Transport]:
+        hist = [0] * (benchclients.HIST_BINS + 1)
+        conn = benchclients.Conn(hist)
         t = _Transport()
         conn.connection_made(t)
         conn._upgraded.set_result(None)
@@ -315,7 +315,7 @@ def test_lean_client_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
     assert conn.echo_mismatch == 1 and conn.echo_unknown == 1
     bins = [i for i, c in enumerate(conn.hist) for _ in range(c)]
     assert len(bins) == 2  # HIPs 1 and 2, once each, from their send times
-    assert min(bins) * leanclient.HIST_BIN_S >= 0.003 - 1e-4 - leanclient.HIST_BIN_S
+    assert min(bins) * benchclients.HIST_BIN_S >= 0.003 - 1e-4 - benchclients.HIST_BIN_S
     frames = _client_frames(bytes(t.out))
     assert [f.opcode for f in frames] == [Opcode.BINARY, Opcode.BINARY, Opcode.PONG]
     assert frames[2].data == b"hi"
@@ -323,7 +323,7 @@ def test_lean_client_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
 
 def test_lean_client_hip_is_a_masked_frame_the_server_decodes() -> None:
     async def one() -> bytes:
-        conn = leanclient.Conn([0] * (leanclient.HIST_BINS + 1))
+        conn = benchclients.Conn([0] * (benchclients.HIST_BINS + 1))
         t = _Transport()
         conn.connection_made(t)
         conn.hand = (0.1, 0.5, -0.2, 0.3, 0.0)
