@@ -92,6 +92,9 @@ def frame_chunk(remaining: int, substeps: int, fixed: bool, gusts: bool) -> int:
     return min(chunk, max(1, MAX_SUBSTEPS_PER_CALL // substeps))
 
 
+_NOTED: set[str] = set()  # the "auto" choices logged (resolve_backend)
+
+
 def resolve_backend(scene: Scene, backend: str, precision: str | None
                     ) -> tuple[str, str, str]:
     """(backend, precision, note) for a cloth of ``scene``: ``"auto"`` is CUDA when a GPU is
@@ -109,7 +112,9 @@ def resolve_backend(scene: Scene, backend: str, precision: str | None
     if backend == "auto":
         backend = "cuda" if not why_not else "cpu"
         note = "CUDA device found" if backend == "cuda" else f"using the CPU backend: {why_not}"
-        log.info("clothball backend: %s (%s)", backend, note)
+        if note not in _NOTED:  # once a process: every room and calibration asks again
+            _NOTED.add(note)
+            log.info("clothball backend: %s (%s)", backend, note)
     elif backend == "cuda" and why_not:
         raise ValueError(f"backend: 'cuda' requested but {why_not}")
     else:
