@@ -168,21 +168,20 @@ class Headroom:
         """Why a new room of ``scene`` would not fit beside the open ``rooms`` (their
         scenes), or None. Then the measured signal (``busy``)."""
         if self.load > 0 and rooms:
-            need = self.cost(scene)
+            keys = [_key(s, self.backend) for s in rooms]
+            key = _key(scene, self.backend)
+            with _costs_lock:  # (fixed, per room) of each scene, 0 where not measured
+                cost = {k: _costs.get(k, (0.0, 0.0)) for k in {*keys, key}}
+            fixed, need = cost[key]
             # Each scene's rooms share one stepping thread (its fixed cost counted once).
-            by_key = {_key(s, self.backend): s for s in [*rooms, scene]}
-            total = sum(self.cost(s) for s in rooms) + sum(
-                self.thread_cost(s) for s in by_key.values())
+            total = sum(cost[k][1] for k in keys) + sum(f for f, _ in cost.values())
             budget = self.load * self.cores
             if total + need > budget:
                 return (f"this server is at capacity: its {len(rooms)} rooms need about "
                         f"{total:.2f} of the {budget:.2f} cores it gives rooms "
                         f"({self.load:.0%} of {self.cores:g}) and a {scene.name} room "
                         f"{need:.2f} more; try again later or another server")
-            key = _key(scene, self.backend)
-            same = [s for s in rooms if _key(s, self.backend) == key]
-            on_thread = len(same) % WORKER_CAPACITY  # the rooms its thread already steps
-            fixed = self.thread_cost(scene)
+            on_thread = keys.count(key) % WORKER_CAPACITY  # the rooms its thread already steps
             if on_thread and fixed + (on_thread + 1) * need > self.load:
                 return (f"this server is at capacity for {scene.name}: its simulation "
                         f"thread steps {on_thread} such rooms at about {need:.3f} of a core "
