@@ -54,7 +54,8 @@ class GameServer:
                  hello_timeout: float | None = None, limits: Limits | None = None,
                  origins: tuple[str, ...] | None = None, host_token: str | None = None,
                  trusted_proxies: tuple[Any, ...] = (),
-                 directory: Directory | None = None, shared_port: int | None = None,
+                 directory: Directory | None = None, public_port: int | None = None,
+                 engine_socket: Path | None = None,
                  advertise: str | None = None, host_id: str | None = None,
                  db: str | None = None) -> None:
         if scenes is None:
@@ -69,14 +70,17 @@ class GameServer:
         self.web_dir = web_dir or WEB_DIR
         self.data_dir = Path(data_dir)
         self.epoch = time.perf_counter()
-        # One of several processes or hosts of one service (`clothball host --workers`):
-        # the rooms' directory they share, the public port they all listen on (the kernel
-        # spreads new connections over them) and the address this one is reached at.
+        # The engine of a host of several processes (`clothball host --workers`,
+        # docs/architecture.md): its gateways listen on the public port (the port
+        # players are given) and bring every connection here through the Unix socket
+        # ``engine_socket``. One of several hosts of a cluster: the rooms' directory they
+        # share and the address this host is reached at.
         self.directory = directory
-        self.shared_port = shared_port
+        self.public_port = public_port
+        self.engine_socket = engine_socket
         self.advertise = advertise
         self.host_id = host_id or secrets.token_hex(6)
-        self._shared: Server | None = None
+        self._gateways: Server | None = None
         self.limits = limits or DEFAULT
         if hello_timeout is not None:
             self.limits = self.limits.replace(hello_timeout=hello_timeout)
@@ -138,8 +142,8 @@ class GameServer:
         address not here) closes the replay index it opened, so nothing is left open."""
         try:
             self._server = await self._listen(self.port)
-            if self.shared_port is not None:
-                self._shared = await self._listen(self.shared_port, reuse_port=True)
+            if self.engine_socket is not None:
+                self._gateways = await self._listen_gateways(self.engine_socket)
         except BaseException:
             if self._server is not None:
                 self._server.close()
@@ -175,9 +179,19 @@ class GameServer:
         self._spawn(self.ws.sweep_idle())
         return self.host, self.port
 
-    async def _listen(self, port: int, **extra: Any) -> Server:
+    async def _listen_gateways(self, path: Path) -> Server:
+        """The Unix socket the host's gateways connect to (one connection per client),
+        readable by this account only; a socket left by an engine that died is replaced."""
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+        srv = await self._listen(None, path=str(path), unix=True)
+        os.chmod(path, 0o600)
+        return srv
+
+    async def _listen(self, port: int | None, **extra: Any) -> Server:
+        where = {} if port is None else {"host": self.host, "port": port}
         return await serve(
-            self.ws.handler, self.host, port, process_request=self.http.process_request,
+            self.ws.handler, **where, process_request=self.http.process_request,
             max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
             create_connection=Connection,
             ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
@@ -275,27 +289,19 @@ class GameServer:
 
     @property
     def ws_url(self) -> str:
-        """The address players are given: the shared port when there is one."""
-        return self._url(self.shared_port if self.shared_port is not None else self.port)
+        """The address players are given: the gateways' public port when there is one."""
+        return self._url(self.public_port if self.public_port is not None else self.port)
 
     @property
     def advertised_url(self) -> str:
-        """The address other processes and hosts give out for this one's rooms:
-        ``advertise`` (with this process's own port when several share one), else its own
-        listening address."""
-        if not self.advertise:
-            return self.own_url
-        if self.shared_port is None:
-            return self.advertise
-        parts = urllib.parse.urlsplit(self.advertise)
-        name = parts.hostname or "127.0.0.1"
-        name = f"[{name}]" if ":" in name else name
-        return urllib.parse.urlunsplit((parts.scheme, f"{name}:{self.port}",
-                                        parts.path or "/ws", "", ""))
+        """The address other hosts of a cluster give out for this host's rooms:
+        ``advertise``, else the address players are given here."""
+        return self.advertise or self.ws_url
 
     @property
     def own_url(self) -> str:
-        """This process's own address (the one the directory gives out for its rooms)."""
+        """This process's own listening address (its bots connect there; with gateways,
+        no client is ever given it)."""
         return self._url(self.port)
 
     @property
@@ -313,15 +319,18 @@ class GameServer:
     async def stop(self) -> None:
         """Stop accepting, close every connection and room, finish the writes under way."""
         self.http.abort_downloads()
-        for srv in (self._shared, self._server):
+        for srv in (self._gateways, self._server):
             if srv is not None:
                 srv.close(close_connections=True)
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        for srv in (self._shared, self._server):
+        for srv in (self._gateways, self._server):
             if srv is not None:
                 await srv.wait_closed()
+        if self.engine_socket is not None:
+            with contextlib.suppress(OSError):
+                self.engine_socket.unlink()
         if self.directory is not None:
             self._reads.cancel()
             self._publications.cancel()

@@ -173,7 +173,6 @@ class HttpHost(Protocol):
     lobby: Lobby
     origins: tuple[str, ...] | None
     port: int  # this process's own port
-    shared_port: int | None  # the port processes share (--workers), if any
     store: ReplayStore | None
     recording_error: str | None
     host_token: str
@@ -278,15 +277,7 @@ class HttpSurface:
         scheme, _, netloc = origin.partition("://")
         if host is None or scheme not in ("http", "https"):
             return False
-        netloc, host = netloc.lower(), host.strip().lower()
-        if netloc == host:
-            return True
-        # One of several processes on one port (--workers): a page from the shared port
-        # whose connection was redirected to this process's own port is its own page too.
-        shared = self.srv.shared_port
-        name, _, port = host.rpartition(":")
-        return shared is not None and port == str(self.srv.port) and \
-            netloc == f"{name}:{shared}"
+        return netloc.lower() == host.strip().lower()
 
     async def _process(self, address: str, request: Request, connection: ServerConnection
                        ) -> Response | None:

@@ -30,6 +30,7 @@ from .directory import IO_TIMEOUT_S, Moved, NotInView
 from .limits import Limits
 from .lobby import Lobby, parse_settings
 from .room import Room
+from .shared import proxyline
 
 log = logging.getLogger("clothball.server")
 
@@ -54,6 +55,43 @@ class Connection(BinaryHook, ServerConnection):
     def no_handshake_deadline(self) -> None:
         if self._deadline is not None:
             self._deadline.reschedule(None)
+
+    # A connection from a gateway (the engine's Unix socket) opens with a PROXY line
+    # naming the client (server.shared.proxyline): read before the protocol sees a byte,
+    # it is the connection's remote address, so limits and logs name the client.
+    _line: bytearray | None = None
+    _peer: tuple[str, int] | None = None
+
+    def connection_made(self, transport: Any) -> None:
+        super().connection_made(transport)
+        sock = transport.get_extra_info("socket")
+        if sock is not None and sock.family == socket.AF_UNIX:
+            self._line = bytearray()
+
+    def data_received(self, data: bytes) -> None:
+        line = self._line
+        if line is None:
+            super().data_received(data)
+            return
+        end = data.find(b"\n")
+        line += data if end < 0 else data[:end + 1]
+        if end < 0 and len(line) < proxyline.MAX_LINE:
+            return
+        try:
+            self._peer = proxyline.decode(bytes(line))
+        except proxyline.BadLine as e:
+            log.warning("gateway connection refused: %s", e)
+            self.transport.abort()
+            return
+        self._line = None
+        if end + 1 < len(data):
+            super().data_received(data[end + 1:])
+
+    @property
+    def remote_address(self) -> Any:
+        if self._peer is not None:
+            return self._peer
+        return super().remote_address
 
 
 JOIN_ROLES = ("player", "spectator")

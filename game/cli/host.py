@@ -1,11 +1,12 @@
 """``clothball host``: run a game server until Ctrl-C or SIGTERM.
 
-With ``--workers N`` (default: one per core) it runs N server processes on one port: the
-kernel spreads new connections over them (SO_REUSEPORT), each process steps its own rooms
-and answers a request for a room another one hosts with a redirect to that process's own
-port (docs/protocol.md, "Several processes"). They share the data directory, where a small
-SQLite file is their room directory. This process supervises them: it restarts one that
-dies and stops them all on Ctrl-C or SIGTERM."""
+With ``--workers N`` (default: one per core; at least 2) it runs one engine process, which
+owns every room of the host, and N - 1 gateway processes that accept the clients on the
+one public port (SO_REUSEPORT) and carry each connection to the engine over its Unix
+socket (docs/architecture.md): a client reaches any room of the host through any gateway,
+with no redirect. This process supervises them: it restarts one that dies, stops them all
+on Ctrl-C or SIGTERM, and they end with it however it ends (``server.shared.lifeline``).
+``--workers 1`` is one process that does it all."""
 
 from __future__ import annotations
 
@@ -17,7 +18,6 @@ import os
 import shutil
 import signal
 import socket
-import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -29,10 +29,10 @@ from typing import Any
 
 from ...server import loops
 from ...server.app import GameServer, default_data_dir
-from ...server.directory import PUBLISH_S, Directory, RedisDirectory, SqliteDirectory
-from ...server.headroom import usable_cores
+from ...server.directory import Directory, RedisDirectory
 from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
+from ...server.shared import lifeline
 from ..sim.scene import Scene, SceneError
 from .args import FIRST_TO, PORT, WORKERS, postgres_url, redis_url, ws_url
 
@@ -67,7 +67,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "X-Forwarded-For names the client: its clients then get the "
                              "per-address limits one by one; repeatable")
     parser.add_argument("--workers", type=WORKERS, default=None, metavar="N",
-                        help="server processes sharing the port, each stepping its own rooms "
+                        help="processes of this host: one engine (every room) and N - 1 "
+                             "gateways sharing the port; 1: one process for everything "
                              f"(default: one per core, here {os.cpu_count() or 1})")
     parser.add_argument("--cluster", type=redis_url, default=None, metavar="redis://HOST:PORT/DB",
                         help="join the hosts sharing this Redis as one service: one lobby, "
@@ -84,10 +85,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="keep the replay index in this PostgreSQL database, shared by "
                              "the cluster's hosts: any host lists and serves every host's "
                              "rounds (default: SQLite in the data directory; docs/cluster.md)")
-    # Set by the supervisor for each of its processes (not for users).
-    parser.add_argument("--worker-index", type=int, default=None, help=argparse.SUPPRESS)
-    parser.add_argument("--shared-port", type=int, default=None, help=argparse.SUPPRESS)
-    parser.add_argument("--rooms-file", type=Path, default=None, help=argparse.SUPPRESS)
+    # Set by the supervisor for its engine process (not for users).
+    parser.add_argument("--engine-socket", type=Path, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--public-port", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--parent", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--lifeline", type=int, default=None, help=argparse.SUPPRESS)
 
 
 async def serve(args: argparse.Namespace) -> int:
@@ -105,7 +107,7 @@ async def serve(args: argparse.Namespace) -> int:
     scenes, limits, origins, trusted = checked
     data = args.data or default_data_dir()
     settings = RoomSettings(first_to=args.first_to, autoplay=True)
-    worker = args.worker_index
+    engine = args.engine_socket is not None
     directory: Directory | None = None
     clustered = False
     if args.cluster:
@@ -123,27 +125,28 @@ async def serve(args: argparse.Namespace) -> int:
                 return 1
             print(f"NOT in a cluster: the Redis at {where} does not answer ({e}); running "
                   "standalone (--cluster-optional)", flush=True)
-    if directory is None and worker is not None:
-        directory = SqliteDirectory(args.rooms_file or Path(data) / DIRECTORY_FILE)
-    server = GameServer(data, scenes=scenes, backend=args.backend, host=args.host,
-                        port=0 if worker is not None else args.port,
+    # The engine listens on a loopback port of its own (its bots connect there) and on
+    # the gateways' socket; players are given the public port.
+    server = GameServer(data, scenes=scenes, backend=args.backend,
+                        host="127.0.0.1" if engine else args.host,
+                        port=0 if engine else args.port,
                         bots=args.bots, room_settings=settings, limits=limits,
-                        origins=origins, trusted_proxies=trusted,
-                        default_room=not worker, directory=directory,
-                        shared_port=args.shared_port, advertise=args.advertise,
+                        origins=origins, trusted_proxies=trusted, directory=directory,
+                        public_port=args.public_port, engine_socket=args.engine_socket,
+                        advertise=args.advertise or (_public_url(args) if engine else None),
                         host_id=f"{socket.gethostname()}-{os.getpid()}", db=args.db)
     try:
         await server.start()
     except OSError as e:
         print(f"clothball host: cannot listen on {args.host}:{args.port}: {e.strerror}")
         return 1
-    if worker is not None:
+    if engine:
         # One line for the supervisor, then this process runs quietly until stopped.
-        print(json.dumps({"worker": worker, "url": server.own_url,
+        print(json.dumps({"engine": os.getpid(), "url": server.own_url,
                           "backend": server.main_room.sim.backend if server.main_room
                           else args.backend,
                           "recording": server.recording_error}), flush=True)
-        await _until_stopped()
+        await _until_stopped(args.lifeline)
         await server.stop()
         if directory is not None:
             directory.close()
@@ -203,7 +206,9 @@ def _check(args: argparse.Namespace) -> tuple[dict[str, Scene], Limits, Any, Any
         return None
 
 
-async def _until_stopped() -> None:
+async def _until_stopped(lifeline_fd: int | None = None) -> None:
+    """Until SIGINT or SIGTERM, or (a child of the supervisor) until the supervisor is
+    gone."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -211,10 +216,11 @@ async def _until_stopped() -> None:
             loop.add_signal_handler(sig, stop.set)
         except (NotImplementedError, RuntimeError):  # pragma: no cover - not on this platform
             pass
+    if lifeline_fd is not None:
+        lifeline.watch(lifeline_fd, stop.set)
     await stop.wait()
 
 
-DIRECTORY_FILE = "rooms.sqlite"  # the processes' room directory, in the data directory
 RESTART_S = 1.0  # a process that died is started again after this long
 
 
@@ -225,23 +231,27 @@ def run(args: argparse.Namespace) -> int:
     except loops.LoopError as e:
         print(f"clothball host: {e}")
         return 2
-    if args.worker_index is not None or workers == 1:
+    if args.parent is not None:
+        lifeline.arm(args.parent)
+    if args.engine_socket is not None or workers == 1:
         return loops.run(serve(args))
     return supervise(args, workers)
 
 
-class _Worker:
-    """One server process of the supervisor: started, its ready line read, its later output
-    passed on."""
+class _Child:
+    """One process of the supervisor (the engine or a gateway): started, its ready line
+    read, its later output passed on."""
 
-    def __init__(self, index: int, cmd: list[str]) -> None:
-        self.index = index
+    def __init__(self, name: str, cmd: list[str], lifeline_fd: int) -> None:
+        self.name = name
         self.cmd = cmd
+        self.lifeline_fd = lifeline_fd
         self.proc: subprocess.Popen[str] | None = None
         self.ready: dict[str, object] | None = None
 
     def start(self, timeout: float = 120.0) -> None:
-        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, text=True,
+                                     pass_fds=(self.lifeline_fd,))
         assert self.proc.stdout is not None
         lines: list[str] = []
         reader = threading.Thread(target=lambda: lines.append(self.proc.stdout.readline()),
@@ -254,6 +264,9 @@ class _Worker:
         except json.JSONDecodeError:
             self.ready = None
             print(first, end="")
+        if self.ready is not None and "error" in self.ready:
+            print(f"clothball host: {self.name}: {self.ready['error']}")
+            self.ready = None
         threading.Thread(target=self._pass_on, daemon=True).start()
 
     def _pass_on(self) -> None:
@@ -263,7 +276,7 @@ class _Worker:
 
 
 def supervise(args: argparse.Namespace, workers: int) -> int:
-    """Run ``workers`` server processes on one port until Ctrl-C or SIGTERM."""
+    """Run the engine and ``workers - 1`` gateways on one port until Ctrl-C or SIGTERM."""
     if _check(args) is None:
         return 2
     try:
@@ -272,15 +285,20 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         print(f"clothball host: cannot listen on {args.host}: {e.strerror}")
         return 1
     data = Path(args.data or default_data_dir())
-    rooms_file, spare = _rooms_file(data)
-    base = [sys.executable, "-m", "clothball.game.cli", *args.argv]
-    if not any(s.replace("-", "_").startswith("admit_cores=") for s in args.limit):
-        # Admission: each process's rooms may use its share of the machine's cores.
-        base += ["--limit", f"admit_cores={usable_cores() / workers:.3g}"]
-    procs = [_Worker(k, [*base, "--data", str(data), "--port", str(port), "--workers", "1",
-                         "--worker-index", str(k), "--shared-port", str(port),
-                         "--rooms-file", str(rooms_file)])
-             for k in range(workers)]
+    private = Path(tempfile.mkdtemp(prefix="clothball-host-"))  # 0700: the engine's socket
+    sock = private / "engine.sock"
+    life_r, life_w = lifeline.pipe()
+    me = str(os.getpid())
+    ties = ["--parent", me, "--lifeline", str(life_r)]
+    engine = _Child("the engine", [
+        sys.executable, "-m", "clothball.game.cli", *args.argv, "--data", str(data),
+        "--port", "0", "--workers", "1", "--engine-socket", str(sock),
+        "--public-port", str(port), *ties], life_r)
+    gateways = [_Child(f"gateway {k}", [
+        sys.executable, "-m", "clothball.server.gateway", "--host", args.host, "--port",
+        str(port), "--engine-socket", str(sock), "--index", str(k), *ties], life_r)
+        for k in range(max(1, workers - 1))]
+    procs = [engine, *gateways]
     stopping = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stopping.set())
@@ -289,13 +307,12 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
             w.start()
             if w.ready is None:
                 rc = w.proc.wait(timeout=30) if w.proc is not None else 1
-                print(f"clothball host: server process {w.index} did not start (exit {rc})")
+                print(f"clothball host: {w.name} did not start (exit {rc})")
                 return rc or 1
-        # Every process reads the directory every PUBLISH_S: by now each knows the others.
-        time.sleep(2 * PUBLISH_S)
-        first = procs[0].ready or {}
+        first = engine.ready or {}
         url = f"ws://{_shown(args.host)}:{port}/ws"
-        print(f"clothball server on {url}  ({workers} processes; scene "
+        print(f"clothball server on {url}  (an engine and {len(gateways)} gateway"
+              f"{'s' if len(gateways) > 1 else ''}; scene "
               f"{', '.join(args.scene or ['default'])}, backend {first.get('backend')})")
         print(f"spectate in a browser: http://{_shown(args.host)}:{port}/")
         if first.get("recording"):
@@ -306,28 +323,36 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
             print(f"host token (resets /api/stats) in {data.resolve() / 'host-token'}")
         if args.host in ("127.0.0.1", "localhost", "::1"):
             print("(only this machine can connect; --host 0.0.0.0 to let others in)")
-        while not stopping.wait(0.5):
+        while not stopping.wait(0.2):
             for w in procs:
-                if w.proc is not None and w.proc.poll() is not None:
-                    print(f"server process {w.index} exited ({w.proc.returncode}); "
-                          "starting it again")
+                if w.proc is not None and w.proc.poll() is not None and not stopping.is_set():
+                    print(f"{w.name} exited ({w.proc.returncode}); starting it again",
+                          flush=True)
                     time.sleep(RESTART_S)
                     w.start()
         print("stopping: finishing the writes in progress...")
     finally:
-        for w in procs:
-            if w.proc is not None and w.proc.poll() is None:
-                w.proc.send_signal(signal.SIGTERM)
-        for w in procs:
-            if w.proc is not None:
-                try:
-                    w.proc.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    w.proc.kill()
-        if spare is not None:
-            shutil.rmtree(spare, ignore_errors=True)
+        # Gateways first (no new requests), then the engine (it finishes its writes).
+        for group in (gateways, [engine]):
+            for w in group:
+                if w.proc is not None and w.proc.poll() is None:
+                    w.proc.send_signal(signal.SIGTERM)
+            for w in group:
+                if w.proc is not None:
+                    try:
+                        w.proc.wait(timeout=30)
+                    except subprocess.TimeoutExpired:
+                        w.proc.kill()
+        os.close(life_w)
+        os.close(life_r)
+        shutil.rmtree(private, ignore_errors=True)
     print("stopped")
     return 0
+
+
+def _public_url(args: argparse.Namespace) -> str:
+    """The engine's address for other hosts of a cluster: the gateways' public port."""
+    return f"ws://{_shown(args.host)}:{args.public_port}/ws"
 
 
 def _without_password(url: str) -> str:
@@ -337,21 +362,6 @@ def _without_password(url: str) -> str:
         return url
     netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
     return urllib.parse.urlunsplit(parts._replace(netloc=netloc))
-
-
-def _rooms_file(data: Path) -> tuple[Path, Path | None]:
-    """Where the processes keep their room directory: in the data directory, or, when that
-    cannot be written (the processes then play without recording, as one process does), in
-    a directory of its own made for this run (returned second, to be removed at the end)."""
-    try:
-        data.mkdir(parents=True, exist_ok=True)
-        SqliteDirectory(data / DIRECTORY_FILE).close()
-        return data / DIRECTORY_FILE, None
-    except (OSError, sqlite3.Error) as e:
-        spare = Path(tempfile.mkdtemp(prefix="clothball-rooms-"))
-        print(f"the data directory {data} cannot be used ({getattr(e, 'strerror', None) or e}):"
-              f" the processes' room directory is in {spare}")
-        return spare / DIRECTORY_FILE, spare
 
 
 def _shown(host: str) -> str:

@@ -1,0 +1,56 @@
+"""``python -m clothball.server.gateway``: one gateway process, started by ``clothball
+host`` (not for users). Prints one JSON line once it listens, relays until SIGTERM, or
+until the host that started it is gone (``server.shared.lifeline``)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import os
+import signal
+import sys
+from pathlib import Path
+
+from ..shared import lifeline
+from .relay import Gateway
+
+
+async def main(args: argparse.Namespace) -> int:
+    gw = Gateway(args.host, args.port, args.engine_socket)
+    try:
+        await gw.start()
+    except OSError as e:
+        print(json.dumps({"gateway": args.index, "error": e.strerror or str(e)}), flush=True)
+        return 1
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if args.lifeline is not None:
+        lifeline.watch(args.lifeline, stop.set)
+    print(json.dumps({"gateway": args.index, "pid": os.getpid()}), flush=True)
+    await stop.wait()
+    await gw.stop()
+    return 0
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="clothball-gateway")
+    p.add_argument("--host", required=True)
+    p.add_argument("--port", type=int, required=True)
+    p.add_argument("--engine-socket", type=Path, required=True)
+    p.add_argument("--index", type=int, default=0)
+    p.add_argument("--parent", type=int, default=None)
+    p.add_argument("--lifeline", type=int, default=None)
+    return p.parse_args(argv)
+
+
+if __name__ == "__main__":
+    a = parse(sys.argv[1:])
+    if a.parent is not None:
+        lifeline.arm(a.parent)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    sys.exit(asyncio.run(main(a)))

@@ -1,0 +1,117 @@
+"""The gateway's relay: each client connection accepted on the public port gets a
+connection of its own to the engine's Unix socket, opened by a PROXY line naming the
+client (``server.shared.proxyline``), then the bytes both ways until either side ends.
+The engine speaks the protocol (websocket and HTTP alike), so a client sees one server on
+one port whichever gateway the kernel gave it to, and never a redirect inside the host.
+
+While the engine cannot be reached (it is being restarted), a request is answered
+``503`` with a JSON body saying so, and the client retries."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import socket
+from pathlib import Path
+
+from ..shared import proxyline
+
+log = logging.getLogger("clothball.gateway")
+
+CHUNK = 1 << 16  # bytes read at a time, each way
+WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
+HEAD_WAIT_S = 5.0  # for a request's head, before a 503 while the engine is away
+RETRY_AFTER_S = 2  # told to a client while the engine is away
+
+
+class Gateway:
+    """Relays the public port ``host:port`` to the engine socket ``engine``."""
+
+    def __init__(self, host: str, port: int, engine: Path) -> None:
+        self.host, self.port, self.engine = host, port, engine
+        self.server: asyncio.Server | None = None
+        self.open = 0  # connections being relayed now
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    async def start(self) -> None:
+        self.server = await asyncio.start_server(
+            self._client, self.host, self.port, reuse_port=True, limit=CHUNK,
+            backlog=1024)
+
+    async def stop(self) -> None:
+        if self.server is not None:
+            self.server.close()
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    async def _client(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter
+                      ) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._tasks.add(task)
+        self.open += 1
+        try:
+            await self._relay(creader, cwriter)
+        except (ConnectionError, OSError, asyncio.IncompleteReadError):
+            pass
+        finally:
+            self.open -= 1
+            self._tasks.discard(task)
+            cwriter.close()
+
+    async def _relay(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter
+                     ) -> None:
+        sock = cwriter.get_extra_info("socket")
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        try:
+            ereader, ewriter = await asyncio.open_unix_connection(str(self.engine),
+                                                                  limit=CHUNK)
+        except OSError:
+            await self._engine_away(creader, cwriter)
+            return
+        try:
+            for w in (cwriter, ewriter):
+                w.transport.set_write_buffer_limits(high=WRITE_HIGH)
+            ewriter.write(proxyline.encode(cwriter.get_extra_info("peername"),
+                                           cwriter.get_extra_info("sockname")))
+            # Both ways at once; one side's end of file is passed on, and the relay ends
+            # when both have ended (or either fails).
+            await asyncio.gather(_pump(creader, ewriter), _pump(ereader, cwriter),
+                                 return_exceptions=True)
+        finally:
+            ewriter.close()
+
+    async def _engine_away(self, creader: asyncio.StreamReader,
+                           cwriter: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(asyncio.TimeoutError, asyncio.LimitOverrunError,
+                                 asyncio.IncompleteReadError, ValueError):
+            await asyncio.wait_for(creader.readuntil(b"\r\n\r\n"), HEAD_WAIT_S)
+        body = json.dumps({"error": "the host's engine is restarting: try again in a few "
+                                    "seconds", "status": 503}).encode()
+        head = (f"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+                f"Content-Length: {len(body)}\r\nRetry-After: {RETRY_AFTER_S}\r\n"
+                "Connection: close\r\n\r\n").encode()
+        cwriter.write(head + body)
+        with contextlib.suppress(ConnectionError, OSError):
+            await cwriter.drain()
+
+
+async def _pump(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    try:
+        while data := await reader.read(CHUNK):
+            writer.write(data)
+            await writer.drain()
+        if writer.can_write_eof():
+            writer.write_eof()
+    except (ConnectionError, OSError):
+        # One side is gone: end the other too (its own pump then reads end of file).
+        writer.transport.abort()
+        raise
+
+
+__all__ = ["Gateway"]

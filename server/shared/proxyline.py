@@ -1,0 +1,48 @@
+"""The first line of every connection a gateway opens to the engine: the client's own
+address, in the PROXY protocol's text form (version 1, as HAProxy, nginx and others
+write it), so that the engine applies its per-address limits to the client and not to
+the gateway. Only the host's own processes can open the engine's socket (a private
+directory), so the line is trusted as given."""
+
+from __future__ import annotations
+
+import ipaddress
+
+MAX_LINE = 107  # the protocol's bound on the line, CRLF included
+
+
+class BadLine(ValueError):
+    """A first line that is not a PROXY v1 header."""
+
+
+def encode(peer: tuple[str, int] | None, local: tuple[str, int] | None) -> bytes:
+    """The line for a client at ``peer`` that connected to ``local`` (either unknown:
+    ``PROXY UNKNOWN``)."""
+    if not peer or not local:
+        return b"PROXY UNKNOWN\r\n"
+    try:
+        src, dst = ipaddress.ip_address(peer[0]), ipaddress.ip_address(local[0])
+    except ValueError:
+        return b"PROXY UNKNOWN\r\n"
+    if src.version != dst.version:
+        return b"PROXY UNKNOWN\r\n"
+    family = "TCP4" if src.version == 4 else "TCP6"
+    return f"PROXY {family} {src} {dst} {peer[1]} {local[1]}\r\n".encode("ascii")
+
+
+def decode(line: bytes) -> tuple[str, int] | None:
+    """The client's address named by ``line`` (CRLF included); None for ``UNKNOWN``.
+    ``BadLine`` when it is not a PROXY v1 line."""
+    if len(line) > MAX_LINE or not line.endswith(b"\r\n"):
+        raise BadLine("not a PROXY line: too long or not ended by CRLF")
+    parts = line[:-2].decode("ascii", "replace").split(" ")
+    if parts[:2] == ["PROXY", "UNKNOWN"]:
+        return None
+    if len(parts) != 6 or parts[0] != "PROXY" or parts[1] not in ("TCP4", "TCP6"):
+        raise BadLine(f"not a PROXY v1 line: {line[:60]!r}")
+    try:
+        ip = ipaddress.ip_address(parts[2])
+        port = int(parts[4])
+    except ValueError as e:
+        raise BadLine(f"bad address in the PROXY line: {e}") from None
+    return str(ip), port
