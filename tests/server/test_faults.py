@@ -15,6 +15,7 @@ import sqlite3
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.parse
 import urllib.request
@@ -182,33 +183,37 @@ def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_
 
 @dataclass
 class ServerProcs:
-    """The server of the fault tests: one process, or two sharing a port (the test run with
-    two processes, ``tests/server/workers.py``), each with a room of four bots recording
-    into the one data directory."""
+    """The server of the fault tests: one process, or (the test run with two processes,
+    ``tests/server/workers.py``) an engine and a gateway on the public port; its room of
+    four bots records into the data directory."""
 
     procs: list[subprocess.Popen[str]]
-    port: int  # where clients connect: the shared port with two
-    ports: list[int]  # each process's own
+    port: int  # where clients connect: the gateway's with two
+    ports: list[int]  # the server's own
     recording: str
 
 
 def start_server(data: Path, *args: str) -> ServerProcs:
-    n = workers.current()
-    shared = ["--shared-port", str(workers.free_port())] if n == 2 else []
-    procs, ports, recording = [], [], ""
-    for _ in range(n):  # one after the other: the first's room is "main"
-        proc = subprocess.Popen([sys.executable, str(HERE / "server_proc.py"), str(data),
-                                 *args, *shared], stdout=subprocess.PIPE, text=True)
-        procs.append(proc)
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
-        if not line:
-            stop(ServerProcs(procs, 0, [], ""))
-            raise AssertionError("the server process did not start")
-        info = json.loads(line)
-        ports.append(info["port"])
-        recording = recording or info["recording"]
-    return ServerProcs(procs, int(shared[1]) if shared else ports[0], ports, recording)
+    extra: list[str] = []
+    gateway: list[subprocess.Popen[str]] = []
+    if workers.current() == 2:
+        public = workers.free_port()
+        sock = Path(tempfile.mkdtemp(prefix="cb-engine-")) / "engine.sock"
+        extra = ["--engine-socket", str(sock), "--public-port", str(public)]
+        gateway = [subprocess.Popen(
+            [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1",
+             "--port", str(public), "--engine-socket", str(sock)], stdout=subprocess.PIPE,
+            text=True)]
+    proc = subprocess.Popen([sys.executable, str(HERE / "server_proc.py"), str(data),
+                             *args, *extra], stdout=subprocess.PIPE, text=True)
+    procs = [proc, *gateway]
+    lines = [p.stdout.readline() for p in procs]  # type: ignore[union-attr]
+    if not all(lines):
+        stop(ServerProcs(procs, 0, [], ""))
+        raise AssertionError("the server process did not start")
+    info = json.loads(lines[0])
+    return ServerProcs(procs, int(extra[-1]) if extra else info["port"], [info["port"]],
+                       info["recording"])
 
 
 def stop(server: ServerProcs) -> None:
@@ -386,7 +391,7 @@ def test_an_unusable_data_directory_turns_recording_off_and_play_goes_on(tmp_pat
 
 def test_two_processes_on_an_unusable_data_directory_play_without_recording(tmp_path) -> None:
     """``clothball host --workers 2`` whose data directory cannot be made: as one process
-    does, the processes play without recording (their room directory goes elsewhere)."""
+    does, the host (engine and gateway) plays without recording."""
     from tests.server.test_workers import host
 
     (tmp_path / "a-file").write_text("not a directory")
@@ -400,8 +405,8 @@ def test_two_processes_on_an_unusable_data_directory_play_without_recording(tmp_
         assert status == 503 and b"recording is off" in body
         await spec.close()
 
-    with host(tmp_path, "--data", str(unusable), "--bots", "4") as url:
-        run(main(url))
+    with host(tmp_path, 2, "--data", str(unusable), "--bots", "4") as h:
+        run(main(h.url))
 
 
 # --- a simulation that turns non-finite --------------------------------------------------------

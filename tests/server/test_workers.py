@@ -1,17 +1,25 @@
-"""``clothball host --workers 2``: two real server processes on one port. Any connection sees
-every process's rooms; a join, a watch or a new room that the other process serves is
-redirected there and the client follows; the kernel spreads connections over both."""
+"""``clothball host --workers N``: one engine process and N - 1 gateways on one public port
+(docs/architecture.md), real processes and real websocket clients over loopback. Every
+room of the host is reached through any gateway with no redirect; the host's accounting
+is the whole host's; the processes end with the host however it ends; a gateway or an
+engine that dies is started again."""
 
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import re
 import signal
 import subprocess
 import sys
+import threading
+import time
+import urllib.error
+import urllib.request
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -20,91 +28,213 @@ from clothball.game.sim.scene import ASSETS
 
 from tests.server.conftest import run, until
 
+WAIT_S = 60.0  # bound on waiting for a process to end or come back (not a speed claim)
+
+
+@dataclass
+class Host:
+    proc: subprocess.Popen[str]
+    url: str
+    lines: list[str] = field(default_factory=list)
+
+    @property
+    def http(self) -> str:
+        return self.url.replace("ws://", "http://", 1)[: -len("/ws")]
+
+    def children(self) -> dict[int, str]:
+        """The host's processes, by pid: "gateway" or "engine"."""
+        kids = Path(f"/proc/{self.proc.pid}/task/{self.proc.pid}/children").read_text()
+        out = {}
+        for pid in map(int, kids.split()):
+            with suppress(OSError):
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+                out[pid] = "gateway" if b"clothball.server.gateway" in cmd else "engine"
+        return out
+
+    def json(self, path: str) -> dict:
+        with urllib.request.urlopen(self.http + path, timeout=10) as r:
+            return json.loads(r.read())
+
 
 @contextmanager
-def host(tmp_path: Path, *args: str) -> Iterator[str]:
-    """``clothball host --workers 2`` on a free port (a 16x16 classic cloth); yields its URL."""
+def host(tmp_path: Path, workers: int, *args: str) -> Iterator[Host]:
+    """``clothball host --workers N`` on a free port (a 16x16 classic cloth)."""
     scene = tmp_path / "tiny.toml"
     text = (ASSETS / "scenes" / "classic.toml").read_text()
     scene.write_text(re.sub(r"(?m)^n = \d+", "n = 16", text, count=1))
     proc = subprocess.Popen(
-        [sys.executable, "-m", "clothball.game.cli", "host", "--workers", "2", "--port", "0",
-         "--scene", str(scene), "--backend", "cpu", "--data", str(tmp_path / "data"),
-         "--limit", "admit_lateness_ms=0", *args],
+        [sys.executable, "-m", "clothball.game.cli", "host", "--workers", str(workers),
+         "--port", "0", "--scene", str(scene), "--backend", "cpu", "--data",
+         str(tmp_path / "data"), "--limit", "admit_lateness_ms=0", *args],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.stdout is not None
-    url = None
-    lines = []
+    h = Host(proc, "")
     for line in proc.stdout:
-        lines.append(line)
-        m = re.match(r"clothball server on (ws://\S+)\s+\(2 processes", line)
+        h.lines.append(line)
+        m = re.match(r"clothball server on (ws://\S+)\s+\(an engine and", line)
         if m:
-            url = m.group(1)
+            h.url = m.group(1)
             break
+
+    def read_on() -> None:
+        for line in proc.stdout:  # type: ignore[union-attr]
+            h.lines.append(line)
+
+    reader = threading.Thread(target=read_on, daemon=True)
+    reader.start()
     try:
-        assert url is not None, "".join(lines)
-        yield url
+        assert h.url, "".join(h.lines)
+        yield h
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(60)
+            reader.join(10)
+            out = "".join(h.lines)
+            assert proc.returncode == 0, out
+            assert "Traceback" not in out, out
     finally:
-        proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=60)
-        assert proc.returncode == 0, "".join(lines) + out
-        assert "Traceback" not in out, out
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        reader.join(10)
+        proc.stdout.close()
 
 
-def test_two_processes_share_one_lobby_and_send_clients_where_rooms_live(tmp_path) -> None:
-    async def main(url: str) -> None:
-        lobby = await NetClient.connect(url, name="lobby")
-        rooms = (await lobby.request("list_rooms"))["rooms"]
-        assert [r["id"] for r in rooms] == ["main"]
-        main_host = rooms[0]["host"]
-        # The first room goes to the process without one, whichever process was asked.
-        made = []
+def gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    # A zombie (exited, not reaped by a parent that is itself gone) is gone too.
+    with suppress(OSError):
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] == "Z"
+    return True
+
+
+def wait(cond, what: str) -> None:  # type: ignore[no-untyped-def]
+    end = time.monotonic() + WAIT_S
+    while not cond():
+        assert time.monotonic() < end, f"not within {WAIT_S:g} s: {what}"
+        time.sleep(0.1)
+
+
+def test_every_room_on_one_port_with_no_redirect_and_host_wide_accounting(tmp_path) -> None:
+    async def main(h: Host) -> None:
+        lobby = await NetClient.connect(h.url, name="lobby")
+        assert [r["id"] for r in (await lobby.request("list_rooms"))["rooms"]] == ["main"]
+        # Rooms made from several connections (the kernel spreads them over the two
+        # gateways), up to the per-address limit, which holds for the whole host.
+        makers, made = [], []
         for i in range(2):
-            c = await NetClient.connect(url, name=f"maker{i}")
-            reply = await c.request("create_room", name=f"r{i}", bots_allowed=False,
-                                    unguarded=True)
-            made.append((c, reply["room"]))
-        await until(lambda: len(lobby.messages) > 0, 5)
-
-        async def listing() -> dict[str, str]:
-            got = (await lobby.request("list_rooms"))["rooms"]
-            return {r["id"]: r["host"] for r in got}
-
-        want = {"main", made[0][1], made[1][1]}
-        for _ in range(100):
-            hosts = await listing()
-            if set(hosts) == want:
-                break
-            await asyncio.sleep(0.1)
-        assert set(hosts) == want, hosts
-        # Two processes, each with rooms: main and one new room, then the other new room.
-        assert len(set(hosts.values())) == 2
-        assert hosts[made[0][1]] != main_host
-        # Watchers of every room, from connections the kernel spreads over both processes:
-        # each ends up on the room's own process (followed redirects) and gets its meshes.
-        redirected = 0
-        for rid in want:
+            c = await NetClient.connect(h.url, name=f"maker{i}")
+            made.append((await c.request("create_room", name=f"r{i}", bots_allowed=False,
+                                         unguarded=True))["room"])
+            makers.append(c)
+        c = await NetClient.connect(h.url, name="maker2")
+        try:
+            await c.request("create_room", name="r2", bots_allowed=False, unguarded=True)
+            raise AssertionError("a third room from one address was made (limit 2)")
+        except Exception as e:  # ServerError: the per-address limit
+            assert "rooms" in str(e), e
+        makers.append(c)
+        want = {"main", *made}
+        # Watchers of every room from fresh connections: each lands on either gateway,
+        # each is answered where it connected (no redirect) and gets the room's meshes.
+        watchers = []
+        for rid in sorted(want):
             for k in range(3):
-                w = await NetClient.connect(url, name=f"w{k}", role="spectator", room=rid)
-                assert w.room == rid and w.url in (url, hosts[rid])
-                redirected += w.url != url
+                w = await NetClient.connect(h.url, name=f"w{k}", role="spectator", room=rid)
+                assert w.room == rid and w.url == h.url
                 await until(lambda w=w: w.mesh is not None, 10, f"a mesh of {rid}")
                 assert w.mesh.positions.shape == (16, 16, 3)
-                await w.close()
-        assert redirected > 0
-        # A player takes a bot's corner in main wherever its connection landed, and plays.
-        p = await NetClient.connect(url, name="ann", role="player", room="main", seat=2)
+                watchers.append(w)
+        # A player takes a bot's corner in main and plays.
+        p = await NetClient.connect(h.url, name="ann", role="player", room="main", seat=2)
         assert p.seat == 2 and p.joined["kind"] == "human"
         hip = np.array(p.reach.centre) + [0.0, 0.02, 0.0]
         for _ in range(50):
             await p.send_hip(hip)
             await asyncio.sleep(0.002)
         await until(lambda: p.corner is not None and p.corner.hip_seq > 0, 10, "an echo")
-        await p.close()
-        for c, _ in made:
+        everyone = [lobby, *makers, *watchers, p]
+        assert not [m for c in everyone for m in c.messages if m.get("type") == "redirect"]
+        # The statistics describe the whole host whichever gateway answers.
+        for _ in range(6):
+            stats = await asyncio.to_thread(h.json, "/api/stats")
+            assert set(stats["rooms"]) == want
+            assert stats["clients"] >= len(everyone)
+        for c in everyone:
             await c.close()
-        await lobby.close()
 
-    with host(tmp_path, "--bots", "4") as url:
-        run(main(url))
+    with host(tmp_path, 3, "--bots", "4", "--limit", "rooms_per_address=2") as h:
+        assert list(h.children().values()).count("gateway") == 2
+        run(main(h))
+
+
+def test_sigkill_of_the_host_ends_the_engine_and_the_gateways(tmp_path) -> None:
+    with host(tmp_path, 3) as h:
+        kids = h.children()
+        assert sorted(kids.values()) == ["engine", "gateway", "gateway"]
+        h.proc.kill()
+        h.proc.wait(10)
+        wait(lambda: all(gone(pid) for pid in kids), "the host's processes ended")
+        with suppress(OSError), urllib.request.urlopen(h.http + "/healthz", timeout=2):
+            raise AssertionError("the public port still answers after the host was killed")
+
+
+def test_a_killed_gateway_is_restarted_and_its_player_resumes_the_seat(tmp_path) -> None:
+    async def main(h: Host) -> None:
+        p = await NetClient.connect(h.url, name="ann", role="player", room="main", seat=1)
+        assert p.seat == 1
+        token = p.token
+        [gw] = [pid for pid, kind in h.children().items() if kind == "gateway"]
+        os.kill(gw, signal.SIGKILL)
+        await p.wait_closed(WAIT_S)
+        await asyncio.to_thread(wait, lambda: any(
+            k == "gateway" and pid != gw for pid, k in h.children().items()),
+            "a new gateway")
+        again = None
+        for _ in range(int(WAIT_S * 10)):  # until the new gateway listens
+            try:
+                again = await NetClient.connect(h.url, name="ann", token=token)
+                break
+            except OSError:
+                await asyncio.sleep(0.1)
+        assert again is not None
+        assert again.room == "main" and again.seat == 1 and again.joined["kind"] == "human"
+        await again.close()
+
+    with host(tmp_path, 2, "--bots", "4") as h:
+        run(main(h))
+        assert any("gateway 0 exited" in ln for ln in h.lines), "".join(h.lines)
+
+
+def test_a_killed_engine_is_restarted_and_the_page_and_lobby_come_back(tmp_path) -> None:
+    async def main(h: Host) -> None:
+        w = await NetClient.connect(h.url, name="w", role="spectator", room="main")
+        [engine] = [pid for pid, kind in h.children().items() if kind == "engine"]
+        os.kill(engine, signal.SIGKILL)
+        await w.wait_closed(WAIT_S)
+
+        def back() -> bool:
+            try:
+                return [r["id"] for r in h.json("/api/rooms")["rooms"]] == ["main"]
+            except urllib.error.HTTPError as e:  # 503 while the engine restarts
+                assert e.code == 503, e
+                return False
+            except OSError:
+                return False
+
+        await asyncio.to_thread(wait, back, "the lobby back")
+        assert engine not in h.children()
+        assert "replays" in await asyncio.to_thread(h.json, "/api/replays")
+        with urllib.request.urlopen(h.http + "/", timeout=10) as r:
+            assert r.status == 200
+        w2 = await NetClient.connect(h.url, name="w2", role="spectator", room="main")
+        await until(lambda: w2.mesh is not None, 10, "a mesh")
+        await w2.close()
+
+    with host(tmp_path, 2, "--bots", "4") as h:
+        run(main(h))
+        assert any("the engine exited" in ln for ln in h.lines), "".join(h.lines)

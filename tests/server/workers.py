@@ -1,17 +1,14 @@
-"""The server suites against a host of two server processes (issue 17: ``--workers 2``
-passes the server, reconnect, fault and hostile-input suites).
+"""The server suites against a host of two processes, an engine and a gateway, as
+``clothball host --workers 2`` runs them (issue 33; docs/architecture.md).
 
 With ``CLOTHBALL_TEST_WORKERS=2`` the conftest's ``server()`` and ``live_server()`` run
-their server as the first of two processes sharing one public port, as
-``clothball host --workers 2`` runs them: the server under test stays in the test process
-(so a test can still look at its rooms and counters), configured as a worker (the room
-directory in the data directory, the shared port, a port of its own), and a second real
-process (``tests/server/worker_proc.py``) is started with the same arguments. ``ws_url``
-and ``http_url`` name the shared port, so the kernel spreads the tests' connections over
-both processes: a client that lands on the process without its room is redirected and
-follows, a new room may be placed on either, a reconnect token may arrive at either.
+their server as the host's engine: it stays in the test process (so a test can still look
+at its rooms and counters), listening on the engine's Unix socket too, and a real gateway
+process (``python -m clothball.server.gateway``) listens on the public port and carries
+every connection there. ``ws_url`` and ``http_url`` name the public port, so every client
+of the tests goes through the gateway, and none is ever redirected.
 
-The second process must stop cleanly (exit 0) and log no error or traceback: its stderr is
+The gateway must stop cleanly (exit 0) and log no error or traceback: its stderr is
 checked when the server context ends.
 """
 
@@ -21,7 +18,6 @@ import asyncio
 import contextlib
 import json
 import os
-import pickle
 import re
 import signal
 import subprocess
@@ -35,8 +31,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from clothball.game.cli.host import DIRECTORY_FILE
-from clothball.server.directory import PUBLISH_S, SqliteDirectory
 from clothball.server.hostproc import free_port
 
 WORKERS = int(os.environ.get("CLOTHBALL_TEST_WORKERS", "1") or "1")
@@ -46,8 +40,8 @@ if WORKERS not in (1, 2):
 _now = [WORKERS]  # the processes of the servers started now (the conftest's fixture sets it)
 
 # The suites of issue 17. Without CLOTHBALL_TEST_WORKERS, each of their tests that starts a
-# server (calls server() or live_server()) runs twice, with one process and with two (the
-# conftest's pytest_generate_tests): what CI runs.
+# server (calls server() or live_server()) runs twice, with one process and with an engine
+# and a gateway (the conftest's pytest_generate_tests): what CI runs.
 SUITES = ("test_server_bad_input", "test_server_fastpaths", "test_server_match",
           "test_server_play", "test_server_reconnect", "test_server_sim", "test_faults",
           "test_hostile_input")
@@ -82,44 +76,33 @@ def starts_a_server(fn: Any) -> bool:
                                      & set(names(code)))
 
 
-WORKER_PROC = Path(__file__).with_name("worker_proc.py")
-FIRST_ID, SECOND_ID = "test-worker-0", "test-worker-1"  # their host ids in the directory
+class Gateway:
+    """The host's gateway process: started on the public port, in front of the engine's
+    socket, read, and stopped (SIGTERM) at the end."""
 
-
-class SecondWorker:
-    """The other process of the pair: started with the test server's arguments, read, and
-    stopped (SIGTERM) at the end."""
-
-    def __init__(self, data: Path, kw: dict[str, Any], shared_port: int,
+    def __init__(self, shared_port: int, engine_socket: Path,
                  expected_errors: tuple[str, ...] = ()) -> None:
-        self.shared_port = shared_port
+        self.shared_port = self.port = shared_port
         self.expected_errors = expected_errors  # regular expressions of errors it may log
         self.stderr: list[str] = []
-        args = {**kw, "data_dir": str(data), "shared_port": shared_port,
-                "host_id": SECOND_ID}
-        fd, name = tempfile.mkstemp(suffix=".kwargs")
-        with os.fdopen(fd, "wb") as f:
-            pickle.dump(args, f)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1",
+             "--port", str(shared_port), "--engine-socket", str(engine_socket)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None and self.proc.stderr is not None
+        threading.Thread(target=self._read_stderr, daemon=True).start()
+        first: list[str] = []
+        reader = threading.Thread(target=lambda: first.append(self.proc.stdout.readline()),
+                                  daemon=True)  # type: ignore[union-attr]
+        reader.start()
+        reader.join(60)
         try:
-            self.proc = subprocess.Popen([sys.executable, str(WORKER_PROC), name],
-                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                         text=True)
-            assert self.proc.stdout is not None and self.proc.stderr is not None
-            threading.Thread(target=self._read_stderr, daemon=True).start()
-            first: list[str] = []
-            reader = threading.Thread(target=lambda: first.append(self.proc.stdout.readline()),
-                                      daemon=True)  # type: ignore[union-attr]
-            reader.start()
-            reader.join(60)
-            try:
-                self.port = int(json.loads(first[0])["port"])
-            except (IndexError, ValueError, KeyError) as e:
-                self.proc.kill()
-                self.proc.wait(10)
-                raise AssertionError("the second server process did not start:\n"
-                                     + "".join(self.stderr)) from e
-        finally:
-            os.unlink(name)
+            self.pid = int(json.loads(first[0])["pid"])
+        except (IndexError, ValueError, KeyError) as e:
+            self.proc.kill()
+            self.proc.wait(10)
+            raise AssertionError("the gateway process did not start:\n"
+                                 + "".join(first + self.stderr)) from e
 
     def _read_stderr(self) -> None:
         assert self.proc.stderr is not None
@@ -135,118 +118,90 @@ class SecondWorker:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait(10)
-            raise AssertionError("the second server process did not stop on SIGTERM:\n"
+            raise AssertionError("the gateway process did not stop on SIGTERM:\n"
                                  + "".join(self.stderr)) from None
         for pipe in (self.proc.stdout, self.proc.stderr):
             if pipe is not None:
                 with contextlib.suppress(ValueError):  # the reader thread's last line
                     pipe.close()
         text = "".join(self.stderr)
-        assert rc == 0, f"the second server process exited {rc}:\n{text}"
+        assert rc == 0, f"the gateway process exited {rc}:\n{text}"
         bad = [ln for ln in self.stderr if ln.startswith(("ERROR", "CRITICAL", "Traceback"))
                and not any(re.search(e, ln) for e in self.expected_errors)]
-        assert not bad, f"the second server process logged errors:\n{text}"
+        assert not bad, f"the gateway process logged errors:\n{text}"
 
 
-def first_worker_kw(data: Path, shared_port: int) -> dict[str, Any]:
-    """What the process under test is given on top of the test's arguments to be the first
-    of the pair (``serve`` in ``game/cli/host.py`` gives each process the same)."""
-    data.mkdir(parents=True, exist_ok=True)
-    return {"directory": SqliteDirectory(data / DIRECTORY_FILE), "shared_port": shared_port,
-            "host_id": FIRST_ID}
+async def ready(engine: Any, gateway: Gateway, timeout: float = 20.0) -> None:
+    """Wait until the public port answers for the engine (/healthz through the gateway).
+    Runs on the loop of ``engine`` (the ``GameServer`` under test)."""
+    url = f"http://127.0.0.1:{gateway.port}/healthz"
 
-
-async def ready(first: Any, second: SecondWorker, timeout: float = 20.0) -> None:
-    """Wait until each process has read the other from the directory (as the supervisor
-    waits before giving out the address): the first lists the second among its peers, the
-    second lists the first's public rooms. Runs on the loop of ``first`` (the
-    ``GameServer`` under test)."""
-    want = {r.id for r in first.lobby.rooms.values() if r.public}
-    url = f"http://127.0.0.1:{second.port}/api/rooms"
-
-    def listed() -> set[str]:
-        with urllib.request.urlopen(url, timeout=5) as r:
-            return {room["id"] for room in json.loads(r.read())["rooms"]}
+    def answers() -> bool:
+        try:
+            with urllib.request.urlopen(url, timeout=5) as r:
+                return r.status == 200
+        except OSError:
+            return False
 
     loop = asyncio.get_running_loop()
     end = loop.time() + timeout
-    while True:
-        peers = first.lobby.peers
-        if peers is not None and SECOND_ID in peers.hosts and \
-                want <= await asyncio.to_thread(listed):
-            return
+    while not await asyncio.to_thread(answers):
         if loop.time() > end:
-            raise AssertionError("the two server processes did not see each other within "
+            raise AssertionError(f"the gateway did not answer for the engine within "
                                  f"{timeout:g} s")
-        await asyncio.sleep(PUBLISH_S / 5)
+        await asyncio.sleep(0.05)
 
 
 @dataclass
 class Process:
-    """One process of the service, for ``conftest.http_get``/``http_json``: its own HTTP
-    address (not the shared port, where the kernel picks the process)."""
+    """An HTTP address of the service, for ``conftest.http_get``/``http_json``."""
 
     http_url: str
 
 
 def processes(srv: Any) -> list[Process]:
-    """Every process of the service, the server under test first: one without
-    ``CLOTHBALL_TEST_WORKERS=2``, two with it (``srv.second_worker``, set by the
-    conftest)."""
-    ports = [srv.port]
-    if getattr(srv, "second_worker", None) is not None:
-        ports.append(srv.second_worker.port)
-    return [Process(f"http://127.0.0.1:{p}/") for p in ports]
+    """The addresses that answer for the whole host: the server's own with one process,
+    the public port (any gateway) with an engine and gateways."""
+    return [Process(f"http://127.0.0.1:{public_port(srv)}/")]
 
 
 def public_port(srv: Any) -> int:
-    """The port clients are given: the shared one when there are two processes."""
-    return int(srv.shared_port if srv.shared_port is not None else srv.port)
+    """The port clients are given: the gateways' when there are gateways."""
+    return int(srv.public_port if srv.public_port is not None else srv.port)
 
 
 async def service_stats(srv: Any) -> dict[str, Any]:
-    """``/api/stats`` of the whole service: with two processes, each one's (statistics
-    are per process, docs/protocol.md "Several processes") summed: the counters added, the
-    rooms of both (each room lives on one)."""
+    """``/api/stats`` of the whole service, from its public port (one process answers
+    for the whole host)."""
     from tests.server.conftest import http_json
 
-    each = [await http_json(p, "/api/stats") for p in processes(srv)]
-    total = dict(each[0])
-    for other in each[1:]:
-        for k in COUNTERS:
-            total[k] += other[k]
-        total["rooms"] = {**total["rooms"], **other["rooms"]}
-    return total
-
-
-COUNTERS = ("messages_in", "messages_out", "bad_messages", "rounds_saved", "rounds_not_saved",
-            "refused_connections", "rooms_stopped", "clients", "cpu_s")
+    return await http_json(processes(srv)[0], "/api/stats")
 
 
 @contextlib.contextmanager
 def pair(data: Path, kw: dict[str, Any], expected_errors: tuple[str, ...] = ()
-         ) -> Iterator[tuple[SecondWorker, dict[str, Any]]]:
-    """The second process started with ``kw`` (the test server's arguments); yields it and
-    the arguments to give the server under test."""
+         ) -> Iterator[tuple[Gateway, dict[str, Any]]]:
+    """A gateway on a free port in front of an engine socket; yields it and the arguments
+    that make the server under test that engine. ``kw`` (the test server's arguments)
+    is not needed by a gateway: it serves whatever the engine does."""
+    del kw
     port = free_port()
-    extra = first_worker_kw(data, port)
-    second = SecondWorker(data, kw, port, expected_errors)
-    try:
-        yield second, extra
-    finally:
+    with tempfile.TemporaryDirectory(prefix="cb-engine-") as private:
+        sock = Path(private) / "engine.sock"
+        gateway = Gateway(port, sock, expected_errors)
         try:
-            second.stop()
+            yield gateway, {"public_port": port, "engine_socket": sock}
         finally:
-            extra["directory"].close()
+            gateway.stop()
 
 
 @contextlib.asynccontextmanager
 async def started(data: Path, expected_errors: tuple[str, ...] = (),
                   **kw: Any) -> AsyncIterator[Any]:
-    """``GameServer(data, **kw)`` started (and stopped at the end), as the first of two
-    processes when ``current()`` is 2, for a test that gives the server arguments the
-    conftest's ``server()`` does not take. ``expected_errors``: regular expressions of the
-    errors the second process may log (a test that provokes them)."""
+    """``GameServer(data, **kw)`` started (and stopped at the end), as the engine of an
+    engine and a gateway when ``current()`` is 2, for a test that gives the server
+    arguments the conftest's ``server()`` does not take. ``expected_errors``: regular
+    expressions of the errors the gateway may log (a test that provokes them)."""
     from clothball.server.app import GameServer
 
     if current() == 1:
@@ -257,12 +212,12 @@ async def started(data: Path, expected_errors: tuple[str, ...] = (),
         finally:
             await srv.stop()
         return
-    with pair(data, kw, expected_errors) as (second, extra):
+    with pair(data, kw, expected_errors) as (gateway, extra):
         srv = GameServer(data, **kw, **extra)
         await srv.start()
         try:
-            await ready(srv, second)
-            srv.second_worker = second
+            await ready(srv, gateway)
+            srv.second_worker = gateway
             yield srv
         finally:
             await srv.stop()
