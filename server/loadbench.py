@@ -24,14 +24,14 @@ per added room), messages in and out a second, the clients' CPU, CORNER and MESH
 received against those asked, frames advanced a second. ``--frame-loop native|python``
 sets ``CLOTHBALL_FRAME_LOOP`` for the server processes it starts.
 
-``clothball bench --load --workers N``: the same with N server processes on one port, as
-``clothball host --workers N`` runs them (rooms asked of the shared port, placed on the
-least-loaded process). ``clothball bench --load --cluster``: with 1, 2 and 3 server
-processes joined as the hosts of a cluster through a Redis the bench starts
-(``redis-server`` on the PATH, a free port of loopback): rooms are created through the first
-host, which places each on the least-loaded one, and their clients connect through it too
-(redirected to the room's host). Every step measures all the hosts; on one machine they
-share its cores with each other and with the clients, which the figures say.
+``clothball bench --load --workers N``: the same with an engine and N - 1 gateways on one
+port, as ``clothball host --workers N`` runs them (docs/architecture.md): every client
+connects to the public port; the server CPU counts the gateways too.
+``clothball bench --load --cluster``: with 1, 2 and 3 server processes joined as the hosts
+of a cluster through a Redis the bench starts (``redis-server`` on the PATH, a free port of
+loopback): rooms are created through the first host, which places each on the least-loaded
+one, and their clients connect through it too (redirected to the room's host). Every step
+measures all the hosts; on one machine they share its cores with each other and with the clients, which the figures say.
 
 Run ``python -m clothball.server.loadbench --role server|spectators ...`` only through the
 bench; ``run(args)`` and ``run_load(args)`` start the others themselves.
@@ -44,6 +44,7 @@ import asyncio
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -118,8 +119,8 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                    help="--load: processes of lean clients, rooms given to them in turn "
                         "(default: a quarter of the CPUs, 1 to 4)")
     g.add_argument("--workers", type=int, default=1, metavar="N",
-                   help="--load: N server processes on one port, as `clothball host --workers "
-                        "N` runs them (rooms placed on the least-loaded); default %(default)s")
+                   help="--load: an engine and N - 1 gateways on one port, as `clothball host "
+                        "--workers N` runs them; default %(default)s")
     g.add_argument("--cluster", action="store_true",
                    help="--load: rooms held by 1, 2 and 3 hosts of a cluster on this machine, "
                         "joined through a Redis the bench starts (needs redis-server)")
@@ -137,9 +138,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         default="bench", help=argparse.SUPPRESS)
     parser.add_argument("--url", default="", help=argparse.SUPPRESS)
     parser.add_argument("--no-room", action="store_true", help=argparse.SUPPRESS)
-    # A host's room directory: redis://... (--load --cluster) or a SQLite file (--workers).
+    # A host's room directory: redis://... (--load --cluster).
     parser.add_argument("--directory", default=None, help=argparse.SUPPRESS)
-    parser.add_argument("--shared-port", type=int, default=None, help=argparse.SUPPRESS)
+    # The engine of an engine and gateways (--workers): its socket and the public port.
+    parser.add_argument("--engine-socket", type=Path, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--public-port", type=int, default=None, help=argparse.SUPPRESS)
 
 
 # --- the server process ------------------------------------------------------------------------
@@ -165,12 +168,12 @@ async def _serve(args: argparse.Namespace) -> None:
     scene = bench_scene(args)
     scene_name, scene.name = scene.name, "bench"
     cluster: dict[str, Any] = {}
-    if getattr(args, "directory", None):  # a host of --load --cluster, or a --workers process
-        from .directory import RedisDirectory, SqliteDirectory
+    if getattr(args, "directory", None):  # a host of --load --cluster
+        from .directory import RedisDirectory
 
-        kind = RedisDirectory if args.directory.startswith("redis://") else SqliteDirectory
-        cluster = {"directory": kind(args.directory), "host_id": f"bench-{os.getpid()}",
-                   "shared_port": getattr(args, "shared_port", None)}
+        cluster = {"directory": RedisDirectory(args.directory), "host_id": f"bench-{os.getpid()}"}
+    if getattr(args, "engine_socket", None) is not None:  # the engine of --workers
+        cluster.update(engine_socket=args.engine_socket, public_port=args.public_port)
     with tempfile.TemporaryDirectory() as data:
         # Every client comes from 127.0.0.1: the per-address limits would stop the bench.
         # Nor may admission control refuse rooms: the bench finds where the server stops.
@@ -595,9 +598,7 @@ def run_load(args: argparse.Namespace) -> int:
 def _run_load(args: argparse.Namespace) -> int:
     load_before = os.getloadavg()
     if args.workers > 1:
-        with tempfile.TemporaryDirectory(prefix="clothball-bench-workers-") as d:
-            series = _load_series(args, args.workers, str(Path(d) / "rooms.sqlite"),
-                                  free_port())
+        series = _load_series(args, 1, None, free_port())
     else:
         series = _load_series(args, 1, None)
     result = {**_load_meta(args, series.pop("info"), load_before), "workers": args.workers,
@@ -658,16 +659,23 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
                  shared_port: int | None = None) -> dict[str, Any]:
     """Rooms added ``--rooms-step`` at a time to ``n_hosts`` server processes until a step
     does not hold. ``directory``: the room directory they share (None: one process alone);
-    with ``shared_port`` they are one host's processes on that port, and rooms are asked of
-    it (as clients of `clothball host --workers` reach them), else of the first host."""
+    with ``shared_port`` the one server is the engine of ``--workers`` - 1 gateways on
+    that port, and every client connects there, else rooms are asked of the first host."""
     seconds = float(args.load_seconds)
     base = [sys.executable, "-m", "clothball.server.loadbench", *_scene_flags(args),
             "--server-backend", args.server_backend, "--role", "server", "--no-room",
             *_loop_flag(args)]
     if directory is not None:
         base += ["--directory", directory]
+    private = tempfile.mkdtemp(prefix="clothball-bench-")
+    gateways: list[subprocess.Popen[str]] = []
     if shared_port is not None:
-        base += ["--shared-port", str(shared_port)]
+        sock = str(Path(private) / "engine.sock")
+        base += ["--engine-socket", sock, "--public-port", str(shared_port)]
+        gateways = [subprocess.Popen(
+            [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1",
+             "--port", str(shared_port), "--engine-socket", sock, "--index", str(k)],
+            stdout=subprocess.DEVNULL) for k in range(max(1, args.workers - 1))]
     servers = [subprocess.Popen(base, stdout=subprocess.PIPE, text=True,
                                 env=_server_env(args)) for _ in range(n_hosts)]
     clients: _Clients | None = None
@@ -681,8 +689,9 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
             time.sleep(1.5)  # every host has read the others from the directory
         clients = _Clients(args, args.client_procs)
         info = infos[0][0]
-        what = ("one server process" if directory is None else
-                f"{n_hosts} server processes on one port" if shared_port is not None else
+        what = (f"an engine and {len(gateways)} gateway{'s' * (len(gateways) > 1)} on one "
+                "port" if gateways else
+                "one server process" if directory is None else
                 f"{n_hosts} host{'s' if n_hosts > 1 else ''} in a cluster")
         counts = room_counts(args.rooms_step, args.load_max_rooms)
         print(f"load bench, {what}: rooms of 4 players (HIP {args.hip_rate:g} Hz, corner_rate "
@@ -693,11 +702,12 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
               f"{args.client_procs} client process{'es' if args.client_procs > 1 else ''}, "
               f"{os.cpu_count()} CPUs shared by servers and clients, load average "
               f"{os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
-        cpu0, w0 = _cpu_seconds(servers), time.perf_counter()
+        procs = servers + gateways  # every process of the server side, for its CPU
+        cpu0, w0 = _cpu_seconds(procs), time.perf_counter()
         time.sleep(SETTLE_S)
-        idle = (_cpu_seconds(servers) - cpu0) / (time.perf_counter() - w0)
+        idle = (_cpu_seconds(procs) - cpu0) / (time.perf_counter() - w0)
         prev = (0, idle)
-        tag = "" if directory is None else f"{n_hosts}{'p' if shared_port else 'h'} "
+        tag = f"{args.workers}p " if gateways else "" if directory is None else f"{n_hosts}h "
         for rooms in counts:
             try:
                 clients.add(entry, rooms - prev[0])
@@ -707,7 +717,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
                 print(f"{tag}{rooms:3d} rooms  STOP: {e}", file=sys.stderr, flush=True)
                 break
             time.sleep(SETTLE_S)
-            step = _measure(args, servers, infos, clients, rooms, seconds, prev)
+            step = _measure(args, procs, infos, clients, rooms, seconds, prev)
             step["hosts"] = n_hosts
             steps.append(step)
             print(tag + _load_line(step), file=sys.stderr, flush=True)
@@ -721,8 +731,9 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
     finally:
         if clients is not None:
             clients.stop()
-        for s in servers:
+        for s in gateways + servers:
             _stop_server(s)
+        shutil.rmtree(private, ignore_errors=True)
     # The last step that held before the stop (steps past it may hold again: noise).
     held = [s for s in steps if s["held"] and (stopped is None or s["rooms"] < stopped["rooms"])]
     return {"info": info, "idle_server_cpu_cores": idle, "held": held[-1] if held else None,
