@@ -31,7 +31,8 @@ connects to the public port; the server CPU counts the gateways too.
 of a cluster through a Redis the bench starts (``redis-server`` on the PATH, a free port of
 loopback): rooms are created through the first host, which places each on the least-loaded
 one, and their clients connect through it too (redirected to the room's host). Every step
-measures all the hosts; on one machine they share its cores with each other and with the clients, which the figures say.
+measures all the hosts; on one machine they share its cores with each other and with the
+clients, which the figures say.
 
 Run ``python -m clothball.server.loadbench --role server|spectators ...`` only through the
 bench; ``run(args)`` and ``run_load(args)`` start the others themselves.
