@@ -32,7 +32,7 @@ class Gateway:
     def __init__(self, host: str, port: int, engine: Path) -> None:
         self.host, self.port, self.engine = host, port, engine
         self.server: asyncio.Server | None = None
-        self.open = 0  # connections being relayed now
+        self._open: set[asyncio.BaseTransport] = set()  # both sides of every relay
         self._tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
@@ -41,10 +41,11 @@ class Gateway:
             backlog=1024)
 
     async def stop(self) -> None:
+        """Stop accepting and cut every relayed connection (both sides)."""
         if self.server is not None:
             self.server.close()
-        for t in list(self._tasks):
-            t.cancel()
+        for transport in list(self._open):
+            transport.abort()
         await asyncio.gather(*self._tasks, return_exceptions=True)
 
     async def _client(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter
@@ -52,13 +53,13 @@ class Gateway:
         task = asyncio.current_task()
         assert task is not None
         self._tasks.add(task)
-        self.open += 1
+        self._open.add(cwriter.transport)
         try:
             await self._relay(creader, cwriter)
         except (ConnectionError, OSError, asyncio.IncompleteReadError):
             pass
         finally:
-            self.open -= 1
+            self._open.discard(cwriter.transport)
             self._tasks.discard(task)
             cwriter.close()
 
@@ -74,6 +75,7 @@ class Gateway:
         except OSError:
             await self._engine_away(creader, cwriter)
             return
+        self._open.add(ewriter.transport)
         try:
             for w in (cwriter, ewriter):
                 w.transport.set_write_buffer_limits(high=WRITE_HIGH)
@@ -84,6 +86,7 @@ class Gateway:
             await asyncio.gather(_pump(creader, ewriter), _pump(ereader, cwriter),
                                  return_exceptions=True)
         finally:
+            self._open.discard(ewriter.transport)
             ewriter.close()
 
     async def _engine_away(self, creader: asyncio.StreamReader,
