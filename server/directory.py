@@ -1,9 +1,8 @@
-"""Where every room of one service lives: the room directory the server processes share.
+"""Where every room of one service lives: the room directory the hosts of a cluster share.
 
-Each process (``clothball host --workers N`` runs N of them) publishes, every
-``PUBLISH_S``, its own address, its load (rooms, clients) and its rooms' public info, and
-reads back everyone's. A process that stops publishing for ``ttl`` seconds (it died) drops
-out with its rooms. Listing, joining and placing a room use the last snapshot read, so a
+Each host (its engine: ``docs/architecture.md``) publishes, every ``PUBLISH_S``, its own
+address, its load (rooms, clients) and its rooms' public info, and reads back everyone's.
+A host that stops publishing for ``ttl`` seconds (it died) drops out with its rooms. Listing, joining and placing a room use the last snapshot read, so a
 websocket handler never waits on the store, and the event loop never calls it: every call
 runs on the server's directory threads with a timeout (``IO_TIMEOUT_S``). A join for a room
 the snapshot lacks (made elsewhere since the last read) waits, that connection alone, for
@@ -11,8 +10,9 @@ the next read (``OnDemand``: one read for every join waiting, at most one every
 ``MIN_READ_GAP_S``), never a read of its own. A private room is listed for routing only
 (its id and where it lives); its join code never leaves its process.
 
-``SqliteDirectory`` keeps it in one SQLite file in the data directory: the processes of
-one machine share it with no server to run.
+``RedisDirectory`` is the cluster's (``--cluster``). ``SqliteDirectory`` keeps it in one
+SQLite file: servers of one machine share it with no server to run (the tests' clusters
+of ``GameServer`` objects in one process).
 """
 
 from __future__ import annotations

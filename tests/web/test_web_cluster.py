@@ -1,5 +1,5 @@
 """The spectator page across two servers of one service (two GameServers sharing a room
-directory, as the processes of ``--workers`` or the hosts of ``--cluster`` do): a page from
+directory, as the hosts of ``--cluster`` do): a page from
 one follows the redirect to the room's server (whose origin policy lets the other's page
 in), and when that server goes away the page says which room's host went away and is back
 in the lobby of the server it came from.
