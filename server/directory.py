@@ -2,10 +2,11 @@
 
 Each host (its engine: ``docs/architecture.md``) publishes, every ``PUBLISH_S``, its own
 address, its load (rooms, clients) and its rooms' public info, and reads back everyone's.
-A host that stops publishing for ``ttl`` seconds (it died) drops out with its rooms. Listing, joining and placing a room use the last snapshot read, so a
-websocket handler never waits on the store, and the event loop never calls it: every call
-runs on the server's directory threads with a timeout (``IO_TIMEOUT_S``). A join for a room
-the snapshot lacks (made elsewhere since the last read) waits, that connection alone, for
+A host that stops publishing for ``ttl`` seconds (it died) drops out with its rooms.
+Listing, joining and placing a room use the last snapshot read, so a websocket handler
+never waits on the store, and the event loop never calls it: every call runs on the
+server's directory threads with a timeout (``IO_TIMEOUT_S``). A join for a room the
+snapshot lacks (made elsewhere since the last read) waits, that connection alone, for
 the next read (``OnDemand``: one read for every join waiting, at most one every
 ``MIN_READ_GAP_S``), never a read of its own. A private room is listed for routing only
 (its id and where it lives); its join code never leaves its process.
