@@ -887,7 +887,7 @@ def _room_infos(s: Session) -> Iterator[tuple[dict[str, Any], bool]]:
 def _room_info(s: Session, row: D.Row) -> None:
     infos = list(_room_infos(s))
     assert infos
-    for info, listed in infos:
+    for info, _listed in infos:
         if row.key == "host":
             assert "host" not in info, info  # only in a cluster's lists (test_cluster)
         else:

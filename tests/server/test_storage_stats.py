@@ -70,8 +70,9 @@ def test_a_given_host_token_is_used_and_written(tmp_path: Path) -> None:
 
 def test_the_servers_of_one_data_directory_share_the_token(tmp_path: Path) -> None:
     """Servers of one data directory (an engine and the engine restarted after it, two
-    servers of a test) share it: whichever of them answers, the one token in DATA/host-token resets the statistics; a restart keeps
-    it, and deleting the file makes a new one."""
+    servers of a test) share its token: whichever of them answers, the one token in
+    DATA/host-token resets the statistics; a restart keeps it, and deleting the file
+    makes a new one."""
     async def main() -> None:
         async with server(tmp_path, default_room=False) as a, \
                 server(tmp_path, default_room=False) as b:
