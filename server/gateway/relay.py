@@ -5,7 +5,9 @@ The engine speaks the protocol (websocket and HTTP alike), so a client sees one 
 one port whichever gateway the kernel gave it to, and never a redirect inside the host.
 
 While the engine cannot be reached (it is being restarted), a request is answered
-``503`` with a JSON body saying so, and the client retries."""
+``503`` with a JSON body saying so, and the client retries. When the engine vanishes under
+a websocket client (its stream ends with no close frame, and the engine's socket no longer
+answers), the gateway closes the client 1011 saying so (``frames``)."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import socket
 from pathlib import Path
 
 from ..shared import proxyline
+from .frames import ServerFrames, close_frame
 
 log = logging.getLogger("clothball.gateway")
 
@@ -24,6 +27,8 @@ CHUNK = 1 << 16  # bytes read at a time, each way
 WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
 HEAD_WAIT_S = 5.0  # for a request's head, before a 503 while the engine is away
 RETRY_AFTER_S = 2  # told to a client while the engine is away
+ENGINE_CHECK_S = 0.3  # an engine holds a new connection open this long, waiting for its line
+ENGINE_GONE = "the host's engine stopped: its rooms are lost; reconnect in a few seconds"
 
 
 class Gateway:
@@ -83,11 +88,48 @@ class Gateway:
                                            cwriter.get_extra_info("sockname")))
             # Both ways at once; one side's end of file is passed on, and the relay ends
             # when both have ended (or either fails).
-            await asyncio.gather(_pump(creader, ewriter), _pump(ereader, cwriter),
+            await asyncio.gather(_pump(creader, ewriter), self._down(ereader, cwriter),
                                  return_exceptions=True)
         finally:
             self._open.discard(ewriter.transport)
             ewriter.close()
+
+    async def _down(self, ereader: asyncio.StreamReader, cwriter: asyncio.StreamWriter
+                    ) -> None:
+        """The engine's bytes to the client, followed (``ServerFrames``) so that a client
+        whose engine vanished gets a close frame that says so."""
+        frames = ServerFrames()
+        try:
+            while data := await ereader.read(CHUNK):
+                frames.feed(data)
+                cwriter.write(data)
+                await cwriter.drain()
+        except (ConnectionError, OSError):
+            pass
+        if frames.between_messages() and not await self._engine_answers():
+            cwriter.write(close_frame(1011, ENGINE_GONE))
+        with contextlib.suppress(ConnectionError, OSError):
+            await cwriter.drain()
+            if cwriter.can_write_eof():
+                cwriter.write_eof()
+
+    async def _engine_answers(self) -> bool:
+        """Whether the engine is there: its socket takes a connection and holds it open,
+        waiting for the PROXY line (a dying engine's socket may still take a connection
+        into its backlog, which is then reset)."""
+        try:
+            r, w = await asyncio.open_unix_connection(str(self.engine))
+        except OSError:
+            return False
+        try:
+            await asyncio.wait_for(r.read(1), ENGINE_CHECK_S)
+            return False  # closed on us: no engine waits for our line
+        except TimeoutError:
+            return True
+        except OSError:
+            return False
+        finally:
+            w.transport.abort()
 
     async def _engine_away(self, creader: asyncio.StreamReader,
                            cwriter: asyncio.StreamWriter) -> None:

@@ -216,6 +216,9 @@ def test_a_killed_engine_is_restarted_and_the_page_and_lobby_come_back(tmp_path)
         [engine] = [pid for pid, kind in h.children().items() if kind == "engine"]
         os.kill(engine, signal.SIGKILL)
         await w.wait_closed(WAIT_S)
+        # The gateway says why, with a close frame of its own (the engine sent none).
+        assert w.ws.close_code == 1011 and "engine stopped" in w.ws.close_reason, \
+            (w.ws.close_code, w.ws.close_reason)
 
         def back() -> bool:
             try:
