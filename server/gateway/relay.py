@@ -14,14 +14,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import logging
 import socket
 from pathlib import Path
 
 from ..shared import proxyline
 from .frames import ServerFrames, close_frame
-
-log = logging.getLogger("clothball.gateway")
 
 CHUNK = 1 << 16  # bytes read at a time, each way
 WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
