@@ -20,6 +20,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from tests.server.conftest import FAST, http_get, http_json, run, server, until
+from tests.server.workers import public_port
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
 
@@ -297,7 +298,8 @@ def test_the_websocket_origin_allow_list(tmp_path) -> None:
                 async with connect(srv.ws_url, origin=origin) as ws:
                     await ws.send(json.dumps(HELLO))
                     assert json.loads(await ws.recv())["type"] == "welcome"
-            own = f"http://127.0.0.1:{srv.port}"  # the server's own pages stay allowed
+            # the server's own pages (served from the port clients are given) stay allowed
+            own = f"http://127.0.0.1:{public_port(srv)}"
             async with connect(srv.ws_url, origin=own) as ws:
                 await ws.send(json.dumps(HELLO))
                 assert json.loads(await ws.recv())["type"] == "welcome"
