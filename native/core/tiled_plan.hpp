@@ -29,17 +29,11 @@ constexpr int tiled_threads(size_t real_bytes) { return real_bytes == 4 ? 1024 :
 // 10.46 / 9.88 at 512; default float32 7.28 / 6.89 at 384, 9.03 / 8.25 at 512.
 constexpr int kTiledMinN = 512;
 
-// Values of shared memory a block keeps beside its tile: each of its (at most 32) warps'
-// ball sums, 3 force components and the nearest distance (cuda/substep.cuh,
-// substep_ball_end_block).
-constexpr int kBallScratch = 4 * 32;
-
 struct TiledPlan {
   int tiles_y = 0, tiles_x = 0;  // 0: no tiling fits
   int th = 0, tw = 0;            // the largest tile's nodes (rows, columns)
   int reach = 1;                 // halo depth: how far a node's springs reach
-  size_t shared_bytes = 0;       // a block's: the largest tile and its halo, 6 planes, and
-                                 // the ball's scratch
+  size_t shared_bytes = 0;       // a block's: the largest tile and its halo, 6 planes
   int tiles() const { return tiles_y * tiles_x; }
   bool ok() const { return tiles_y > 0; }
 };
@@ -71,7 +65,7 @@ inline TiledPlan tiled_plan(int n, int reach, size_t real_bytes, int blocks,
     const int cols = (n + tw - 1) / tw;
     const long work = long(th) * tw;
     const long cells = long(th + 2 * reach) * (tw + 2 * reach);
-    const size_t bytes = (size_t(cells) * 6 + kBallScratch) * real_bytes;
+    const size_t bytes = size_t(cells) * 6 * real_bytes;
     if (bytes > shared_max) continue;
     if (!best.ok() || work < best_work || (work == best_work && cells < best_cells)) {
       best = {rows, cols, th, tw, reach, bytes};

@@ -116,18 +116,14 @@ struct BallNow {
 // for the others inside a launch (no last-block ticket); the launch boundary is the barrier.
 // `prev` null: the first substep of a frame, whose ball the last frame finished.
 template <class R>
-__device__ BallNow<R> ball_after(const Params<R>& p, const Ball<R>& b0, const BallAcc<R>& acc,
-                                 bool strain_limited, R dt) {
-  const V3<R> sum{acc.f[0], acc.f[1], acc.f[2]};
-  const Ball<R> b = ball_update<R>(p, b0, sum, dt);
-  return {b, contact_possible(p, RealBits<R>::real(acc.nearest2), b.p - b0.p, strain_limited)};
-}
-
-template <class R>
 __device__ BallNow<R> ball_now(const Params<R>& p, const Ball<R>* prev, const BallAcc<R>* acc,
                                const Ball<R>* cur, const BallCtl* ctl, R dt) {
   if (prev == nullptr) return {*cur, ctl->contact_on != 0};
-  return ball_after<R>(p, *prev, *acc, ctl->strain_limited != 0, dt);
+  const Ball<R> b0 = *prev;
+  const V3<R> sum{acc->f[0], acc->f[1], acc->f[2]};
+  const Ball<R> b = ball_update<R>(p, b0, sum, dt);
+  return {b, contact_possible(p, RealBits<R>::real(acc->nearest2), b.p - b0.p,
+                              ctl->strain_limited != 0)};
 }
 
 // Programmatic dependent launch (Hopper): a launch made programmatic (`launch_kernel`
@@ -146,20 +142,6 @@ __device__ R warp_min(R v) {
   return v;
 }
 
-// The leader's share of substep_ball_begin, given the substep's ball `now`: it stores the
-// ball (unless this is the frame's first substep, whose ball is already there) and clears
-// the sums the launch after next will use (`acc_next`).
-template <class R, unsigned E>
-__device__ __forceinline__ void substep_ball_store(const Params<R>& p, const SubstepBall<R>& sb,
-                                                   const BallNow<R>& now, bool leader) {
-  if constexpr ((E & BALL) != 0) {
-    if (leader) {
-      if (sb.prev != nullptr) *sb.cur = now.b;
-      *sb.acc_next = BallAcc<R>::zero(p);
-    }
-  }
-}
-
 // A substep's ball, before its nodes: the ball brought up to this substep (ball_now; at
 // large n a launch of its own did) and whether contact is on. The `leader` thread (one in
 // the whole grid) stores the ball and clears the sums the launch after next will use
@@ -171,7 +153,10 @@ __device__ __forceinline__ BallNow<R> substep_ball_begin(const Params<R>& p,
   BallNow<R> now{{{R(0), R(0), R(0)}, {R(0), R(0), R(0)}}, false};
   if constexpr ((E & BALL) != 0) {
     now = ball_now<R>(p, sb.prev, sb.acc_prev, sb.cur, sb.ctl, dt);
-    substep_ball_store<R, E>(p, sb, now, leader);
+    if (leader) {
+      if (sb.prev != nullptr) *sb.cur = now.b;
+      *sb.acc_next = BallAcc<R>::zero(p);
+    }
   }
   return now;
 }
@@ -180,17 +165,16 @@ __device__ __forceinline__ BallNow<R> substep_ball_begin(const Params<R>& p,
 // substep's start in x, its new velocity in v. While no node can touch the ball (`touch`
 // false, the same decision for the whole grid) it runs compiled without contact. Returns
 // the node's contact force.
-// `Interior`: as node_force's (every neighbour within reach exists, no corner).
-template <class R, unsigned E, bool Interior = false, class G>
+template <class R, unsigned E, class G>
 __device__ __forceinline__ V3<R> se_kick_touch(const Params<R>& p, const G& P, const G& V,
                                                const FrameInputs<R>& fin, const BallNow<R>& now,
                                                int i, int j, R dt, V3<R>& x, V3<R>& v) {
   if constexpr ((E & BALL) != 0) {
-    if (now.touch) return se_node_kick<R, E, Interior>(p, P, V, fin, now.b.p, i, j, dt, x, v);
-    se_node_kick<R, (E & ~BALL), Interior>(p, P, V, fin, now.b.p, i, j, dt, x, v);
+    if (now.touch) return se_node_kick<R, E>(p, P, V, fin, now.b.p, i, j, dt, x, v);
+    se_node_kick<R, (E & ~BALL)>(p, P, V, fin, now.b.p, i, j, dt, x, v);
     return {R(0), R(0), R(0)};
   } else {
-    return se_node_kick<R, E, Interior>(p, P, V, fin, now.b.p, i, j, dt, x, v);
+    return se_node_kick<R, E>(p, P, V, fin, now.b.p, i, j, dt, x, v);
   }
 }
 
@@ -253,51 +237,6 @@ __device__ __forceinline__ void substep_ball_end(const Params<R>& p, const Subst
     if (__any_sync(all, near2 < near_cutoff2(p))) {
       near2 = warp_min(near2);
       if (lead) atomicMin(&sb.acc->nearest2, RealBits<R>::of(near2));
-    }
-  }
-}
-
-// substep_ball_end for a block of thousands of nodes (the tiled frame's): the warps' sums
-// meet in shared memory (`scratch`: kBallScratch values, core/tiled_plan.hpp) and the block
-// adds them with one
-// atomic a word. A warp's atomic each, every substep, all on the same four words, were
-// serialised at their L2 slice: within twice the ball's radius of its centre (the nearest
-// distance's cutoff) lie thousands of warps at n = 1024. Every thread of the block must
-// arrive, and a __syncthreads must come between this and the scratch's next use.
-template <class R, unsigned E>
-__device__ __forceinline__ void substep_ball_end_block(const Params<R>& p,
-                                                       const SubstepBall<R>& sb, V3<R> contact,
-                                                       R near2, bool leader, R* scratch) {
-  if constexpr ((E & BALL) == 0) {
-    if (leader) *sb.next = *sb.cur;  // no ball in this scene: carry its state unchanged
-  } else {
-    const unsigned all = 0xffffffffu;
-    const int lane = int(threadIdx.x & 31), warp = int(threadIdx.x >> 5);
-    const R cut = near_cutoff2(p);
-    R c[3] = {contact.x, contact.y, contact.z};
-    R m = near2 < cut ? near2 : cut;  // NaN and beyond the cutoff: not reported
-    // A warp with nothing to add (most) leaves its lane 0's zeros and cutoff as they are.
-    if (__any_sync(all, c[0] != R(0) || c[1] != R(0) || c[2] != R(0)))
-      for (int k = 0; k < 3; ++k) c[k] = ci::warp_sum(c[k]);
-    if (__any_sync(all, m < cut)) m = warp_min(m);
-    if (lane == 0) {
-      for (int k = 0; k < 3; ++k) scratch[32 * k + warp] = c[k];
-      scratch[96 + warp] = m;
-    }
-    __syncthreads();
-    if (warp == 0) {
-      const bool has = lane < int(blockDim.x >> 5);
-      for (int k = 0; k < 3; ++k) c[k] = has ? scratch[32 * k + lane] : R(0);
-      m = has ? scratch[96 + lane] : cut;
-      if (__any_sync(all, c[0] != R(0) || c[1] != R(0) || c[2] != R(0))) {
-        for (int k = 0; k < 3; ++k) c[k] = ci::warp_sum(c[k]);
-        if (lane == 0)
-          for (int k = 0; k < 3; ++k) atomicAdd(&sb.acc->f[k], c[k]);
-      }
-      if (__any_sync(all, m < cut)) {
-        m = warp_min(m);
-        if (lane == 0) atomicMin(&sb.acc->nearest2, RealBits<R>::of(m));
-      }
     }
   }
 }

@@ -10,14 +10,20 @@
 // update at substep k + 1 needs the contact sum over the whole cloth at substep k, so no
 // tile may run ahead of the others by a substep; the grid barrier is needed anyway, and
 // with it the state never has to leave the chip (at n = 1024 in float32 it is 24 MB, and
-// 132 multiprocessors hold 30 MB of shared memory). Only the tiles within twice the
-// ball's radius of it add to its sums, but which those are is known only once every tile
-// has finished the substep; a barrier among them alone would still order every tile after
-// the ball's update, since every node reads the ball's position for its contact test.
+// 132 multiprocessors hold 30 MB of shared memory).
 //
-// What a substep costs beside its nodes' updates: the grid barrier, the halo and the ball
-// coming in from L2 after it (loaded together, one round trip), and the ball's sums (a
-// block's warps meet in shared memory first, then one atomic a block and word).
+// What bounds it (H100, µs a substep, ball off / on the cloth): the nodes' own updates, not
+// memory or the barrier. Classic float32 9.1 / 10.3 at n = 768 (4 480 nodes a tile),
+// 14.5 / 15.9 at 1024 (8 037): 1.5 ns a node a multiprocessor (3 cycles; the four springs'
+// square roots and divisions, each spring computed from both its ends) on ~2.3 µs a
+// substep of barrier, halo and ball. Float64: 3.5 ns a node on ~4 µs; the default scene
+// (12 springs a node): ~2.9 ns. Tried against this code in one A/B run there and left
+// out, since no combination of them was faster (all three: 14.6 / 15.9 at 1024, 10.0 /
+// 10.8 at 768): the ball's sums met a block at a time before the atomics (+0.4 µs with
+// the ball on the cloth: the extra block barrier cost more than the atomics it saved),
+// the interior nodes' code without bounds tests chosen a warp at a time (-0.3 to -0.7 µs
+// within that build, but the loop it needs, every thread the same rounds, lost as much),
+// the next substep's ball loaded with the halo, one L2 round trip instead of two.
 #include <cooperative_groups.h>
 #include <cuda_runtime.h>
 
@@ -83,39 +89,18 @@ __global__ void __launch_bounds__(kThreads, 1) tiled_frame(TiledArgs<R> a) {
   };
   const int ring = 2 * s * hw + 2 * s * th;  // halo cells
   const bool leader = blockIdx.x == 0 && t == 0;
-  R* const scratch = sh + 6 * cells;  // the ball's sums, a warp's (substep_ball_end_block)
-  // Every thread runs the same number of rounds over the tile's nodes (the last one with
-  // some lanes idle), so that a whole warp can agree on its nodes' code: warps whose nodes
-  // all lie `s` or more from the cloth's border (all but a tile-border sliver) take the
-  // interior code, with no bounds tests and no corner coupling (node_force's Interior).
-  // Not in float64 with bending springs: there the interior code's twelve neighbours
-  // spill at the 128 registers a thread has.
-  constexpr bool kInterior = !(sizeof(R) == 8 && (E & BEND) != 0);
-  const int rounds = (th * tw + T - 1) / T;
-  const unsigned all = 0xffffffffu;
   cg::grid_group grid = cg::this_grid();
   int b = a.b0;
-  // Substep k's ball buffers, made where used from the arguments (constant memory) rather
-  // than kept in registers across the substep.
-  auto ball_at = [&](int k) { return substep_ball_at(a.ball + b, a.ball + (1 - b), a.ring, a.ctl, k); };
-  BallNow<R> now = substep_ball_begin<R, E>(p, ball_at(0), a.dt, leader);
   for (int k = 0; k < a.substeps; ++k) {
+    const SubstepBall<R> sb = substep_ball_at(a.ball + b, a.ball + (1 - b), a.ring, a.ctl, k);
+    const BallNow<R> now = substep_ball_begin<R, E>(p, sb, a.dt, leader);
     V3<R> contact{R(0), R(0), R(0)};
 #pragma unroll 1
-    for (int u = 0, r = r0, c = c0; u < rounds; ++u, next(r, c)) {
+    for (int r = r0, c = c0; r < th; next(r, c)) {
       const int i = ib + r, j = jb + c;
-      const bool mine = r < th;
-      const bool inner = i >= s && i < n - s && j >= s && j < n - s;
       V3<R> x, v;
-      if (kInterior && __all_sync(all, inner || !mine)) {
-        if (mine) {
-          contact += se_kick_touch<R, E, true>(p, P, V, *a.fin, now, i, j, a.dt, x, v);
-          V.set(node_at(V, n, i, j), v);
-        }
-      } else if (mine) {
-        contact += se_kick_touch<R, E>(p, P, V, *a.fin, now, i, j, a.dt, x, v);
-        V.set(node_at(V, n, i, j), v);
-      }
+      contact += se_kick_touch<R, E>(p, P, V, *a.fin, now, i, j, a.dt, x, v);
+      V.set(node_at(V, n, i, j), v);
     }
     __syncthreads();  // every old position of the tile is read
     const DevBuf<R> g = dev_buf(a.state + size_t(1 - b) * 6 * size_t(N), N);
@@ -135,22 +120,10 @@ __global__ void __launch_bounds__(kThreads, 1) tiled_frame(TiledArgs<R> a) {
       }
     }
     if (check != R(0)) *a.nonfinite = 1;  // sticky until the host resets the state
-    substep_ball_end_block<R, E>(p, ball_at(k), contact, near2, leader, scratch);
+    substep_ball_end<R, E>(p, sb, contact, near2, leader);
     grid.sync();  // every border, and the substep's ball sums, are written
-    if (k + 1 == a.substeps) break;  // after the last substep: no halo, the frame's end has the ball
-    b = 1 - b;
-    const SubstepBall<R> sb = ball_at(k + 1);
-    // The next substep's ball from this one's sums (ball_now): its inputs are loaded here,
-    // before the halo, so that both come in from L2 together, and used after it.
-    Ball<R> b0{};
-    BallAcc<R> acc{};
-    bool strain = false;
-    if constexpr ((E & BALL) != 0) {
-      b0 = *sb.prev;
-      acc = *sb.acc_prev;
-      strain = sb.ctl->strain_limited != 0;
-    }
-    for (int h = t; h < ring; h += T) {  // the halo: s rows above and below, s columns aside
+    const int halo = k + 1 < a.substeps ? ring : 0;  // after the last substep: none needed
+    for (int h = t; h < halo; h += T) {  // the halo: s rows above and below, s columns aside
       int hr, hc;
       if (h < 2 * s * hw) {
         const int rr = h / hw;
@@ -166,13 +139,9 @@ __global__ void __launch_bounds__(kThreads, 1) tiled_frame(TiledArgs<R> a) {
       const int q = i * n + j;
       P.set(node_at(P, n, i, j), {__ldcg(g.pos.x + q), __ldcg(g.pos.y + q), __ldcg(g.pos.z + q)});
     }
-    if constexpr ((E & BALL) != 0) {
-      now = ball_after<R>(p, b0, acc, strain, a.dt);
-      substep_ball_store<R, E>(p, sb, now, leader);
-    }
     __syncthreads();
+    b = 1 - b;
   }
-  if (a.substeps > 0) b = 1 - b;
 
   // The tile to the buffer the frame ends in (b); the frame's end (finish_frame) follows.
   const DevBuf<R> g = dev_buf(a.state + size_t(b) * 6 * size_t(N), N);
