@@ -287,7 +287,10 @@ class Room:
         msg = {"type": "event", "event": kind, "room": self.id, "frame": self.sim.frame,
                "time": self.sim.now(), **fields}
         self.broadcast(msg)
-        self.sim.command("record_event", P.encode_json(msg).encode())  # kept if recording
+        if self._recording is not None:
+            # The round in progress only: an ended round's tail (RECORD_TAIL) can overlap
+            # the next round's countdown and start, which are not its events.
+            self.sim.command("record_event", (self._recording.id, P.encode_json(msg).encode()))
 
     # --- seats ----------------------------------------------------------------------------
     def check_code(self, code: str | None) -> None:

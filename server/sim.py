@@ -205,8 +205,8 @@ class RoomSim:
 
     def command(self, name: str, arg: Any = None) -> None:
         """Queue a command for the worker: ``reset_ball`` ((pos, vel)), ``arm``, ``disarm``,
-        ``record_start`` ((id, cap in s)), ``record_event`` (bytes, to every recording in
-        progress), ``record_stop`` ((id, callback): the callback gets that ``Recording``,
+        ``record_start`` ((id, cap in s)), ``record_event`` ((id, bytes): to that
+        recording), ``record_stop`` ((id, callback): the callback gets that ``Recording``,
         or None, on the worker's thread). Recordings may overlap (a round's tail and the
         next round's start). A recording spools to disk as it goes (``server.recorder``)."""
         if self._native and name == "reset_ball":
@@ -233,8 +233,9 @@ class RoomSim:
             for rec in self._recordings.values():
                 rec.append(1, arg)
         elif name == "record_event":
-            for rec in self._recordings.values():
-                rec.append(0, arg)
+            rid, data = arg
+            if (rec := self._recordings.get(rid)) is not None:
+                rec.append(0, data)
         elif name == "record_stop":
             rid, callback = arg
             callback(self._recordings.pop(rid, None))

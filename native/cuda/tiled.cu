@@ -11,6 +11,19 @@
 // tile may run ahead of the others by a substep; the grid barrier is needed anyway, and
 // with it the state never has to leave the chip (at n = 1024 in float32 it is 24 MB, and
 // 132 multiprocessors hold 30 MB of shared memory).
+//
+// What bounds it (H100, µs a substep, ball off / on the cloth): the nodes' own updates, not
+// memory or the barrier. Classic float32 9.1 / 10.3 at n = 768 (4 480 nodes a tile),
+// 14.5 / 15.9 at 1024 (8 037): 1.5 ns a node a multiprocessor (3 cycles; the four springs'
+// square roots and divisions, each spring computed from both its ends) on ~2.3 µs a
+// substep of barrier, halo and ball. Float64: 3.5 ns a node on ~4 µs; the default scene
+// (12 springs a node): ~2.9 ns. Tried against this code in one A/B run there and left
+// out, since no combination of them was faster (all three: 14.6 / 15.9 at 1024, 10.0 /
+// 10.8 at 768): the ball's sums met a block at a time before the atomics (+0.4 µs with
+// the ball on the cloth: the extra block barrier cost more than the atomics it saved),
+// the interior nodes' code without bounds tests chosen a warp at a time (-0.3 to -0.7 µs
+// within that build, but the loop it needs, every thread the same rounds, lost as much),
+// the next substep's ball loaded with the halo, one L2 round trip instead of two.
 #include <cooperative_groups.h>
 #include <cuda_runtime.h>
 

@@ -147,3 +147,32 @@ def test_the_span_is_smallest_to_largest_frame_whatever_their_order(tmp_path) ->
     sent = [(1, track(f)) for f in order]
     assert rec.duration_s == pytest.approx(recorded_length(DT, sent)) == pytest.approx(0.060)
     rec.discard()
+
+
+def test_a_rounds_tail_keeps_none_of_the_next_rounds_events(tmp_path) -> None:
+    """The countdown (0.2 s) is shorter than the recording's tail (1 s): the next round's
+    countdown and start happen while the last round still records its tail, and belong to
+    the next round's replay only."""
+    async def main() -> None:
+        settings = RoomSettings(**{**FAST, "first_to": 99}, autoplay=True)
+        async with server(tmp_path, bots=4, settings=settings) as srv:
+            rows: list = []
+            for _ in range(900):
+                rows[:] = (await http_json(srv, "/api/replays"))["replays"]
+                if len(rows) >= 2:
+                    break
+                await asyncio.sleep(0.1)
+            assert len(rows) >= 2, "fewer than two rounds saved"
+            for row in rows:
+                status, body, _ = await http_get(srv, f"/api/replays/{row['id']}")
+                assert status == 200
+                header, records = read_replay(body)
+                events = [P.decode_json(d) for k, d in records if k == 0]
+                kinds = [e["event"] for e in events]
+                assert "score" in kinds, kinds
+                rounds = {e["round"] for e in events if "round" in e}
+                assert rounds == {header["round"]}, (header["round"], events)
+                # Nothing of the next round after the score that ended this one.
+                assert "countdown" not in kinds[kinds.index("score"):], kinds
+
+    run(main(), timeout=150.0)
