@@ -181,7 +181,9 @@ class GameServer:
 
     async def _listen_gateways(self, path: Path) -> Server:
         """The Unix socket the host's gateways connect to (one connection per client),
-        readable by this account only; a socket left by an engine that died is replaced."""
+        in a directory only this account can enter; a socket left by an engine that died
+        is replaced."""
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
         srv = await self._listen(None, path=str(path), unix=True)
@@ -329,8 +331,11 @@ class GameServer:
             if srv is not None:
                 await srv.wait_closed()
         if self.engine_socket is not None:
+            # Its directory too (made for this host's run), so that a host killed with
+            # SIGKILL, whose engine stops on the kernel's SIGTERM, leaves nothing behind.
             with contextlib.suppress(OSError):
                 self.engine_socket.unlink()
+                self.engine_socket.parent.rmdir()
         if self.directory is not None:
             self._reads.cancel()
             self._publications.cancel()

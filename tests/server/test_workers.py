@@ -176,9 +176,15 @@ def test_sigkill_of_the_host_ends_the_engine_and_the_gateways(tmp_path) -> None:
     with host(tmp_path, 3) as h:
         kids = h.children()
         assert sorted(kids.values()) == ["engine", "gateway", "gateway"]
+        [engine] = [pid for pid, kind in kids.items() if kind == "engine"]
+        cmd = Path(f"/proc/{engine}/cmdline").read_bytes().decode().split("\0")
+        sock = Path(cmd[cmd.index("--engine-socket") + 1])
+        assert sock.exists()
         h.proc.kill()
         h.proc.wait(10)
         wait(lambda: all(gone(pid) for pid in kids), "the host's processes ended")
+        # The engine stopped cleanly (SIGTERM from the kernel): no socket or directory left.
+        assert not sock.parent.exists()
         with suppress(OSError), urllib.request.urlopen(h.http + "/healthz", timeout=2):
             raise AssertionError("the public port still answers after the host was killed")
 

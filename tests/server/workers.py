@@ -186,7 +186,8 @@ def pair(data: Path, kw: dict[str, Any], expected_errors: tuple[str, ...] = ()
     is not needed by a gateway: it serves whatever the engine does."""
     del kw
     port = free_port()
-    with tempfile.TemporaryDirectory(prefix="cb-engine-") as private:
+    # (the engine removes the directory when it stops)
+    with tempfile.TemporaryDirectory(prefix="cb-engine-", ignore_cleanup_errors=True) as private:
         sock = Path(private) / "engine.sock"
         gateway = Gateway(port, sock, expected_errors)
         try:
