@@ -1,0 +1,126 @@
+"""The gateway's parts. Its reading of a server's stream (``server.gateway.frames``):
+after any prefix of an HTTP 101 answer and a run of server frames made by websockets' own
+encoder (the reference), cut into chunks anywhere, it says a close frame may be written
+exactly when the prefix ends between two complete messages, and never after the server's
+close frame or in an HTTP answer that is not an upgrade. The PROXY line
+(``server.shared.proxyline``): the protocol's own examples, and an engine behind a real
+gateway that applies its per-address limit to the client's address."""
+
+from __future__ import annotations
+
+import json
+import random
+
+import pytest
+from clothball.server.gateway.frames import ServerFrames, close_frame
+from clothball.server.limits import Limits
+from clothball.server.shared import proxyline
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+from websockets.frames import Close, Frame, Opcode
+
+from tests.server import workers
+from tests.server.conformance_client import HELLO
+from tests.server.conftest import run, server
+
+HEAD = b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\r\n"
+SIZES = (0, 1, 125, 126, 127, 300, 65535, 65536, 70000)  # each header length form
+
+
+def stream(rng: random.Random, n: int) -> tuple[bytes, set[int]]:
+    """``n`` messages (some in several frames) as bytes after HEAD, and the offsets (from
+    the stream's start) that lie between two messages."""
+    out, ends = bytearray(HEAD), {len(HEAD)}
+    for _ in range(n):
+        parts = rng.choice((1, 1, 2, 3))
+        for k in range(parts):
+            op = (Opcode.BINARY if rng.random() < 0.5 else Opcode.TEXT) if k == 0 \
+                else Opcode.CONT
+            data = bytes(rng.randrange(256) for _ in range(rng.choice(SIZES) % 2000)) \
+                if rng.random() < 0.8 else b"x" * rng.choice(SIZES)
+            if op is Opcode.TEXT:
+                data = data.hex().encode()[: len(data)]
+            out += Frame(op, data, fin=k == parts - 1).serialize(mask=False,
+                                                                 extensions=[])
+            if rng.random() < 0.2 and k < parts - 1:  # a ping between fragments
+                out += Frame(Opcode.PING, b"p").serialize(mask=False, extensions=[])
+        ends.add(len(out))
+    return bytes(out), ends
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32), st.integers(1, 12))
+def test_between_messages_exactly_at_message_boundaries(seed: int, n: int) -> None:
+    rng = random.Random(seed)
+    data, ends = stream(rng, n)
+    frames, at = ServerFrames(), 0
+    while at < len(data):
+        step = rng.choice((1, 2, 3, 7, 64, 1000, 70000))
+        frames.feed(data[at:at + step])
+        at = min(len(data), at + step)
+        assert frames.between_messages() == (at in ends), at
+
+
+def test_after_the_close_frame_and_for_plain_http_never() -> None:
+    f = ServerFrames()
+    f.feed(HEAD + Frame(Opcode.CLOSE, Close(1000, "bye").serialize()).serialize(
+        mask=False, extensions=[]))
+    assert f.closed and not f.between_messages()
+    g = ServerFrames()
+    g.feed(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}")
+    assert g.given_up and not g.between_messages()
+
+
+def test_the_close_frame_is_what_websockets_reads() -> None:
+    from websockets.streams import StreamReader
+
+    reader = StreamReader()
+    reader.feed_data(close_frame(1011, "the host's engine stopped"))
+    parser = Frame.parse(reader.read_exact, mask=False)
+    try:
+        next(parser)
+    except StopIteration as done:
+        frame = done.value
+    assert frame.opcode is Opcode.CLOSE
+    assert Close.parse(frame.data) == Close(1011, "the host's engine stopped")
+
+
+def test_proxy_lines_as_the_protocol_writes_them() -> None:
+    # The examples of the PROXY protocol's specification (version 1, section 2.1).
+    assert proxyline.encode(("192.168.0.1", 56324), ("192.168.0.11", 443)) == \
+        b"PROXY TCP4 192.168.0.1 192.168.0.11 56324 443\r\n"
+    assert proxyline.decode(b"PROXY TCP4 192.168.0.1 192.168.0.11 56324 443\r\n") == \
+        ("192.168.0.1", 56324)
+    assert proxyline.decode(b"PROXY TCP6 ::1 ::1 5000 8765\r\n") == ("::1", 5000)
+    assert proxyline.encode(("::1", 5000, 0, 0), ("::1", 8765, 0, 0)) == \
+        b"PROXY TCP6 ::1 ::1 5000 8765\r\n"
+    assert proxyline.decode(b"PROXY UNKNOWN\r\n") is None
+    assert proxyline.encode(None, None) == b"PROXY UNKNOWN\r\n"
+    for bad in (b"GET / HTTP/1.1\r\n", b"PROXY TCP4 1.2.3.4\r\n",
+                b"PROXY TCP4 x 1.2.3.4 1 2\r\n", b"PROXY TCP4 1.2.3.4 1.2.3.4 1 2",
+                b"PROXY " + b"9" * 200 + b"\r\n"):
+        with pytest.raises(proxyline.BadLine):
+            proxyline.decode(bad)
+
+
+def test_an_engine_behind_a_gateway_limits_the_clients_address(tmp_path) -> None:
+    """conns_per_address=1 through a real gateway: a second connection from 127.0.0.1 is
+    refused naming that address (the engine read it from the gateway's PROXY line; the
+    gateway's own end of the Unix socket has none)."""
+    async def main() -> None:
+        async with server(tmp_path, limits=Limits(conns_per_address=1)) as srv:
+            assert srv.engine_socket is not None
+            url = f"ws://127.0.0.1:{workers.public_port(srv)}/ws"
+            async with connect(url) as first:
+                await first.send(json.dumps(HELLO))
+                assert json.loads(await first.recv())["type"] == "welcome"
+                async with connect(url) as second:
+                    with pytest.raises(ConnectionClosed):
+                        await second.recv()
+                    assert second.close_code == 1008
+                    assert "too many connections from 127.0.0.1" in second.close_reason
+
+    with workers.using(2):
+        run(main())
