@@ -1,6 +1,6 @@
 """``clothball host``: run a game server until Ctrl-C or SIGTERM.
 
-With ``--workers N`` (default: one per core; at least 2) it runs one engine process, which
+With ``--workers N`` (default: one per core) of 2 or more it runs one engine process, which
 owns every room of the host, and N - 1 gateway processes that accept the clients on the
 one public port (SO_REUSEPORT) and carry each connection to the engine over its Unix
 socket (docs/architecture.md): a client reaches any room of the host through any gateway,
