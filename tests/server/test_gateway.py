@@ -8,8 +8,11 @@ gateway that applies its per-address limit to the client's address."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import random
+import urllib.error
+import urllib.request
 
 import pytest
 from clothball.server.gateway.frames import ServerFrames, close_frame
@@ -124,3 +127,27 @@ def test_an_engine_behind_a_gateway_limits_the_clients_address(tmp_path) -> None
 
     with workers.using(2):
         run(main())
+
+
+def test_a_gateway_without_its_engine_answers_503_saying_so(tmp_path) -> None:
+    from clothball.server.gateway.relay import RETRY_AFTER_S, Gateway
+    from clothball.server.hostproc import free_port
+
+    async def main() -> None:
+        gw = Gateway("127.0.0.1", free_port(), tmp_path / "no-engine.sock")
+        await gw.start()
+        try:
+            def get() -> urllib.error.HTTPError:
+                try:
+                    urllib.request.urlopen(f"http://127.0.0.1:{gw.port}/api/rooms", timeout=10)
+                except urllib.error.HTTPError as e:
+                    return e
+                raise AssertionError("answered 2xx with no engine")
+
+            e = await asyncio.to_thread(get)
+            assert e.code == 503 and e.headers["Retry-After"] == str(RETRY_AFTER_S)
+            assert "engine is restarting" in json.loads(e.read())["error"]
+        finally:
+            await gw.stop()
+
+    run(main())
