@@ -200,6 +200,10 @@ class NativeWorker:
         got = [int(r["substeps"][s]) for s in self._by_slot if r["awake"][s]]
         return max(got) if got and max(got) > 0 else self.batch.substeps
 
+    def cpu_seconds(self) -> float:
+        """CPU seconds the frame loop's thread has used (admission's calibration)."""
+        return float(self._loop.cpu_seconds())
+
     def start(self) -> None:
         self._loop.start()
         self._service = threading.Thread(target=self._serve, name="clothball-mesh",

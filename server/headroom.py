@@ -2,9 +2,13 @@
 
 A new room is admitted or refused *before it exists*, from what it will cost: each scene's
 room costs the cores ``room_cost`` measured for it on this machine and backend (once per
-process, at start-up: four rooms stepped as a worker steps them, timed by the CPU the
-stepping thread used, so CPU stolen by neighbours does not inflate it; on a GPU also 64
-rooms, so that the launch all of a worker's rooms share counts once per thread). Every open room
+process, at start-up). On the CPU backend with the native frame loop (``server.frameloop``)
+the loop itself runs 16 rooms at real time and a room costs its share of the loop thread's
+CPU time (its pacing included), so the cost is what the loop really spends and CPU stolen by
+neighbours does not inflate it. Otherwise (a GPU, the Python
+loop) four rooms are stepped as the Python worker steps them, one ``ClothBatch`` call a
+frame (on the CPU timed by the stepping thread's CPU time); on a GPU also 64 rooms, so that
+the launch all of a worker's rooms share counts once per thread. Every open room
 counts, asleep or awake (a sleeping room wakes the moment someone joins it). A room fits
 while the rooms' cost stays within ``admit_load`` of the cores the process may use, and
 within ``admit_load`` of one core for the rooms one simulation thread steps (one per scene,
@@ -38,7 +42,7 @@ import numpy as np
 from ..game.sim.batch import ClothBatch
 from ..game.sim.cloth import resolve_backend
 from ..game.sim.scene import Scene
-from .sim import WORKER_CAPACITY, SimPool
+from .sim import WORKER_CAPACITY, RoomSim, SimPool
 
 WINDOW_S = 1.0
 SUSTAINED = 3  # windows in a row over the limit that make the server busy
@@ -52,6 +56,13 @@ CALIBRATE_ROOMS = 4
 # a room only its share beyond it (at 4 rooms alone the launch made a room look ~20 times
 # dearer on an H100: 20 rooms a thread instead of the hundreds it steps).
 CALIBRATE_ROOMS_GPU = 64
+# The native loop on the CPU: this many rooms run (after a warm-up of its first passes)
+# and a room costs their share of the loop thread's CPU, its pacing included: a little
+# dearer than it is past that many rooms a thread, cheaper below, where a thread is far
+# from full. Timed through ClothBatch's per-frame Python call, which this loop no longer
+# makes, a room looked several times dearer (8 rooms a thread admitted on the 2-core VM).
+CALIBRATE_ROOMS_NATIVE = 16
+CALIBRATE_WARM_S = 0.05
 
 # key -> (cores the stepping thread costs whatever its rooms, cores a room adds)
 _costs: dict[tuple[str, str, str], tuple[float, float]] = {}
@@ -80,15 +91,43 @@ def _frame_cost(scene: Scene, key: tuple[str, str, str], rooms: int) -> float:
     return (clock() - t0) / max(frames, 1) / batch.frame_dt
 
 
+def _native_cost(scene: Scene, backend: str, rooms: int) -> float | None:
+    """Cores the native frame loop's thread spends on ``rooms`` awake rooms of ``scene``
+    at real time (its thread's CPU time over wall time); None where ``scene``'s rooms run
+    on the Python loop (``SimPool.native_for``)."""
+    pool = SimPool()
+    sims: list[RoomSim] = []
+    try:
+        if not pool.native_for(scene):
+            return None
+        for _ in range(rooms):
+            sims.append(RoomSim(scene, backend, pool=pool))
+            sims[-1].start()
+        worker = sims[0].worker
+        if not getattr(worker, "native", False):
+            return None
+        time.sleep(CALIBRATE_WARM_S)
+        cpu0, wall0 = worker.cpu_seconds(), time.perf_counter()
+        time.sleep(CALIBRATE_S)
+        return (worker.cpu_seconds() - cpu0) / (time.perf_counter() - wall0)
+    finally:
+        for s in sims:
+            s.stop()
+        pool.close()
+
+
 def _measure(scene: Scene, backend: str) -> tuple[float, float]:
     key = _key(scene, backend)
     with _costs_lock:
         if key in _costs:
             return _costs[key]
-    small = _frame_cost(scene, key, CALIBRATE_ROOMS)
-    if key[1] == "cpu":  # a slot is its own work: the cost is the rooms'
-        cost = (0.0, small / CALIBRATE_ROOMS)
+    native = _native_cost(scene, backend, CALIBRATE_ROOMS_NATIVE) if key[1] == "cpu" else None
+    if native is not None:  # the loop's pacing shared by the rooms a thread holds
+        cost = (0.0, native / CALIBRATE_ROOMS_NATIVE)
+    elif key[1] == "cpu":  # the Python loop: a slot is its own work, the cost the rooms'
+        cost = (0.0, _frame_cost(scene, key, CALIBRATE_ROOMS) / CALIBRATE_ROOMS)
     else:
+        small = _frame_cost(scene, key, CALIBRATE_ROOMS)
         large = _frame_cost(scene, key, CALIBRATE_ROOMS_GPU)
         per_room = max(large - small, 0.0) / (CALIBRATE_ROOMS_GPU - CALIBRATE_ROOMS)
         cost = (max(small - CALIBRATE_ROOMS * per_room, 0.0), per_room)

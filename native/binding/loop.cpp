@@ -134,6 +134,7 @@ class Loop {
     return py::memoryview::from_memory(loop_->block(), py::ssize_t(loop_->block_size()));
   }
   int block_fd() const { return loop_->block_fd(); }
+  double cpu_seconds() const { return loop_->cpu_seconds(); }
 
  private:
   int check(int slot) const {
@@ -211,7 +212,8 @@ void bind_loop(py::module_& m) {
       .def("notify_service", &Loop::notify_service)
       .def("take_meshes", &Loop::take_meshes)
       .def("block", &Loop::block)
-      .def("block_fd", &Loop::block_fd);
+      .def("block_fd", &Loop::block_fd)
+      .def("cpu_seconds", &Loop::cpu_seconds);
   m.def("frame_block_layout", &layout);
   m.def("monotonic_now", &lp::monotonic_now);
   m.def("exit_edge", [](Array ball, Array corners, double floor_y) {

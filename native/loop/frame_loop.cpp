@@ -1,6 +1,7 @@
 // The native frame loop (frame_loop.hpp; docs/frameloop.md).
 #include "loop/frame_loop.hpp"
 
+#include <pthread.h>
 #include <sys/eventfd.h>
 #include <sys/mman.h>
 #include <sys/resource.h>
@@ -123,6 +124,16 @@ void FrameLoop::stop() {
 }
 
 bool FrameLoop::running() const { return thread_.joinable(); }
+
+double FrameLoop::cpu_seconds() const {
+  clockid_t cid;
+  timespec ts{};
+  if (!thread_.joinable() ||
+      pthread_getcpuclockid(const_cast<std::thread&>(thread_).native_handle(), &cid) != 0 ||
+      clock_gettime(cid, &ts) != 0)
+    return 0.0;
+  return double(ts.tv_sec) + 1e-9 * double(ts.tv_nsec);
+}
 
 void FrameLoop::add_room(int slot, bool awake) {
   RoomRecord& r = rooms_[slot];

@@ -64,6 +64,9 @@ class FrameLoop {
   void start();
   void stop();
   bool running() const;
+  // CPU seconds the loop's thread has used (0 before start): what admission control's
+  // calibration reads (server/headroom.py), unaffected by time other threads take.
+  double cpu_seconds() const;
 
   // Held by the loop for a whole pass: hold it to change the batch (add, remove, set_ball).
   std::mutex& mutex() { return mutex_; }
