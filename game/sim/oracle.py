@@ -314,4 +314,5 @@ class ReferenceCloth:
     def corner_forces(self) -> np.ndarray:
         if "coupling" not in self.fx:
             return np.zeros((4, 3))
-        return -self.scene["coupling"]["stiffness"] * (self.hips - grip_points(self.scene, self.pos))
+        held = grip_points(self.scene, self.pos)
+        return -self.scene["coupling"]["stiffness"] * (self.hips - held)

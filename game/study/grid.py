@@ -39,7 +39,7 @@ from .integrators_ref import centre_sag, with_effects
 QUANTITIES: dict[str, tuple[str, str]] = {
     "sag_m": ("m", "static sag of the hanging cloth's centre (at rest, no ball)"),
     "corner_force_rest_n": ("N", "force on a hand at rest (no ball)"),
-    "landing_s": ("s", "when a node first enters the ball (between frames: interpolated)"),
+    "landing_s": ("s", "when the ball reaches the cloth at rest (between frames: interpolated)"),
     "lowest_y_m": ("m", "the ball's lowest centre height (a parabola through 3 frames)"),
     "lowest_s": ("s", "when the ball is lowest (the parabola's vertex)"),
     "rebound_m": ("m", "how far the ball rises after its lowest point"),
@@ -201,13 +201,16 @@ def _drop(scene: Scene, substeps: int, backend: str, precision: str, frames: int
         heights.append(float(bp[1]))
         force.append(float(np.linalg.norm(cloth.corner_forces()[0])))
         if landing < 0:
-            was, gap = gap, float(np.min(np.linalg.norm(cloth.positions() - bp, axis=-1))) - radius
+            # The gap to the cloth at rest (it is, until touched): the contact is stiff
+            # enough to push the first node out again within the frame it enters, so the
+            # moved cloth's gap can miss the landing. The ball falls nearly uniformly over
+            # a frame: the crossing by linear interpolation (a frame, 1 ms, is more than
+            # the grids differ by).
+            was, gap = gap, float(np.min(np.linalg.norm(x - bp, axis=-1))) - radius
             if gap < 0:
                 landing = frame
-                # The gap closes at the ball's speed, nearly constant over a frame: the
-                # crossing by linear interpolation, not the frame after it (a frame's
-                # quantum, 1 ms, is more than the grids differ by).
-                q["landing_s"] = (frame - gap / (gap - was)) * frame_dt if was > 0 else frame * frame_dt
+                crossed = frame - gap / (gap - was) if was > 0 else frame
+                q["landing_s"] = crossed * frame_dt
     run.us_per_sim_ms = statistics.median(walls[5:] or walls) / frame_dt * 1e-3 * 1e6
     if landing < 0:
         q.update(landing_s=math.nan, lowest_y_m=math.nan, lowest_s=math.nan,

@@ -226,9 +226,9 @@ def potential_energy(scene: Scene, pos: np.ndarray, ball_pos: np.ndarray,
         energy -= ball["mass"] * float(ball_pos @ g)
     if "coupling" in fx:
         K = scene["coupling"]["stiffness"]
-        for g in grips(scene):
-            dh = hips[g.corner] + g.offset - pos[g.i, g.j]
-            energy += 0.5 * K * g.share * float(dh @ dh)
+        for grip in grips(scene):
+            dh = hips[grip.corner] + grip.offset - pos[grip.i, grip.j]
+            energy += 0.5 * K * grip.share * float(dh @ dh)
     return energy
 
 
