@@ -413,8 +413,8 @@ GRID_MARKDOWN = (
     "The paper's per-node keys stay: `classic` (the paper's set-up) uses them and holds each",
     "corner by its node; `default` (the game's) gives `damping_rate` and `stiffness_per_area`,",
     "chosen so that at its n = 48 they derive the per-node values it had before (0.02 N s/m,",
-    "5000 N/m), and a `grip_radius` chosen so that its converged sag is the sag its single",
-    "corner nodes gave at n = 48 (docs/accuracy.md: the grid study).",
+    "5000 N/m), and a 1 cm `grip_radius` (its sag at n = 49 3 % under the single corner",
+    "node's; docs/accuracy.md: the grid study).",
 )
 
 

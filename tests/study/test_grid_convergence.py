@@ -63,12 +63,11 @@ def run(name: str, n: int, backend: str) -> GridRun:
 # What converges in material units (successive differences shrink as the spacing halves).
 # The default is overdamped (92 /s per unit mass): its ball rebounds a little and its corner
 # force does not ring (its ring_hz is the analysis's floor, not a mode); the lightly damped
-# variant rings. Not listed, because they do not converge: the default's lowest point and
-# its time, and the light variant's rebound. The bending springs (k_bend per spring, two
-# nodes apart) resist the cloth's wrapping round the ball only through their shortening,
-# c^2 L^3 / 4 at curvature c: at the ball's (1 / 8 cm) that is mm on the coarse grids and
-# nothing on the fine ones, so the cloth under the ball is a different material on every
-# grid (a bending stiffness per area needs a bending force, not a per-spring k).
+# variant rings. Not listed, because they do not converge here: the default's lowest point
+# and its time, and the light variant's rebound. On the GPU's range the default's rebound
+# and the light's ringing turn at n = 97 too (docs/accuracy.md: the cloth under the ball;
+# the suspect is the bending springs, a stiffness per spring whose resistance to bending
+# proper fades as the grid refines).
 CONVERGING = {
     "default": ("sag_m", "corner_force_rest_n", "landing_s", "rebound_m", "natural_hz"),
     "light": ("sag_m", "corner_force_rest_n", "landing_s", "lowest_y_m", "lowest_s",
@@ -157,7 +156,9 @@ def test_landing_is_where_the_ball_meets_the_cloth_at_rest() -> None:
     """The landing is read against the cloth at rest, which the ball meets before any
     damping acts: the default and its lightly damped variant land at the same time (read
     from the moved cloth, a node pushed out within its first frame of contact hid the
-    landing for a frame or more: 295.9 against 299.3 ms at n = 25)."""
+    landing for a frame or more: 295.9 against 299.3 ms at n = 25). The frame of the
+    crossing ends after the contact began, which the two dampings answer apart: a
+    microsecond between them, a thousandth of a frame."""
     for n in CPU_SIZES:
         a, b = (run(name, n, "cpu").quantities["landing_s"] for name in ("default", "light"))
-        assert a == pytest.approx(b, abs=1e-9), (n, a, b)
+        assert a == pytest.approx(b, abs=1e-6), (n, a, b)
