@@ -31,6 +31,7 @@ class Config:
     damping_rate: float  # 1/s; negative: not given (damping holds)
     ball_k_area: float  # N/m^3; negative: not given (ball_k holds)
     coupling_k: float
+    grip_radius: float
     air_density: float
     drag: float
     lift: float

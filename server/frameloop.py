@@ -20,6 +20,7 @@ import logging
 import math
 import os
 import queue
+import struct
 import threading
 from typing import Any
 
@@ -52,9 +53,11 @@ def _dtype(fields: list[tuple[str, int, str, tuple[int, ...]]], itemsize: int) -
 ROOM_DTYPE = _dtype(LAYOUT["room"], LAYOUT["room_bytes"])
 ENGINE_DTYPE = _dtype(LAYOUT["engine"], LAYOUT["engine_bytes"])
 # What FrameLoop.read_room copies: the record up to its events.
-ROOM_OUT_DTYPE = _dtype([f for f in LAYOUT["room"]
-                         if f[1] + np.dtype(f[2]).itemsize * max(1, math.prod(f[3]))
-                         <= LAYOUT["room_out_bytes"]], LAYOUT["room_out_bytes"])
+# Where FrameLoop.read_room's copy (the record up to its events) holds what a wake-up reads.
+_AT = {f[0]: f[1] for f in LAYOUT["room"]}
+_FRAME, _TIME, _SUBSTEPS = struct.Struct("<q"), struct.Struct("<d"), struct.Struct("<I")
+_OCCUPANTS = struct.Struct("<4Q")
+assert _AT["events"] == LAYOUT["room_out_bytes"] and LAYOUT["corner_bytes"] == P.CORNER_SIZE
 
 
 def frame_loop_wanted() -> bool:
@@ -309,19 +312,16 @@ class NativeWorker:
                 self._room_events(room, slot, b)
 
     def _room_events(self, room: RoomSim, slot: int, bits: int) -> None:
-        rec = np.frombuffer(self._loop.read_room(slot), dtype=ROOM_OUT_DTYPE)[0]
-        frame, server_time = int(rec["frame"]), float(rec["server_time"])
+        raw = self._loop.read_room(slot)
+        frame, server_time = _FRAME.unpack_from(raw, _AT["frame"])[0], \
+            _TIME.unpack_from(raw, _AT["server_time"])[0]
         if frame <= room.delivered and not bits & (EVENT["exit"] | EVENT["failed"]):
             return  # this frame was delivered by an earlier wake-up
-        applied = [(int(q), float(t)) for q, t in zip(rec["applied_seq"].tolist(),
-                                                      rec["applied_time"].tolist(),
-                                                      strict=True)]
-        corners = P.encode_corners(frame, server_time, rec["corner_pos"].tolist(),
-                                   rec["corner_vel"].tolist(), rec["force"].tolist(),
-                                   room.stiffness, rec["ball"][:3].tolist(),
-                                   rec["ball"][3:].tolist(), applied)
+        # The four CORNER messages as the loop encoded them (native/loop/corner_msg.hpp).
+        at = _AT["corner_msg"]
+        corners = [raw[at + k * P.CORNER_SIZE:at + (k + 1) * P.CORNER_SIZE] for k in range(4)]
         result = FrameResult(frame, server_time, corners,
-                             occupants=tuple(int(o) for o in rec["applied_occupant"]))
+                             occupants=_OCCUPANTS.unpack_from(raw, _AT["applied_occupant"]))
         r = self.rooms_view
         if bits & EVENT["exit"]:
             result.exit = (int(r["exit_edge"][slot]), int(r["exit_frame"][slot]),
@@ -330,7 +330,7 @@ class NativeWorker:
             fail = int(r["fail_frame"][slot])
             room.error = (f"simulation state became non-finite by frame {fail} (backend "
                           f"{self.batch.backend}, {self.batch.precision}, "
-                          f"{int(rec['substeps'])} substeps)")
+                          f"{_SUBSTEPS.unpack_from(raw, _AT['substeps'])[0]} substeps)")
             log.error("room simulation stopped: %s", room.error)
             self.remove(room)
             result = FrameResult(fail, server_time, [], sim_error=room.error)

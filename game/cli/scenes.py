@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from ..sim.config import node_values
+from ..sim.oracle import grips
 from ..sim.scene import MATERIAL_KEYS, Scene, available, schema_markdown
 
 UNITS = {"damping": "N s/m per node", "stiffness": "N/m per node"}
@@ -32,6 +33,16 @@ def describe(s: Scene) -> list[str]:
         else:
             lines.append(f"{'':14}{section}.{material} = {given:.6g} "
                          f"{MATERIAL_UNITS[material]} -> {got} at n = {s.n}")
+    if "coupling" in s.effects:
+        k, a = s["coupling"]["stiffness"], s["coupling"]["grip_radius"]
+        held = [g for g in grips(s) if g.corner == 0]
+        if a > 0:
+            lines.append(f"{'':14}coupling.grip_radius = {a:.6g} m -> K {k:.6g} N/m over "
+                         f"{len(held)} nodes a hand (the corner node {k * held[0].share:.4g} N/m) "
+                         f"at n = {s.n}")
+        else:
+            lines.append(f"{'':14}coupling: K {k:.6g} N/m on the corner node (a point support: "
+                         f"the sag grows as log n)")
     return lines
 
 

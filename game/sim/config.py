@@ -39,6 +39,7 @@ def native_config(scene: Scene, threads: int = 0) -> _native.Config:
     c.ball_damping = ball["damping"]
     c.ball_edges = ball["contact"] == "edges"
     c.coupling_k = scene["coupling"]["stiffness"]
+    c.grip_radius = scene["coupling"]["grip_radius"]
     wind = scene["wind"]
     c.air_density = wind["air_density"]
     c.drag = wind["drag"]

@@ -6,6 +6,8 @@ it, only the scene). Every force of a substep comes from the state at the subste
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ... import _native  # type: ignore[attr-defined]
@@ -174,6 +176,58 @@ def node_contact_stiffness(scene: Scene) -> float:
     return float(ball["stiffness_per_area"]) * spacing * spacing * share
 
 
+class Grip(NamedTuple):
+    """One node a hand holds: its hand (corner slot), the node, its share of the hand's
+    stiffness K and its rest offset from the corner (m; the hand pulls it to hip + offset)."""
+
+    corner: int
+    i: int
+    j: int
+    share: float
+    offset: np.ndarray
+
+
+def _hat_share(m: int, a: float, L: float) -> float:
+    """The integral over the edge segment [0, a] of node m's hat function (1 at m L, 0 at
+    (m +- 1) L; the corner's m = 0 only on the edge's side): exact by the trapezoid rule on
+    the breakpoints, the integrand being linear between them."""
+    s = np.unique(np.clip([(m - 1) * L, m * L, (m + 1) * L, 0.0, a], 0.0, a))
+    hat = np.maximum(0.0, 1.0 - np.abs(s - m * L) / L)
+    return float(np.sum(0.5 * (hat[1:] + hat[:-1]) * np.diff(s)))
+
+
+def grips(scene: Scene) -> list[Grip]:
+    """Every node the hands hold: a hand holds its corner node, and with
+    ``coupling.grip_radius`` a > 0 the nodes of its corner's two edges whose hat function
+    overlaps [0, a] (none past the edge's middle, which would be another hand's), each with
+    its share of the grip (shares summing to 1 a hand)."""
+    n, L = scene.n, scene.rest_length
+    a = scene["coupling"]["grip_radius"]
+    held = []  # (corner, i, j, weight, offset)
+    for c, (ci, cj) in enumerate(((0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0))):
+        di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
+        held.append((c, ci, cj, 2 * _hat_share(0, a, L) if a > 0 else 1.0, np.zeros(3)))
+        m = 1
+        while a > 0 and (m - 1) * L < a and 2 * m <= n - 2:
+            w = _hat_share(m, a, L)
+            held.append((c, ci, cj + dj * m, w, np.array([dj * m * L, 0.0, 0.0])))
+            held.append((c, ci + di * m, cj, w, np.array([0.0, 0.0, di * m * L])))
+            m += 1
+    total = [sum(h[3] for h in held if h[0] == c) for c in range(4)]
+    return [Grip(c, i, j, w / total[c], off) for c, i, j, w, off in held]
+
+
+def grip_points(scene: Scene, pos: np.ndarray, vel: np.ndarray | None = None) -> np.ndarray:
+    """The point each hand holds (4, 3): its nodes' positions less their rest offsets,
+    weighted by their shares (the corner nodes when a hand holds one node); with ``vel``
+    the velocities alike instead."""
+    out = np.zeros((4, 3))
+    for g in grips(scene):
+        x = pos[g.i, g.j] - g.offset if vel is None else vel[g.i, g.j]
+        out[g.corner] += g.share * x
+    return out
+
+
 class ReferenceCloth:
     """The oracle: same scene, same equations, float64 NumPy, one step at a time."""
 
@@ -191,6 +245,7 @@ class ReferenceCloth:
         # the engine's derivation (native per_node), so the tests check that too.
         self.damping = node_damping(scene)
         self.ball_k = node_contact_stiffness(scene)
+        self.grips = grips(scene)
 
     def forces(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Force on every node (eq. 1) and the summed contact force on the ball."""
@@ -219,8 +274,8 @@ class ReferenceCloth:
             f += contact
         if "coupling" in fx:
             K = s["coupling"]["stiffness"]
-            for c, (i, j) in enumerate(CORNERS):
-                f[i, j] += K * (self.hips[c] - pos[i, j])
+            for g in self.grips:
+                f[g.i, g.j] += K * g.share * (self.hips[g.corner] + g.offset - pos[g.i, g.j])
         if "wind" in fx:
             w = s["wind"]
             f += wind_forces(pos, vel, self.wind, w["air_density"], w["drag"], w["lift"])
@@ -259,4 +314,5 @@ class ReferenceCloth:
     def corner_forces(self) -> np.ndarray:
         if "coupling" not in self.fx:
             return np.zeros((4, 3))
-        return -self.scene["coupling"]["stiffness"] * (self.hips - corners_of(self.pos))
+        held = grip_points(self.scene, self.pos)
+        return -self.scene["coupling"]["stiffness"] * (self.hips - held)

@@ -113,7 +113,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
     },
     "coupling": {
         "stiffness": Key(
-            1000.0, "float", 0.0, 1e7, effect="coupling", doc="corner-to-HIP spring K (eq. 7), N/m"
+            1000.0, "float", 0.0, 1e7, effect="coupling",
+            doc="corner-to-HIP spring K (eq. 7), N/m: a hand's total, over its grip",
+        ),
+        "grip_radius": Key(
+            0.0, "float", 0.0, 100.0, effect="coupling",
+            doc="m: a hand holds each of its corner's two edges this far from the corner, K "
+            "spread evenly along them (split over their nodes by n; a fixed length, so the "
+            "sag converges as n grows); 0: the corner node alone (the paper's point support, "
+            "whose sag grows as log n)",
         ),
     },
     "wind": {
@@ -387,14 +395,26 @@ GRID_MARKDOWN = (
     "+9 % at R = 13 L, pressed in 3/8 R) |",
     "| `ball.radius`, `mass`, `damping`, `position`, `velocity` | m, kg, N s/m, m, m/s | "
     "the ball's own: yes | - |",
-    "| `coupling.stiffness` | N/m | one spring at each corner node: yes | as given |",
+    "| `coupling.stiffness` | N/m | a hand's total: yes | the corner node's K (grip radius "
+    "0), or split over the grip's nodes |",
+    "| `coupling.grip_radius` | m | yes: a hand holds each of its corner's two edges over "
+    "this length, K spread evenly along them. A single node is a point support, under which "
+    "a membrane's displacement grows as log(1 / L): the sag grows by ~3 mm each time the "
+    "spacing halves and never converges (a segment of fixed length holds a finite "
+    "displacement) | node m (m L from the corner along an edge) takes K w_m / sum w, w_m "
+    "the integral of its hat function over [0, a] (the corner: its half-hat on each edge); "
+    "sum w = 2 a / L, so the total is K at every n. The hand's point (what `corners()` "
+    "reads and the Falcon is pulled to) is the grip's nodes less their rest offsets, "
+    "weighted alike: the corner at rest, and the force on the hand is -K (hip - point) |",
     "| `[wind]` | m/s, kg/m^3, 1 | on each triangle's area: yes | - |",
     "| `strain_limit.max_strain` | 1 | a strain: yes | (1 + max_strain) L |",
     "| `sim.*` | s, m/s^2 | - | - |",
     "",
-    "The paper's per-node keys stay: `classic` (the paper's set-up) uses them; `default` (the",
-    "game's) gives `damping_rate` and `stiffness_per_area`, chosen so that at its n = 48 they",
-    "derive the per-node values it had before (0.02 N s/m, 5000 N/m).",
+    "The paper's per-node keys stay: `classic` (the paper's set-up) uses them and holds each",
+    "corner by its node; `default` (the game's) gives `damping_rate` and `stiffness_per_area`,",
+    "chosen so that at its n = 48 they derive the per-node values it had before (0.02 N s/m,",
+    "5000 N/m), and a 1 cm `grip_radius` (its sag at n = 49 3 % under the single corner",
+    "node's; docs/accuracy.md: the grid study).",
 )
 
 

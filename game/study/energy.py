@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..sim.oracle import BEND_DIRS, CORNERS, STRUCTURAL_DIRS, node_contact_stiffness
+from ..sim.oracle import BEND_DIRS, STRUCTURAL_DIRS, grips, node_contact_stiffness
 from ..sim.scene import Scene
 
 
@@ -58,9 +58,9 @@ def total_energy(
         e += _spring_energy(pos, BEND_DIRS, cloth["k_bend"], 2 * L, True)
     if "coupling" in fx and hips is not None:
         K = scene["coupling"]["stiffness"]
-        for c, (i, j) in enumerate(CORNERS):
-            d = hips[c] - pos[i, j]
-            e += 0.5 * K * float(d @ d)
+        for grip in grips(scene):
+            d = hips[grip.corner] + grip.offset - pos[grip.i, grip.j]
+            e += 0.5 * K * grip.share * float(d @ d)
     if "ball" in fx and ball_pos is not None and ball_vel is not None:
         ball = scene["ball"]
         e += 0.5 * ball["mass"] * float(ball_vel @ ball_vel) - ball["mass"] * float(ball_pos @ g)

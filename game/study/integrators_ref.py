@@ -56,10 +56,10 @@ import numpy as np
 
 from ..sim.oracle import (
     BEND_DIRS,
-    CORNERS,
     SHEAR_DIRS,
     STRUCTURAL_DIRS,
     ReferenceCloth,
+    grips,
     node_contact_stiffness,
 )
 from ..sim.scene import SCHEMA, Scene
@@ -153,7 +153,8 @@ class Linearization:
                 self.inside = inside
                 self.contact = pair_terms(ball_pos - pos[inside], node_contact_stiffness(scene),
                                           ball["radius"], 1.0, definite)
-        self.coupling = scene["coupling"]["stiffness"] if "coupling" in scene.effects else 0.0
+        K = scene["coupling"]["stiffness"] if "coupling" in scene.effects else 0.0
+        self.coupling = [(g.i, g.j, K * g.share) for g in grips(scene)] if K else []
 
     def jvp(self, w: np.ndarray, wb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """K·(w, wb): the change of every node force and of the ball force for a change w
@@ -166,9 +167,8 @@ class Linearization:
             df = pair_jvp(self.contact, wb - w[self.inside])
             out[self.inside] += df
             out_b -= df.sum(axis=0)
-        if self.coupling:
-            for i, j in CORNERS:
-                out[i, j] -= self.coupling * w[i, j]
+        for i, j, k in self.coupling:
+            out[i, j] -= k * w[i, j]
         return out, out_b
 
     def neg_diag(self) -> tuple[np.ndarray, np.ndarray]:
@@ -181,9 +181,8 @@ class Linearization:
             dg = pair_diag(self.contact)
             out[self.inside] += dg
             out_b += dg.sum(axis=0)
-        if self.coupling:
-            for i, j in CORNERS:
-                out[i, j] += self.coupling
+        for i, j, k in self.coupling:
+            out[i, j] += k
         return out, out_b
 
 
@@ -227,9 +226,9 @@ def potential_energy(scene: Scene, pos: np.ndarray, ball_pos: np.ndarray,
         energy -= ball["mass"] * float(ball_pos @ g)
     if "coupling" in fx:
         K = scene["coupling"]["stiffness"]
-        for c, (i, j) in enumerate(CORNERS):
-            dh = hips[c] - pos[i, j]
-            energy += 0.5 * K * float(dh @ dh)
+        for grip in grips(scene):
+            dh = hips[grip.corner] + grip.offset - pos[grip.i, grip.j]
+            energy += 0.5 * K * grip.share * float(dh @ dh)
     return energy
 
 

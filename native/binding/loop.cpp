@@ -12,6 +12,7 @@
 #include "binding/arrays.hpp"
 #include "binding/batch_engine.hpp"
 #include "loop/block.hpp"
+#include "loop/corner_msg.hpp"
 #include "loop/exit.hpp"
 #include "loop/frame_loop.hpp"
 
@@ -45,6 +46,7 @@ py::dict layout() {
   d["engine_bytes"] = sizeof(lp::EngineRecord);
   d["room_out_bytes"] = offsetof(lp::RoomRecord, events);  // what read_room copies
   d["track_ring"] = lp::kTrackRing;
+  d["corner_bytes"] = lp::kCornerBytes;
   d["lateness_ring"] = lp::kLatenessRing;
   const lp::Field* rf = lp::room_fields(&n);
   d["room"] = fields(rf, n);
@@ -215,6 +217,27 @@ void bind_loop(py::module_& m) {
       .def("block_fd", &Loop::block_fd)
       .def("cpu_seconds", &Loop::cpu_seconds);
   m.def("frame_block_layout", &layout);
+  // The loop's CORNER encoder (corner_msg.hpp), for the test against the Python one.
+  m.def("encode_corners",
+        [](std::int64_t frame, double server_time, Array pos, Array vel, Array force,
+           double stiffness, Array ball, std::vector<std::uint64_t> seq,
+           std::vector<double> time) {
+          cbind::sized(pos, 12, "positions");
+          cbind::sized(vel, 12, "velocities");
+          cbind::sized(force, 12, "forces");
+          cbind::sized(ball, 6, "ball");
+          if (seq.size() != lp::kSeats || time.size() != lp::kSeats)
+            throw py::value_error("applied: expected 4 (seq, time) pairs");
+          py::list out;
+          std::uint8_t msg[lp::kCornerBytes];
+          for (int s = 0; s < lp::kSeats; ++s) {
+            lp::encode_corner(msg, frame, server_time, s, pos.data() + 3 * s,
+                              vel.data() + 3 * s, force.data() + 3 * s, stiffness,
+                              ball.data(), seq[s], time[s]);
+            out.append(py::bytes(reinterpret_cast<const char*>(msg), lp::kCornerBytes));
+          }
+          return out;
+        });
   m.def("monotonic_now", &lp::monotonic_now);
   m.def("exit_edge", [](Array ball, Array corners, double floor_y) {
     return lp::exit_edge(cbind::sized(ball, 3, "ball").data(),

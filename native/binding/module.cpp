@@ -70,6 +70,7 @@ PYBIND11_MODULE(_native, m) {
       .def_readwrite("damping_rate", &cb::Config::damping_rate)
       .def_readwrite("ball_k_area", &cb::Config::ball_k_area)
       .def_readwrite("coupling_k", &cb::Config::coupling_k)
+      .def_readwrite("grip_radius", &cb::Config::grip_radius)
       .def_readwrite("air_density", &cb::Config::air_density)
       .def_readwrite("drag", &cb::Config::drag)
       .def_readwrite("lift", &cb::Config::lift)

@@ -84,9 +84,4 @@ const std::array<Fn, N>& dispatch_table() {
   return t;
 }
 
-// Corner node indices in the documented order: (0,0), (0,n-1), (n-1,n-1), (n-1,0).
-inline std::array<int, 4> corner_nodes(int n) {
-  return {0, n - 1, n * n - 1, (n - 1) * n};
-}
-
 }  // namespace cb

@@ -92,6 +92,72 @@ CB_HD int corner_node(int c, int n) {
   return c == 0 ? 0 : c == 1 ? last : c == 2 ? n * n - 1 : last * n;
 }
 
+// What a hand's grip (params.hpp: grip_weight) does at node (i, j): the hand (corner slot,
+// -1: none), the node's coupling stiffness, and its rest offset from the corner (the hand
+// pulls it towards hip + offset). Only nodes of the cloth's edges are held.
+template <class R>
+struct GripNode {
+  int corner;
+  R k;
+  V3<R> offset;
+};
+
+template <class R>
+CB_HD GripNode<R> grip_node(const Params<R>& p, int i, int j) {
+  const int n = p.n, last = n - 1, M = p.grip_nodes;
+  GripNode<R> g{corner_slot(i, j, n), p.coupling_k, {R(0), R(0), R(0)}};
+  if (M == 0) return g;  // the paper's: the corner node alone, with K
+  if (g.corner >= 0) {
+    g.k = p.grip_k_per_weight * grip_weight(0, p.grip_u);
+    return g;
+  }
+  int ci = -1, cj = -1, m = 0;
+  if (i == 0 || i == last) {  // along a row edge (x)
+    ci = i;
+    cj = j <= M ? 0 : (j >= last - M ? last : -1);
+    m = cj == 0 ? j : last - j;
+    g.offset.x = R(j - cj) * p.L;
+  } else if (j == 0 || j == last) {  // along a column edge (z)
+    cj = j;
+    ci = i <= M ? 0 : (i >= last - M ? last : -1);
+    m = ci == 0 ? i : last - i;
+    g.offset.z = R(i - ci) * p.L;
+  }
+  if (ci < 0 || cj < 0) return {-1, R(0), {R(0), R(0), R(0)}};
+  g.corner = corner_slot(ci, cj, n);
+  g.k = p.grip_k_per_weight * grip_weight(m, p.grip_u);
+  return g;
+}
+
+// The point a hand holds (the corner at rest) and its velocity: the grip's nodes' positions
+// less their rest offsets, and their velocities, weighted by their share of K. The force
+// on the hand is then -K (hip - point), the sum of its nodes' couplings. With a single node
+// it is the corner node's own state.
+template <class R>
+CB_HD void grip_point(const Params<R>& p, const Planes<R>& pos, const Planes<R>& vel, int c,
+                      V3<R>& x, V3<R>& v) {
+  const int n = p.n, q = corner_node(c, n);
+  x = pos.get(q);
+  v = vel.get(q);
+  if (p.grip_nodes == 0) return;
+  const int ci = q / n, cj = q - ci * n;
+  const int di = ci == 0 ? 1 : -1, dj = cj == 0 ? 1 : -1;
+  const R w0 = grip_weight(0, p.grip_u);
+  R total = w0;
+  x = x * w0;
+  v = v * w0;
+  for (int m = 1; m <= p.grip_nodes; ++m) {
+    const R w = grip_weight(m, p.grip_u), off = R(m) * p.L;
+    const int a = ci * n + cj + dj * m, b = (ci + di * m) * n + cj;
+    x += (pos.get(a) - V3<R>{R(dj) * off, R(0), R(0)}) * w;
+    x += (pos.get(b) - V3<R>{R(0), R(0), R(di) * off}) * w;
+    v += (vel.get(a) + vel.get(b)) * w;
+    total += R(2) * w;
+  }
+  x = x * (R(1) / total);
+  v = v * (R(1) / total);
+}
+
 // Total force on node (i, j) from the state `pos`/`vel` at the substep's start (eq. 1).
 // `contact` receives this node's ball contact force (eq. 4) for the ball's sum (eq. 5):
 // at the node itself, or with p.ball_edges its shares of its (up to) 4 structural edges'.
@@ -148,8 +214,8 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
   }
   if constexpr (!Interior) {  // a run-time effect: the corners are never interior
     if ((p.effects & COUPLING) != 0) {
-      int c = corner_slot(i, j, n);
-      if (c >= 0) f += (fin.hips[c] - pi) * p.coupling_k;  // eq. (7), the node's side
+      const GripNode<R> g = grip_node(p, i, j);  // eq. (7), the node's side
+      if (g.corner >= 0) f += (fin.hips[g.corner] - (pi - g.offset)) * g.k;
     }
   }
   if constexpr ((E & WIND) != 0) {

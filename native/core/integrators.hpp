@@ -9,7 +9,7 @@ namespace cb {
 // --- the force Jacobian K = dF/dx, applied matrix-free ----------------------------------
 // Compiled effects with a position Jacobian. Damping is a diagonal term (a runtime scalar of
 // the CG operator), gravity and wind have none (wind is explicit in implicit Euler), and
-// coupling's (the 4 corners) is a run-time test on the border path, as in node_force: the
+// coupling's (the hands' grips, edge nodes) is a run-time test on the border path, as in node_force: the
 // Jacobian-vector product needs 2^4 specialisations.
 constexpr unsigned kStiffEffects = STRUCTURAL | SHEAR | BEND | BALL;
 constexpr unsigned kNumStiffSets = 16;
@@ -108,7 +108,10 @@ CB_HD V3<R> node_jvp(const Params<R>& p, const Planes<R>& pos, const W& w, V3<R>
     out += cj;
   }
   if constexpr (!Interior) {
-    if ((p.effects & COUPLING) != 0 && corner_slot(i, j, p.n) >= 0) out -= wi * p.coupling_k;
+    if ((p.effects & COUPLING) != 0) {
+      const GripNode<R> g = grip_node(p, i, j);
+      if (g.corner >= 0) out -= wi * g.k;
+    }
   }
   return out;
 }
@@ -127,8 +130,10 @@ CB_HD V3<R> node_neg_diag(const Params<R>& p, const Planes<R>& pos, V3<R> xi, in
     out += cd;
   }
   if constexpr (!Interior) {
-    if ((p.effects & COUPLING) != 0 && corner_slot(i, j, p.n) >= 0)
-      out += V3<R>{p.coupling_k, p.coupling_k, p.coupling_k};
+    if ((p.effects & COUPLING) != 0) {
+      const GripNode<R> g = grip_node(p, i, j);
+      if (g.corner >= 0) out += V3<R>{g.k, g.k, g.k};
+    }
   }
   return out;
 }

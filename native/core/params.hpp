@@ -1,6 +1,7 @@
 // Scene parameters as the kernels see them, and the effect flags that specialise them.
 #pragma once
 #include <algorithm>
+#include <cmath>
 
 #include "vec.hpp"
 
@@ -11,9 +12,9 @@ namespace cb {
 // compiled as its own kernel, so an absent costly effect is compiled out rather than
 // branched over. The cheap ones (bits 5-7) are parameters of those kernels: gravity adds a
 // constant and damping -c v to each node (zeroed when absent: f + 0 and f - 0 v are exact,
-// see Params::from), coupling acts on the 4 corners only, which the bounds-tested border
-// path reaches (a run-time test there). Without them every effect set was a kernel of its
-// own: 256 of them, and most of a 17-minute build (issue 19).
+// see Params::from), coupling acts on the hands' grips, nodes of the cloth's edges, which
+// the bounds-tested border path reaches (a run-time test there). Without them every effect
+// set was a kernel of its own: 256 of them, and most of a 17-minute build (issue 19).
 enum Effect : unsigned {
   STRUCTURAL = 1u << 0,
   SHEAR = 1u << 1,
@@ -55,7 +56,8 @@ struct Config {
   // per-node value above holds. per_node() below turns them into per-node values.
   double damping_rate = -1;  // 1/s: damping force per unit mass and unit velocity
   double ball_k_area = -1;   // N/m^3: contact force per unit penetration and contact area
-  double coupling_k = 0;    // K of eq. (7)
+  double coupling_k = 0;    // K of eq. (7): a hand's total
+  double grip_radius = 0;   // m: a hand holds the border this near its corner; 0: the corner node
   double air_density = 1.2, drag = 1.0, lift = 0.3;  // wind on each triangle
   double max_strain = 0.1;  // strain limiting: longest spring is (1 + max_strain) L
   int strain_iterations = 10;  // strain limiting: passes (rows, then columns) a substep
@@ -97,6 +99,38 @@ inline unsigned compiled_effect_set(const Config& c) {
   return c.effects & (((1u << kNumForceEffects) - 1) | STRAIN_LIMIT);
 }
 
+// A hand's grip (eq. 7 over a patch; docs/scenes.md). With grip radius a > 0 a hand holds
+// the segment [0, a] of each of its corner's two edges, its stiffness K spread evenly over
+// those 2a of border: node m (m spacings L from the corner along an edge) takes the share
+// its hat function (the grid's piecewise-linear interpolation) has of the segment,
+// w_m = H(u - m) in units of L with u = a / L and H the hat's integral (hat_cdf); the
+// corner node takes the half-hat inside each edge, 2 (H(u) - 1/2). The weights sum to 2u,
+// so the total stiffness is K whatever n, and the grip converges to a line support of
+// fixed length (a single node is a point support: its membrane displacement grows as
+// log(1 / L) without bound). a = 0 is the paper's single corner node.
+template <class R>
+CB_HD R hat_cdf(R x) {
+  if (x <= R(-1)) return R(0);
+  if (x <= R(0)) return R(0.5) * (x + R(1)) * (x + R(1));
+  if (x < R(1)) return R(1) - R(0.5) * (R(1) - x) * (R(1) - x);
+  return R(1);
+}
+
+template <class R>
+CB_HD R grip_weight(int m, R u) {
+  return m == 0 ? R(2) * (hat_cdf(u) - R(0.5)) : hat_cdf(u - R(m));
+}
+
+// Nodes a grip holds along each edge beyond the corner: those with a weight (m < u + 1),
+// at most (n - 2) / 2 so that no node belongs to two corners (the weights are then
+// normalised over the nodes held, and the total is still K).
+inline int grip_node_count(double u, int n) {
+  if (!(u > 0.0)) return 0;
+  const double m = std::floor(u) + 1.0;
+  const int cap = std::max(0, (n - 2) / 2);
+  return m < double(cap) ? int(m) : cap;
+}
+
 template <class R>
 struct Params {
   int n;
@@ -110,6 +144,9 @@ struct Params {
   R ball_radius, ball_inv_mass, ball_mass, ball_k, ball_damping;
   bool ball_edges;         // Config::ball_edges
   R coupling_k;
+  int grip_nodes;          // per edge beyond the corner (grip_node_count); 0: the corner node only
+  R grip_u;                // grip radius / L
+  R grip_k_per_weight;     // coupling_k / (sum of the grip's weights): node m's k is this w_m
   R wind_drag, wind_lift;  // 1/2 rho C / 3: each vertex's share of a triangle's force
   R max_len;               // (1 + max_strain) L
 
@@ -143,6 +180,12 @@ struct Params {
     p.ball_damping = R(c.ball_damping);
     p.ball_edges = c.ball_edges;
     p.coupling_k = R(c.coupling_k);
+    const double u = c.grip_radius / c.rest_len;
+    p.grip_nodes = grip_node_count(u, c.n);
+    p.grip_u = R(u);
+    double total = grip_weight(0, u);
+    for (int m = 1; m <= p.grip_nodes; ++m) total += 2.0 * grip_weight(m, u);
+    p.grip_k_per_weight = R(p.grip_nodes > 0 ? c.coupling_k / total : c.coupling_k);
     p.wind_drag = R(0.5 * c.air_density * c.drag / 3.0);
     p.wind_lift = R(0.5 * c.air_density * c.lift / 3.0);
     p.max_len = R((1.0 + c.max_strain) * c.rest_len);

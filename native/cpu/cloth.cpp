@@ -99,10 +99,10 @@ class CpuCloth final : public Backend {
     std::copy(v, v + 6, pv);
   }
   void get_corners(double* out) override {
-    auto idx = corner_nodes(p_.n);
     Planes<R> P = pos_(cur_), V = vel_(cur_);
     for (int k = 0; k < 4; ++k) {
-      V3<R> x = P.get(idx[k]), v = V.get(idx[k]);
+      V3<R> x, v;
+      grip_point(p_, P, V, k, x, v);  // the point each hand holds
       const R vals[6] = {x.x, x.y, x.z, v.x, v.y, v.z};
       std::copy(vals, vals + 6, out + 6 * k);
     }

@@ -277,8 +277,8 @@ __device__ __forceinline__ void finish_body(const Params<R>& p, const DevBuf<R>&
                                             const SubstepBall<R>& sb, const int* nonfinite, R dt,
                                             R* out, int t) {
   if (t < 4 && out != nullptr) {
-    const int q = corner_node(t, p.n);
-    V3<R> x = s.pos.get(q), v = s.vel.get(q);
+    V3<R> x, v;
+    grip_point(p, s.pos, s.vel, t, x, v);  // the point hand t holds
     R* o = out + 6 * t;
     o[0] = x.x; o[1] = x.y; o[2] = x.z; o[3] = v.x; o[4] = v.y; o[5] = v.z;
   } else if (t == 4) {

@@ -13,10 +13,12 @@
 #include <cstddef>
 #include <cstdint>
 
+#include "loop/corner_msg.hpp"
+
 namespace cb::loop {
 
 constexpr std::uint64_t kBlockMagic = 0x314B4C42544F4C43ULL;  // "CLOTBLK1", little-endian
-constexpr std::uint32_t kBlockVersion = 1;
+constexpr std::uint32_t kBlockVersion = 2;  // 2: corner_msg
 constexpr int kSeats = 4;
 constexpr int kTrackRing = 64;           // TRACK samples a room keeps (0.64 s at 100 Hz)
 constexpr int kLatenessRing = 100000;    // the engine's newest lateness samples (s)
@@ -74,6 +76,8 @@ struct alignas(64) RoomRecord {
   std::uint64_t applied_seq[kSeats];   // the HIP each seat's newest frame applied (0: none)
   double applied_time[kSeats];         // (NaN: none)
   std::uint64_t applied_occupant[kSeats];
+  // each seat's CORNER message of the newest frame, as sent (corner_msg.hpp)
+  std::uint8_t corner_msg[kSeats][kCornerBytes];
   // --- events (atomic), and what they say ----------------------------------------------------
   std::uint32_t events;
   std::int32_t exit_edge;              // the edge of the newest exit
@@ -153,6 +157,7 @@ inline const Field* room_fields(int* count) {
       CB_FIELD(RoomRecord, applied_seq, "u8", 4, 4, 0),
       CB_FIELD(RoomRecord, applied_time, "f8", 4, 4, 0),
       CB_FIELD(RoomRecord, applied_occupant, "u8", 4, 4, 0),
+      CB_FIELD(RoomRecord, corner_msg, "u1", kSeats * kCornerBytes, kSeats, kCornerBytes),
       CB_FIELD(RoomRecord, events, "u4", 1, 0, 0),
       CB_FIELD(RoomRecord, exit_edge, "i4", 1, 0, 0),
       CB_FIELD(RoomRecord, exit_frame, "i8", 1, 0, 0),

@@ -455,6 +455,10 @@ void FrameLoop::publish(int slot, int frames, double server_time, const double* 
       r.force[seat][d] = -cfg_.stiffness * (hips[3 * seat + d] - p);
     }
   std::memcpy(r.ball, ball, sizeof(r.ball));
+  for (int seat = 0; seat < kSeats; ++seat)
+    encode_corner(r.corner_msg[seat], r.frame, server_time, seat, r.corner_pos[seat],
+                  r.corner_vel[seat], r.force[seat], cfg_.stiffness, ball,
+                  r.applied_seq[seat], r.applied_time[seat]);
   store(r.out_lock, v + 2);
   std::uint32_t ev = 0;
   if (cfg_.has_ball) {

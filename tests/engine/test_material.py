@@ -15,7 +15,13 @@ import numpy as np
 import pytest
 from clothball.game import Cloth, Scene
 from clothball.game.sim.config import node_values
-from clothball.game.sim.oracle import node_contact_stiffness, node_damping
+from clothball.game.sim.oracle import (
+    ReferenceCloth,
+    grip_points,
+    grips,
+    node_contact_stiffness,
+    node_damping,
+)
 
 
 def material_scene(n: int, contact: str = "nodes", **cloth: float) -> Scene:
@@ -98,3 +104,68 @@ def test_contact_per_area_gives_the_continuum_force() -> None:
     assert all(e > 0 for e in edges), err
     orders = [math.log2(a / b) for a, b in zip(edges, edges[1:], strict=False)]
     assert all(0.8 < p < 1.2 for p in orders), (edges, orders)
+
+
+# --- the hands' grip (coupling.grip_radius) ------------------------------------------------
+def grip_scene(n: int, grip: float, **sim: object) -> Scene:
+    return Scene.from_dict({
+        "cloth": {"n": n, "k_shear": 300.0, "damping_rate": 5.0},
+        "coupling": {"grip_radius": grip},
+        "sim": {"effects": ["structural", "shear", "gravity", "damping", "coupling"],
+                "precision": "float64", "substeps": 8, **sim},
+    })
+
+
+@pytest.mark.parametrize(("n", "grip"), [(4, 0.3), (9, 0.1), (16, 0.05), (16, 0.2),
+                                          (25, 0.0417), (33, 0.0)])
+def test_a_grip_moves_as_the_oracle(backend: str, n: int, grip: float) -> None:
+    """The hands pulled off their rest points: the engine (grip derived in native/core)
+    against the oracle (its own derivation: each node's share as the integral of its hat
+    function over the grip), positions, the points the hands hold and their forces; n = 4
+    caps the grip at the corner node, 25 puts its end on a node."""
+    s = grip_scene(n, grip)
+    cloth, ref = Cloth(s, backend=backend), ReferenceCloth(s)
+    hips = cloth.hips() + np.array([[0.03, 0.02, -0.01], [-0.02, 0.04, 0.0],
+                                    [0.0, -0.03, 0.02], [0.01, 0.0, 0.05]])
+    cloth.set_hips(hips)
+    ref.hips = hips.copy()
+    cloth.step(40)
+    ref.step(40, 8)
+    np.testing.assert_allclose(cloth.positions(), ref.pos, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cloth.corners()[0], grip_points(s, ref.pos), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cloth.corners()[1], grip_points(s, ref.pos, ref.vel), rtol=0,
+                               atol=1e-10)
+    np.testing.assert_allclose(cloth.corner_forces(), ref.corner_forces(), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("n", [5, 16, 48, 97])
+def test_a_grip_holds_with_its_stiffness_whatever_n(n: int) -> None:
+    """Every hand moved by the same d from the cloth at rest, coupling alone: one substep
+    gives the cloth the momentum 4 K d dt at every n (the grip's nodes share K), and each
+    hand reads the force -K d."""
+    K, d = 1000.0, np.array([0.004, -0.002, 0.001])
+    s = Scene.from_dict({"cloth": {"n": n}, "coupling": {"grip_radius": 0.06},
+                         "sim": {"effects": ["coupling"], "precision": "float64",
+                                 "frame_dt": 1e-5, "substeps": 1}})
+    cloth = Cloth(s, backend="cpu")
+    cloth.set_hips(cloth.hips() + d)
+    np.testing.assert_allclose(cloth.corner_forces(), np.broadcast_to(-K * d, (4, 3)), rtol=1e-12)
+    cloth.step(1)
+    dt = s["sim"]["frame_dt"]
+    momentum = s.node_mass * cloth.velocities().sum(axis=(0, 1))
+    np.testing.assert_allclose(momentum, 4 * K * d * dt, rtol=1e-12)
+    held = {(g.i, g.j) for g in grips(s)}
+    moved = {(int(i), int(j)) for i, j in zip(*np.nonzero(np.abs(cloth.velocities()).sum(-1)),
+                                               strict=True)}
+    per_edge = min(math.ceil(0.06 / s.rest_length), (n - 2) // 2)
+    assert moved == held and len(held) == 4 * (1 + 2 * per_edge)
+
+
+def test_a_grip_shares_its_stiffness_as_its_length() -> None:
+    """The shares (oracle) are the hat functions' integrals over [0, a]: with the grip's end
+    on a node (a = 2 L), the corner takes L / 2 on each edge, node 1 all of its hat (L),
+    node 2 the half-hat before it (L / 2): of 4 L in all."""
+    s = grip_scene(11, 0.2)  # L = 0.1
+    shares = {(g.i, g.j): g.share for g in grips(s) if g.corner == 0}
+    assert shares == pytest.approx({(0, 0): 0.25, (0, 1): 0.25, (1, 0): 0.25,
+                                    (0, 2): 0.125, (2, 0): 0.125})
