@@ -11,6 +11,7 @@
 * ``/api/stats`` the server's own counters (frame lateness, messages, CPU time, storage);
   ``?reset=1`` clears the frame lateness, only with the host's token
   (``Authorization: Bearer TOKEN``, the token in the data directory's ``host-token``)
+* ``/metrics`` the same figures in the Prometheus text format (``server.metrics``)
 
 and the admission of websocket upgrades on ``/ws`` (origin policy, connection limit).
 
@@ -54,6 +55,8 @@ from ..game.wire.protocol import ProtocolError, check_text
 from .conn import Conn, TokenBucket, client_address
 from .limits import Limits
 from .lobby import Lobby
+from .metrics import CONTENT_TYPE as METRICS_TYPE
+from .metrics import exposition, registry_for
 from .replays import IndexUnavailable, ReplayStore
 
 log = logging.getLogger("clothball.server")
@@ -202,6 +205,7 @@ class HttpSurface:
         self.download_bytes_held = 0  # read from files, not yet taken by a socket
         self.download_bytes_held_max = 0
         self._buckets: collections.OrderedDict[str, TokenBucket] = collections.OrderedDict()
+        self._metrics = registry_for(srv.stats_snapshot)
 
     def abort_downloads(self) -> None:
         """The server is stopping: cut the downloads under way (a stalled one would hold
@@ -334,6 +338,8 @@ class HttpSurface:
                 for room in self.srv.lobby.rooms.values():
                     room.sim.stats.lateness.clear()
             return self._json(self.srv.stats_snapshot())
+        if path == "/metrics":  # the same figures for Prometheus (server.metrics)
+            return self._response(200, exposition(self._metrics), METRICS_TYPE)
         if path == "/api/replays" or path.startswith("/api/replays/"):
             found = await self._index_query(address, path, urllib.parse.parse_qs(query))
             if isinstance(found, _Download):
