@@ -31,10 +31,11 @@ from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
-from .recorder import Recording, spool_dir_for
-from .replays import PRUNE_BATCH, ReplayStore, Retention, Storage, StorageOff, access_key, owner_key
 from .room import Room, RoomSettings
 from .sim import SimPool
+from .storage.datadir import Storage, StorageOff
+from .storage.index import PRUNE_BATCH, ReplayIndex, Retention, access_key, owner_key
+from .storage.recorder import Recording, spool_dir_for
 from .ws import Connection, WsEndpoint
 
 log = logging.getLogger("clothball.server")
@@ -404,7 +405,7 @@ class GameServer:
                                         self.limits.room_idle_close_s)
 
     @property
-    def store(self) -> ReplayStore | None:
+    def store(self) -> ReplayIndex | None:
         """The replay index, when stored rounds can be read (see ``recording_error``)."""
         return self.storage.store
 
@@ -424,7 +425,7 @@ class GameServer:
 
     async def _watch_storage(self) -> None:
         """The data directory looked at again and again: problems named as they come,
-        recording resumed as they go (``server.replays.Storage``); the rounds retention
+        recording resumed as they go (``server.storage.datadir.Storage``); the rounds retention
         does not keep pruned in batches, so a large backlog never holds up a request."""
         while True:
             while await self.storage.prune_some() >= PRUNE_BATCH:

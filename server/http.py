@@ -57,7 +57,7 @@ from .limits import Limits
 from .lobby import Lobby
 from .metrics import CONTENT_TYPE as METRICS_TYPE
 from .metrics import exposition, registry_for
-from .replays import IndexUnavailable, ReplayStore
+from .storage.index import IndexUnavailable, ReplayIndex
 
 log = logging.getLogger("clothball.server")
 
@@ -177,7 +177,7 @@ class HttpHost(Protocol):
     origins: tuple[str, ...] | None
     port: int  # this process's own port
     shared_port: int | None  # the port processes share (--workers), if any
-    store: ReplayStore | None
+    store: ReplayIndex | None
     recording_error: str | None
     host_token: str
     house_key: str  # in the URL of the server's own bots (?house=)
@@ -397,12 +397,12 @@ class HttpSurface:
             return self._replays_of(store, path, query)
         except (sqlite3.Error, IndexUnavailable) as e:
             # The index was closed under this query (the data directory's problem is being
-            # acted on: server.replays.Storage), the disk failed a read, or a shared index's
+            # acted on: server.storage.datadir.Storage), the disk failed a read, or a shared index's
             # PostgreSQL is away.
             return self._error(503, f"the replay index cannot be read now ({e}); try again "
                                     "shortly")
 
-    def _replays_of(self, store: ReplayStore, path: str, query: dict[str, list[str]]
+    def _replays_of(self, store: ReplayIndex, path: str, query: dict[str, list[str]]
                     ) -> Response | _Download:
 
         def one(key: str, max_len: int = 64) -> str | None:

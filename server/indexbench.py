@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from .replays import ReplayStore, access_key
+from .storage.index import access_key
+from .storage.sqlite import SqliteIndex
 
 TARGET_QUERY_MS = 20.0
 TARGET_HEALTHZ_MS = 50.0
@@ -54,7 +55,7 @@ def fill(data: Path, n: int, seed: int = 1) -> dict[str, str]:
     from ..game.wire.replay import write_replay
 
     rng = random.Random(seed)
-    store = ReplayStore(data)
+    store = SqliteIndex(data)
     names = [f"player{i}" for i in range(5000)]
     batch: list[tuple[dict[str, Any], str, int]] = []
     for i in range(n):
@@ -192,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
         }
         results: dict[str, Any] = {"rounds": n, "queries": {}}
         proc, port = _start_server(data, ["index_rate=1000000", "index_burst=1000000"])
-        writer = ReplayStore(data)  # another connection, as a second server process would be
+        writer = SqliteIndex(data)  # another connection, as a second server process would be
         extra = n
         try:
             for name, target in queries.items():
