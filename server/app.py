@@ -181,11 +181,13 @@ class GameServer:
         else (another host's show room is ``main``) ``main-<suffix>``; a claim lost to a
         host started at the same moment picks another id and tries again. The store away:
         ``main`` unclaimed (its publication claims it, or logs the conflict)."""
+        directory = self.directory
+        assert directory is not None
         for k in range(SHOW_ROOM_TRIES):
             rid = "main" if k == 0 else f"main-{self.host_id[-4:]}" if k == 1 else \
                 f"main-{secrets.token_hex(3)}"
             try:
-                if await self._dir(self.directory.claim, rid, self.host_id):  # type: ignore
+                if await self._dir(directory.claim, rid, self.host_id):
                     return rid
             except Exception as e:
                 log.warning("the show room's id could not be claimed (%s): it is main",

@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import importlib.util
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -76,7 +77,7 @@ def nginx_conf(tmp: Path, listen: int, upstream: int) -> Path:
                       for k in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
     conf = tmp / "nginx.conf"
     conf.write_text(f"""daemon off;
-{"user root;" if _root() else ""}
+{"user root;  # its workers use this directory (root's, mode 0700)" if os.geteuid() == 0 else ""}
 worker_processes 1;
 pid {tmp / "nginx.pid"};
 error_log {tmp / "error.log"} info;
@@ -88,12 +89,6 @@ http {{
 }}
 """)
     return conf
-
-
-def _root() -> bool:
-    import os
-
-    return os.geteuid() == 0
 
 
 @contextlib.contextmanager
