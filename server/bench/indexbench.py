@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from .storage.index import access_key
-from .storage.sqlite import SqliteIndex
+from ..storage.index import access_key
+from ..storage.sqlite import SqliteIndex
 
 TARGET_QUERY_MS = 20.0
 TARGET_HEALTHZ_MS = 50.0
@@ -52,7 +52,7 @@ def configure_index_flags(parser: argparse.ArgumentParser) -> None:
 
 def fill(data: Path, n: int, seed: int = 1) -> dict[str, str]:
     """An index of ``n`` rounds under ``data``; the ids and names the queries use."""
-    from ..game.wire.replay import write_replay
+    from ...game.wire.replay import write_replay
 
     rng = random.Random(seed)
     store = SqliteIndex(data)
@@ -94,9 +94,9 @@ def _header(i: int, room: str, seats: list[str]) -> dict[str, Any]:
 
 def serve(data: Path, limits: list[str]) -> None:
     """The server process: prints its port, serves until killed."""
-    from ..game.sim.scene import Scene
-    from .app import GameServer
-    from .limits import Limits
+    from ...game.sim.scene import Scene
+    from ..app import GameServer
+    from ..limits import Limits
 
     lim = Limits(replays_max_days=1e6)  # the bench's rounds are dated 2023: keep them
     for text in limits:
@@ -145,7 +145,7 @@ def _ms(xs: list[float]) -> dict[str, float]:
 
 
 def _start_server(data: Path, limits: list[str]) -> tuple[subprocess.Popen[str], int]:
-    cmd = [sys.executable, "-m", "clothball.server.indexbench", "--role", "server",
+    cmd = [sys.executable, "-m", "clothball.server.bench.indexbench", "--role", "server",
            "--data", str(data), *[a for lim in limits for a in ("--limit", lim)]]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=os.environ.copy())
     assert proc.stdout is not None
@@ -154,7 +154,7 @@ def _start_server(data: Path, limits: list[str]) -> tuple[subprocess.Popen[str],
 
 def _healthz_under_load(port: int, clients: int, seconds: float) -> dict[str, Any]:
     load = subprocess.Popen(
-        [sys.executable, "-m", "clothball.server.indexbench", "--role", "hammer", "--port",
+        [sys.executable, "-m", "clothball.server.bench.indexbench", "--role", "hammer", "--port",
          str(port), "--clients", str(clients), "--seconds", str(seconds)],
         stdout=subprocess.PIPE, text=True)
 
