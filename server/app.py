@@ -31,10 +31,11 @@ from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
-from .recorder import Recording, spool_dir_for
-from .replays import PRUNE_BATCH, ReplayStore, Retention, Storage, StorageOff, access_key, owner_key
 from .room import Room, RoomSettings
 from .sim import SimPool
+from .storage.datadir import Storage, StorageOff
+from .storage.index import PRUNE_BATCH, ReplayIndex, Retention, access_key, owner_key
+from .storage.recorder import Recording, spool_dir_for
 from .ws import Connection, WsEndpoint
 
 log = logging.getLogger("clothball.server")
@@ -42,6 +43,7 @@ log = logging.getLogger("clothball.server")
 WEB_DIR = ASSETS / "web"
 LOBBY_PUSH_S = 0.5  # how often lobby clients' room list is checked for changes
 PRUNE_PAUSE_S = 0.05  # s between batches of a pruning backlog (saves and checks go between)
+SHOW_ROOM_TRIES = 8  # ids the show room's claim tries (main, main-<host>, then random ones)
 
 class GameServer:
     """The clothball server. ``await start()``, then ``await stop()`` (or ``run_forever``)."""
@@ -160,9 +162,8 @@ class GameServer:
         if self.directory is not None:
             self.lobby.me = HostEntry(self.host_id, self.advertised_url)
             await self._publish()
-            there = self.lobby.peers.locate("main") if self.lobby.peers else None
-            if there is not None and there.host_id != self.host_id:
-                main_id = f"main-{self.host_id[-4:]}"  # another host's show room is "main"
+            if self.default_room:
+                main_id = await self._claim_show_room()
         if self.default_room:
             settings = self.room_settings or RoomSettings(autoplay=True)
             self.main_room = self.lobby.create("main", public=True, settings=settings,
@@ -178,6 +179,25 @@ class GameServer:
         self._spawn(self._watch_headroom())
         self._spawn(self.ws.sweep_idle())
         return self.host, self.port
+
+    async def _claim_show_room(self) -> str:
+        """The show room's id, claimed in the directory before the room exists: ``main``,
+        else (another host's show room is ``main``) ``main-<suffix>``; a claim lost to a
+        host started at the same moment picks another id and tries again. The store away:
+        ``main`` unclaimed (its publication claims it, or logs the conflict)."""
+        directory = self.directory
+        assert directory is not None
+        for k in range(SHOW_ROOM_TRIES):
+            rid = "main" if k == 0 else f"main-{self.host_id[-4:]}" if k == 1 else \
+                f"main-{secrets.token_hex(3)}"
+            try:
+                if await self._dir(directory.claim, rid, self.host_id):
+                    return rid
+            except Exception as e:
+                log.warning("the show room's id could not be claimed (%s): it is main",
+                            type(e).__name__)
+                return "main"
+        raise RuntimeError(f"no free id for the show room after {SHOW_ROOM_TRIES} claims")
 
     async def _listen_gateways(self, path: Path) -> Server:
         """The Unix socket the host's gateways connect to (one connection per client),
@@ -401,7 +421,7 @@ class GameServer:
                                         self.limits.room_idle_close_s)
 
     @property
-    def store(self) -> ReplayStore | None:
+    def store(self) -> ReplayIndex | None:
         """The replay index, when stored rounds can be read (see ``recording_error``)."""
         return self.storage.store
 
@@ -421,7 +441,7 @@ class GameServer:
 
     async def _watch_storage(self) -> None:
         """The data directory looked at again and again: problems named as they come,
-        recording resumed as they go (``server.replays.Storage``); the rounds retention
+        recording resumed as they go (``server.storage.datadir.Storage``); the rounds retention
         does not keep pruned in batches, so a large backlog never holds up a request."""
         while True:
             while await self.storage.prune_some() >= PRUNE_BATCH:

@@ -160,6 +160,10 @@ class Directory(Protocol):
     def withdraw(self, host_id: str) -> None:
         """This process leaves (a clean stop)."""
 
+    def claim(self, room_id: str, host_id: str) -> bool:
+        """Takes ``room_id`` for ``host_id`` before its room exists (the show room), at once
+        for all: True if it is now this host's, False if another live host holds it."""
+
     def close(self) -> None: ...
 
 
@@ -220,6 +224,25 @@ class SqliteDirectory:
             if host_id in snap.hosts:
                 snap.rooms[rid] = (host_id, bool(public), json.loads(info))
         return snap
+
+    def claim(self, room_id: str, host_id: str) -> bool:
+        live_after = time.time() - self.ttl
+        with self._lock:
+            db = self._db
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                row = db.execute(
+                    "SELECT r.host_id FROM rooms r JOIN hosts2 h ON h.host_id = r.host_id "
+                    "WHERE r.room_id = ? AND h.seen >= ?", (room_id, live_after)).fetchone()
+                if row is None:  # free, or held by a process gone: this one's now
+                    # Private until the room itself is published (nothing to list yet).
+                    db.execute("INSERT OR REPLACE INTO rooms VALUES (?, ?, 0, '{}')",
+                               (room_id, host_id))
+                db.execute("COMMIT")
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+        return row is None or row[0] == host_id
 
     def withdraw(self, host_id: str) -> None:
         with self._lock:
@@ -319,6 +342,13 @@ class RedisDirectory:
                 d = json.loads(raw)
                 snap.rooms[rid.decode()] = (host_id, bool(d["public"]), d["info"])
         return snap
+
+    def claim(self, room_id: str, host_id: str) -> bool:
+        key = f"{self.prefix}room:{room_id}"
+        if self._redis.set(key, host_id, nx=True, px=self._ms()):
+            return True  # the publications that follow keep it
+        owner = self._redis.get(key)
+        return owner is not None and owner.decode() == host_id
 
     def withdraw(self, host_id: str) -> None:
         p = self.prefix

@@ -16,11 +16,13 @@ from pathlib import Path
 from typing import Any
 
 
-def start_host(data: Path, *extra: str) -> tuple[subprocess.Popen[str], str | None]:
-    """``clothball host --workers 1 --port 0 --backend cpu --data DATA EXTRA...``; returns the
-    process and its websocket URL (None, the process ended, when it did not start)."""
-    cmd = [sys.executable, "-m", "clothball.game.cli", "host", "--workers", "1", "--port", "0",
-           "--data", str(data), "--backend", "cpu", *extra]
+def start_host(data: Path, *extra: str, port: int = 0, workers: int = 1
+               ) -> tuple[subprocess.Popen[str], str | None]:
+    """``clothball host --workers 1 --port 0 --backend cpu --data DATA EXTRA...`` (``port``
+    and ``workers`` as given); returns the process and its websocket URL (None, the process
+    ended, when it did not start)."""
+    cmd = [sys.executable, "-m", "clothball.game.cli", "host", "--workers", str(workers),
+           "--port", str(port), "--data", str(data), "--backend", "cpu", *extra]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     assert proc.stdout is not None
     for line in proc.stdout:

@@ -11,6 +11,7 @@
 * ``/api/stats`` the server's own counters (frame lateness, messages, CPU time, storage);
   ``?reset=1`` clears the frame lateness, only with the host's token
   (``Authorization: Bearer TOKEN``, the token in the data directory's ``host-token``)
+* ``/metrics`` the same figures in the Prometheus text format (``server.metrics``)
 
 and the admission of websocket upgrades on ``/ws`` (origin policy, connection limit).
 
@@ -54,7 +55,9 @@ from ..game.wire.protocol import ProtocolError, check_text
 from .conn import Conn, TokenBucket, client_address
 from .limits import Limits
 from .lobby import Lobby
-from .replays import IndexUnavailable, ReplayStore
+from .metrics import CONTENT_TYPE as METRICS_TYPE
+from .metrics import exposition, registry_for
+from .storage.index import IndexUnavailable, ReplayIndex
 
 log = logging.getLogger("clothball.server")
 
@@ -173,7 +176,7 @@ class HttpHost(Protocol):
     lobby: Lobby
     origins: tuple[str, ...] | None
     port: int  # this process's own port
-    store: ReplayStore | None
+    store: ReplayIndex | None
     recording_error: str | None
     host_token: str
     house_key: str  # in the URL of the server's own bots (?house=)
@@ -201,6 +204,7 @@ class HttpSurface:
         self.download_bytes_held = 0  # read from files, not yet taken by a socket
         self.download_bytes_held_max = 0
         self._buckets: collections.OrderedDict[str, TokenBucket] = collections.OrderedDict()
+        self._metrics = registry_for(srv.stats_snapshot)
 
     def abort_downloads(self) -> None:
         """The server is stopping: cut the downloads under way (a stalled one would hold
@@ -325,6 +329,8 @@ class HttpSurface:
                 for room in self.srv.lobby.rooms.values():
                     room.sim.stats.lateness.clear()
             return self._json(self.srv.stats_snapshot())
+        if path == "/metrics":  # the same figures for Prometheus (server.metrics)
+            return self._response(200, exposition(self._metrics), METRICS_TYPE)
         if path == "/api/replays" or path.startswith("/api/replays/"):
             found = await self._index_query(address, path, urllib.parse.parse_qs(query))
             if isinstance(found, _Download):
@@ -382,12 +388,12 @@ class HttpSurface:
             return self._replays_of(store, path, query)
         except (sqlite3.Error, IndexUnavailable) as e:
             # The index was closed under this query (the data directory's problem is being
-            # acted on: server.replays.Storage), the disk failed a read, or a shared index's
+            # acted on: server.storage.datadir.Storage), the disk failed a read, or a shared index's
             # PostgreSQL is away.
             return self._error(503, f"the replay index cannot be read now ({e}); try again "
                                     "shortly")
 
-    def _replays_of(self, store: ReplayStore, path: str, query: dict[str, list[str]]
+    def _replays_of(self, store: ReplayIndex, path: str, query: dict[str, list[str]]
                     ) -> Response | _Download:
 
         def one(key: str, max_len: int = 64) -> str | None:

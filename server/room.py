@@ -23,8 +23,8 @@ from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from ..game.wire.replay import REPLAY_VERSION, new_round_id
-from .recorder import Recording
 from .sim import FrameResult, RoomSim, SimPool
+from .storage.recorder import Recording
 
 log = logging.getLogger("clothball.server")
 

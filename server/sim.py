@@ -48,7 +48,7 @@ from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from .frameloop import NativeWorker, frame_loop_wanted
 from .frames import FrameResult, Samples
-from .recorder import Recording
+from .storage.recorder import Recording
 
 log = logging.getLogger("clothball.server")
 

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from ... import _native  # type: ignore[attr-defined]
-from ...server import admitbench, emptybench, indexbench, loadbench, soakbench
+from ...server.bench import admitbench, emptybench, indexbench, loadbench, soakbench
 from ...server.room import RoomSettings
 from ...server.thread import ServerThread
 from ..rules import EDGE_NAMES

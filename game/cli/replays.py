@@ -22,7 +22,8 @@ from typing import Any
 
 from ...server.app import default_data_dir
 from ...server.limits import DEFAULT
-from ...server.replays import ReplayStore, Retention
+from ...server.storage.index import ReplayIndex, Retention
+from ...server.storage.sqlite import SqliteIndex
 
 
 def _positive(text: str) -> float:
@@ -84,8 +85,8 @@ def run(args: argparse.Namespace) -> int:
                      "directory with --data")
     try:
         # Listing and exporting write nothing: they work on a read-only or full disk too.
-        store = ReplayStore(data, recover=False) if args.action == "prune" else \
-            ReplayStore(data, read_only=True)
+        store = SqliteIndex(data, recover=False) if args.action == "prune" else \
+            SqliteIndex(data, read_only=True)
     except (OSError, sqlite3.Error) as e:
         return _fail(f"cannot open the replay index in {data}: {e}")
     try:
@@ -97,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         store.close()
 
 
-def _list(store: ReplayStore, args: argparse.Namespace) -> int:
+def _list(store: ReplayIndex, args: argparse.Namespace) -> int:
     rows = store.list_all(limit=max(1, args.limit), room_id=args.room, player=args.player)
     for r in rows:
         print(json.dumps(r) if args.json else _line(r))
@@ -108,7 +109,7 @@ def _list(store: ReplayStore, args: argparse.Namespace) -> int:
     return 0
 
 
-def _prune(store: ReplayStore, args: argparse.Namespace) -> int:
+def _prune(store: ReplayIndex, args: argparse.Namespace) -> int:
     keep = Retention(int(args.max_mib * 2**20), args.max_days * 86400.0)
     gone = store.prune(keep, dry_run=args.dry_run, limit=None)
     for r in gone:
@@ -120,7 +121,7 @@ def _prune(store: ReplayStore, args: argparse.Namespace) -> int:
     return 0
 
 
-def _export(store: ReplayStore, args: argparse.Namespace) -> int:
+def _export(store: ReplayIndex, args: argparse.Namespace) -> int:
     dest: Path = args.to
     if len(args.ids) > 1 and not dest.is_dir():
         return _fail(f"--to {dest} must be an existing directory to export "

@@ -14,7 +14,7 @@ Replay file (``<id>.cbr``; format version ``REPLAY_VERSION``)::
 
 All integers little-endian. A file is written to ``<id>.cbr.tmp``, flushed to disk, then
 renamed, so a crash never leaves a half-written ``.cbr``. The server's index of these files
-is ``server.replays``; every client reads them with ``read_replay``.
+is ``server.storage``; every client reads them with ``read_replay``.
 """
 
 from __future__ import annotations

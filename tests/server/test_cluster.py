@@ -72,16 +72,26 @@ class Host:
     def __init__(self, proc: subprocess.Popen[str], url: str) -> None:
         self.proc = proc
         self.url = url
+        self.out = ""  # what it printed, once stopped
 
 
-@contextmanager
-def cluster_host(tmp: Path, name: str, redis: Redis, *args: str) -> Iterator[Host]:
-    proc = subprocess.Popen(
+def launch(tmp: Path, name: str, redis: Redis, *args: str) -> subprocess.Popen[str]:
+    """A ``clothball host`` of the cluster, started (``cluster_host`` waits for it)."""
+    return subprocess.Popen(
         [sys.executable, "-m", "clothball.game.cli", "host", "--workers", "1", "--port", "0",
          "--cluster", redis.url, "--scene", str(tiny_scene(tmp)), "--backend", "cpu",
          "--data", str(tmp / f"data-{name}"), "--limit", "admit_lateness_ms=0", *args],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+@contextmanager
+def cluster_host(tmp: Path, name: str, redis: Redis, *args: str,
+                 proc: subprocess.Popen[str] | None = None) -> Iterator[Host]:
+    """The host ``launch`` starts (or ``proc``, launched already) once it is in the
+    cluster; stopped with SIGTERM at the end, which it must survive cleanly. What it printed
+    is kept in ``Host.out``."""
+    proc = proc or launch(tmp, name, redis, *args)
     assert proc.stdout is not None
     lines = []
     url = None
@@ -92,13 +102,15 @@ def cluster_host(tmp: Path, name: str, redis: Redis, *args: str) -> Iterator[Hos
             url = m.group(1)
         if line.startswith("in the cluster at"):
             break
+    host = Host(proc, url or "")
     try:
         assert url is not None, "".join(lines)
-        yield Host(proc, url)
+        yield host
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=60)
+        host.out = "".join(lines) + out
         if proc.returncode != -signal.SIGKILL:  # a host the test killed says nothing more
             assert proc.returncode == 0 and "Traceback" not in out, out
 

@@ -35,6 +35,7 @@ from clothball.game.wire import protocol as P
 from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 from clothball.server.ws import WsEndpoint
+from prometheus_client.parser import text_string_to_metric_families
 
 from tests.server import protocol_doc as D
 from tests.server import workers
@@ -488,6 +489,8 @@ def session(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFac
         run(scenario(s, ls.srv.ws_url), timeout=300)
         s.got["stats"] = [json.loads(http_get_url(p.http_url + "api/stats")[1])
                           for p in workers.processes(ls.srv)]
+        s.got["metrics"] = [http_get_url(p.http_url + "metrics")
+                            for p in workers.processes(ls.srv)]
         s.got["errors_logged"] = ls.errors.texts()
         yield s
 
@@ -1241,6 +1244,24 @@ def _http_stats(s: Session, row: D.Row) -> None:
                 assert k in st, k
         assert st["recording"] == "on"
     assert sum(st["rounds_saved"] for st in s.got["stats"]) >= 1
+
+
+@check("http:/metrics")
+def _http_metrics(s: Session, row: D.Row) -> None:
+    for (status, body, headers), st in zip(s.got["metrics"], s.got["stats"], strict=True):
+        assert status == 200 and headers["Content-Type"].startswith("text/plain")
+        families = list(text_string_to_metric_families(body.decode()))
+        samples = {(m.name, tuple(sorted(m.labels.items()))): m.value
+                   for f in families for m in f.samples}
+        # Every documented metric is there (a per-room one without samples while this
+        # process has no public room: its HELP and TYPE).
+        names = {f.name + ("_total" if f.type == "counter" else "") for f in families}
+        for k in re.findall(r"`(clothball_[a-z_]+)`", row.cells["answer"]):
+            assert k in names, k
+        assert samples[("clothball_rounds_saved_total", ())] == st["rounds_saved"]
+        assert samples[("clothball_recording", ())] == 1.0
+        assert {dict(lab)["room"] for name, lab in samples
+                if name == "clothball_room_frames_total"} == set(st["rooms"])
 
 
 for _rid in BAD_FIELDS:  # the rows with no check of their own besides the refusal

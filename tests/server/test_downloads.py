@@ -20,14 +20,14 @@ from clothball.game.wire.replay import new_round_id
 from clothball.server.app import GameServer
 from clothball.server.http import DOWNLOAD_CHUNK, RangeError, parse_range
 from clothball.server.limits import Limits
-from clothball.server.replays import ReplayStore
+from clothball.server.storage.sqlite import SqliteIndex
 
 from tests.server.conftest import run, server, until
 
 
 def save_round(data: Path, payload: bytes, records: int) -> tuple[str, bytes]:
     """One round of ``records`` incompressible records in ``data``; its id and file bytes."""
-    store = ReplayStore(data)
+    store = SqliteIndex(data)
     try:
         rid = new_round_id()
         header = dict(id=rid, room_id="r", room_name="r", scene="tiny", round=1, players=[],

@@ -29,8 +29,8 @@ from clothball.game.sim.scene import Scene
 from clothball.game.wire.replay import read_replay
 from clothball.server.app import GameServer
 from clothball.server.limits import Limits
-from clothball.server.replays import ReplayStore
 from clothball.server.room import RoomSettings
+from clothball.server.storage.sqlite import SqliteIndex
 
 from tests.server import workers
 from tests.server.conftest import (
@@ -281,9 +281,9 @@ def test_sigkill_while_writing_replays_leaves_them_complete_or_absent(tmp_path) 
     reported saved is there and intact; the round being written is complete or absent."""
     writer = (
         "import sys, os\n"
-        "from clothball.server.replays import ReplayStore\n"
+        "from clothball.server.storage.sqlite import SqliteIndex\n"
         "from clothball.game.wire.replay import new_round_id\n"
-        "store = ReplayStore(sys.argv[1])\n"
+        "store = SqliteIndex(sys.argv[1])\n"
         "while True:\n"
         "    rid = new_round_id()\n"
         "    header = dict(id=rid, room_id='r', room_name='r', scene='tiny', round=1,\n"
@@ -303,7 +303,7 @@ def test_sigkill_while_writing_replays_leaves_them_complete_or_absent(tmp_path) 
         proc.send_signal(signal.SIGKILL)
         out, _ = proc.communicate()
         saved += out.split()
-        store = ReplayStore(data)  # start-up: recovery
+        store = SqliteIndex(data)  # start-up: recovery
         try:
             assert not list((data / "replays").glob("*.tmp"))
             for rid in saved:

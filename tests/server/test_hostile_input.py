@@ -20,8 +20,9 @@ from clothball.game.net.client import NetClient, ServerError
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay
 from clothball.server.limits import Limits, parse_origins
-from clothball.server.replays import ReplayStore, access_key
 from clothball.server.room import RoomSettings
+from clothball.server.storage.index import access_key
+from clothball.server.storage.sqlite import SqliteIndex
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from websockets.asyncio.client import connect
@@ -280,7 +281,7 @@ def test_the_bad_request_log_is_bounded_across_addresses() -> None:
 # --- 3. index queries ------------------------------------------------------------------------
 
 
-def fill(store: ReplayStore, n: int, seed: int = 0) -> list[dict[str, Any]]:
+def fill(store: SqliteIndex, n: int, seed: int = 0) -> list[dict[str, Any]]:
     """``n`` rounds in a few rooms (one private), with seat names from a small pool."""
     rng = random.Random(seed)
     headers = []
@@ -310,7 +311,7 @@ def reference(headers: list[dict[str, Any]], room: str | None, player: str | Non
 
 
 def test_every_index_query_is_an_index_search_with_the_right_answer(tmp_path) -> None:
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     headers = fill(store, 400)
     store._db.execute("ANALYZE")  # the plans must hold with statistics too
     for name, plan in store.query_plans().items():
@@ -334,7 +335,7 @@ def test_every_index_query_is_an_index_search_with_the_right_answer(tmp_path) ->
 
 
 def test_a_remembered_count_follows_every_write(tmp_path) -> None:
-    store, other = ReplayStore(tmp_path), ReplayStore(tmp_path)  # two connections
+    store, other = SqliteIndex(tmp_path), SqliteIndex(tmp_path)  # two connections
     headers = fill(store, 30, seed=5)
     n, bob = store.count(), store.count(player="bob")
     for writer in (store, other):  # its own write, and another connection's
@@ -348,14 +349,14 @@ def test_a_remembered_count_follows_every_write(tmp_path) -> None:
 
 
 def test_an_older_index_gets_the_player_table_on_open(tmp_path) -> None:
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     headers = fill(store, 60, seed=3)
     store.close()
     db = sqlite3.connect(tmp_path / "index.sqlite")  # as an index from before issue 22
     db.executescript("DROP TABLE round_players; DROP INDEX rounds_public; DROP INDEX rounds_room;"
                      "PRAGMA user_version = 0;")
     db.close()
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     assert store.count(player="bob") == len(reference(headers, None, "bob", None)) > 0
     assert [r["id"] for r in store.list(1000, 0, "secret", player="cy", code="pw")] == \
         reference(headers, "secret", "cy", "pw")

@@ -35,9 +35,10 @@ from clothball.server.directory import OnDemand
 from clothball.server.headroom import OWN_LOAD_CORES, SUSTAINED, Headroom, room_cost
 from clothball.server.hostproc import free_port, http_base
 from clothball.server.limits import Limits
-from clothball.server.replays import PRUNE_BATCH, ReplayStore, Retention, owner_key
 from clothball.server.room import RoomSettings
 from clothball.server.sim import Samples
+from clothball.server.storage.index import PRUNE_BATCH, Retention, owner_key
+from clothball.server.storage.sqlite import SqliteIndex
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
@@ -443,7 +444,7 @@ def test_one_address_cannot_flush_anothers_replays(tmp_path) -> None:
     never another's, and what it keeps stays within its share."""
     budget = 1 << 20
     ret = Retention(budget, 1e9, budget // 4)
-    store = ReplayStore(tmp_path, retention=ret)
+    store = SqliteIndex(tmp_path, retention=ret)
     blob = [(0, os.urandom(100_000))]
     t = 1.7e9
     others = [store.save(header(k, t + k, "calm", owner_key("198.51.100.7")), blob)["id"]
@@ -469,7 +470,7 @@ def test_one_address_cannot_flush_anothers_replays(tmp_path) -> None:
 
 def test_a_large_backlog_is_pruned_in_the_background_while_the_host_serves(tmp_path) -> None:
     n = 6000
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     t = time.time() - n - 3600  # within replays_max_days: pruned for size only
     (tmp_path / "replays").mkdir(exist_ok=True)
     rounds = []

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from clothball.game import cli
 from clothball.game.wire import protocol as P
-from clothball.server import benchclients, loadbench
+from clothball.server.bench import benchclients, loadbench
 from clothball.server.room import Room
 from websockets.frames import Frame, Opcode
 from websockets.streams import StreamReader

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay, recorded_length, write_replay
-from clothball.server import recorder
-from clothball.server.recorder import BUFFER_BYTES, MAX_PENDING, Recording
 from clothball.server.room import RoomSettings
+from clothball.server.storage import recorder
+from clothball.server.storage.recorder import BUFFER_BYTES, MAX_PENDING, Recording
 
 from tests.server.conftest import FAST, http_get, http_json, run, server
 

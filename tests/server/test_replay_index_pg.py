@@ -1,4 +1,4 @@
-"""The replay index in PostgreSQL (``PostgresReplayStore``, ``clothball host --db``) against
+"""The replay index in PostgreSQL (``PostgresIndex``, ``clothball host --db``) against
 the SQLite one as the reference: the same rounds give the same listings, counts and rows
 for every filter the HTTP API has; each host's retention and usage cover only its own
 rounds; a download of another host's round is that host's URL (with the code of a private
@@ -15,13 +15,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from clothball.server.replays import (
-    IndexUnavailable,
-    PostgresReplayStore,
-    ReplayStore,
-    Retention,
-    access_key,
-)
+from clothball.server.storage.index import IndexUnavailable, Retention, access_key
+from clothball.server.storage.postgres import PostgresIndex
+from clothball.server.storage.sqlite import SqliteIndex
 
 from tests.server.postgres import MISSING, Postgres, postgres_server
 
@@ -64,10 +60,10 @@ def test_postgres_lists_and_counts_as_sqlite_does(pg: Postgres, tmp_path: Path) 
     rng = random.Random(7)
     now = time.time()
     rounds = [(header(i, rng, now), f"{i}.cbr", 1000 + i) for i in range(80)]
-    ref = ReplayStore(tmp_path / "sqlite")
+    ref = SqliteIndex(tmp_path / "sqlite")
     url = db(pg)
-    mine = PostgresReplayStore(tmp_path / "a", url, host="http://a.example:1")
-    other = PostgresReplayStore(tmp_path / "b", url, host="http://b.example:2")
+    mine = PostgresIndex(tmp_path / "a", url, host="http://a.example:1")
+    other = PostgresIndex(tmp_path / "b", url, host="http://b.example:2")
     try:
         ref.index_many(rounds)
         mine.index_many(rounds[:50])
@@ -100,8 +96,8 @@ def test_postgres_lists_and_counts_as_sqlite_does(pg: Postgres, tmp_path: Path) 
 def test_each_host_prunes_its_own_and_sends_downloads_to_the_holder(pg: Postgres,
                                                                      tmp_path: Path) -> None:
     url = db(pg)
-    a = PostgresReplayStore(tmp_path / "a", url, host="http://a.example:1")
-    b = PostgresReplayStore(tmp_path / "b", url, host="http://b.example:2")
+    a = PostgresIndex(tmp_path / "a", url, host="http://a.example:1")
+    b = PostgresIndex(tmp_path / "b", url, host="http://b.example:2")
     try:
         rng = random.Random(3)
         now = time.time()
@@ -130,7 +126,7 @@ def test_each_host_prunes_its_own_and_sends_downloads_to_the_holder(pg: Postgres
 def test_rounds_written_while_postgres_is_away_are_indexed_when_it_is_back(
         tmp_path: Path) -> None:
     with postgres_server() as pg:
-        store = PostgresReplayStore(tmp_path / "a", pg.url, host="http://a.example:1",
+        store = PostgresIndex(tmp_path / "a", pg.url, host="http://a.example:1",
                                     max_pending=1)
         rng = random.Random(5)
         now = time.time()
@@ -146,12 +142,12 @@ def test_rounds_written_while_postgres_is_away_are_indexed_when_it_is_back(
         # A host started while PostgreSQL is away starts, and indexes its files later.
         late_dir = tmp_path / "late"
         (late_dir / "replays").mkdir(parents=True)
-        offline = ReplayStore(tmp_path / "scratch")  # writes the file the late host finds
+        offline = SqliteIndex(tmp_path / "scratch")  # writes the file the late host finds
         late_row = offline.save(header(9, rng, now), [(0, b"{}")])
         offline.close()
         (tmp_path / "scratch" / "replays" / f"{late_row['id']}.cbr").rename(
             late_dir / "replays" / f"{late_row['id']}.cbr")
-        late = PostgresReplayStore(late_dir, pg.url, host="http://late.example:3")
+        late = PostgresIndex(late_dir, pg.url, host="http://late.example:3")
         assert late.index_error is not None
         store.retry_index()  # still away: nothing changes, nothing raised
         assert store.index_error is not None

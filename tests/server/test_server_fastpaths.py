@@ -15,7 +15,7 @@ import sys
 import numpy as np
 import pytest
 from clothball.game.wire import protocol as P
-from clothball.server import loadbench
+from clothball.server.bench import loadbench
 from clothball.server.room import RoomSettings
 from hypothesis import given, settings
 from hypothesis import strategies as st

@@ -7,8 +7,8 @@ import numpy as np
 from clothball.game.net.client import NetClient
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay, write_replay
-from clothball.server.replays import ReplayStore
 from clothball.server.room import RoomSettings
+from clothball.server.storage.sqlite import SqliteIndex
 
 from tests.server.conftest import FAST, http_get, http_json, run, server, until
 
@@ -61,7 +61,7 @@ def test_bots_play_a_match_to_the_end_and_rounds_are_recorded(tmp_path) -> None:
     run(main())
     # kept across a restart; a half-written file is removed; a finished file the index
     # lacks is indexed from its own header
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     before = store.list()
     assert before
     (tmp_path / "replays" / "junk.cbr.tmp").write_bytes(b"partial")

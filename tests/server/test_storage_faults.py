@@ -24,9 +24,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from clothball.server import replays
 from clothball.server.limits import Limits
-from clothball.server.replays import ReplayStore, StorageOff
+from clothball.server.storage import sql as index_sql
+from clothball.server.storage import sqlite as sqlite_index
+from clothball.server.storage.datadir import StorageOff
+from clothball.server.storage.sqlite import SqliteIndex
 
 from tests.server.conftest import ErrorLog, http_get, http_json, run, server, until
 
@@ -107,7 +109,7 @@ def server_log() -> Iterator[ErrorLog]:
 
 def stored(data: Path, n: int) -> dict[str, bytes]:
     """``n`` rounds saved by a store of its own (as an earlier server run left them)."""
-    store = ReplayStore(data)
+    store = SqliteIndex(data)
     try:
         for i in range(n):
             store.save(header(i), [(1, os.urandom(2000))])
@@ -212,18 +214,18 @@ def test_a_failed_write_names_a_full_disk_even_with_room_for_the_probe(
         with server_log():
             async with server(tmp_path, default_room=False,
                               limits=Limits(storage_check_s=3600)) as srv:
-                real = replays.write_replay
+                real = index_sql.write_replay
 
                 def no_space(*a: Any, **k: Any) -> int:
                     raise OSError(28, "No space left on device")
 
-                monkeypatch.setattr(replays, "write_replay", no_space)
+                monkeypatch.setattr(index_sql, "write_replay", no_space)
                 with pytest.raises(StorageOff, match="could not write the replay: .*No "
                                                      "space left on device.*is full"):
                     await srv.storage.save(header(1), [])
                 assert srv.storage.kind == "full"
                 assert "full" in await recording(srv)
-                monkeypatch.setattr(replays, "write_replay", real)
+                monkeypatch.setattr(index_sql, "write_replay", real)
                 await srv.storage.check()
                 assert await recording(srv) == "on"
                 await srv.storage.save(header(2), [])
@@ -281,7 +283,7 @@ def test_a_missing_directory_that_cannot_be_created_is_named_and_recovered(
 
 def test_a_locked_index_keeps_the_round_as_a_file_and_indexes_it_when_free(
         tmp_path: Path, monkeypatch) -> None:
-    monkeypatch.setattr(replays, "BUSY_TIMEOUT_S", 0.02)
+    monkeypatch.setattr(sqlite_index, "BUSY_TIMEOUT_S", 0.02)
 
     async def main() -> None:
         with server_log() as log:

@@ -12,15 +12,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from clothball.server import replays
 from clothball.server.http import INDEX_THREADS
+from clothball.server.storage import sqlite as sqlite_index
 
 from tests.server.conftest import http_get, http_json, run, server, until
 
 
 def test_health_answers_while_writes_and_index_queries_are_stuck(tmp_path: Path,
                                                                  monkeypatch) -> None:
-    monkeypatch.setattr(replays, "BUSY_TIMEOUT_S", 0.02)  # waits show as retries at once
+    monkeypatch.setattr(sqlite_index, "BUSY_TIMEOUT_S", 0.02)  # waits show as retries at once
 
     async def main() -> None:
         async with server(tmp_path, default_room=False) as srv:

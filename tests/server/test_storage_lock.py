@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from clothball.server import replays
-from clothball.server.replays import ReplayStore
+from clothball.server.storage import sqlite as sqlite_index
+from clothball.server.storage.sqlite import SqliteIndex
 
 
 def header(i: int) -> dict[str, Any]:
@@ -31,8 +31,8 @@ def test_a_write_waits_for_a_lock_held_longer_than_the_busy_timeout(tmp_path: Pa
                                                                     monkeypatch) -> None:
     # SQLite's own wait made short, so that only the retries can carry the write through a
     # lock held many times longer (SQLite's default is 5 s: issue 21 saw it run out).
-    monkeypatch.setattr(replays, "BUSY_TIMEOUT_S", 0.05)
-    store = ReplayStore(tmp_path)
+    monkeypatch.setattr(sqlite_index, "BUSY_TIMEOUT_S", 0.05)
+    store = SqliteIndex(tmp_path)
     store.save(header(0), [])
     other = hold_lock(tmp_path)
     saved: list[Any] = []
@@ -62,8 +62,8 @@ def test_a_write_waits_for_a_lock_held_longer_than_the_busy_timeout(tmp_path: Pa
 
 def test_a_lock_held_past_the_wait_fails_the_write_and_the_file_is_indexed_next_start(
         tmp_path: Path, monkeypatch) -> None:
-    monkeypatch.setattr(replays, "BUSY_TIMEOUT_S", 0.01)
-    store = ReplayStore(tmp_path, lock_wait_s=0.2)
+    monkeypatch.setattr(sqlite_index, "BUSY_TIMEOUT_S", 0.01)
+    store = SqliteIndex(tmp_path, lock_wait_s=0.2)
     other = hold_lock(tmp_path)
     try:
         with pytest.raises(sqlite3.OperationalError, match="locked"):
@@ -74,6 +74,6 @@ def test_a_lock_held_past_the_wait_fails_the_write_and_the_file_is_indexed_next_
     assert store.lock_waits > 0
     assert (tmp_path / "replays" / "lock00002-x.cbr").is_file()
     store.close()
-    again = ReplayStore(tmp_path)
+    again = SqliteIndex(tmp_path)
     assert [r["id"] for r in again.list()] == ["lock00002-x"]
     again.close()

@@ -20,7 +20,8 @@ import pytest
 from clothball.game.cli import main as cli
 from clothball.game.wire.replay import read_replay
 from clothball.server.limits import Limits
-from clothball.server.replays import ReplayStore, Retention, access_key
+from clothball.server.storage.index import Retention, access_key
+from clothball.server.storage.sqlite import SqliteIndex
 
 from tests.server.conftest import http_json, run, server, until
 
@@ -34,7 +35,7 @@ def header(i: int, ended_at: float, **kw: Any) -> dict[str, Any]:
                 duration_s=1.0, **kw)
 
 
-def fill(store: ReplayStore, n: int, now: float, seed: int = 0) -> dict[str, tuple[float, int]]:
+def fill(store: SqliteIndex, n: int, now: float, seed: int = 0) -> dict[str, tuple[float, int]]:
     """``n`` rounds of random sizes and ages; id -> (ended_at, file size)."""
     rng = random.Random(seed)
     out = {}
@@ -71,7 +72,7 @@ def kept_reference(rounds: dict[str, tuple[float, int]], keep: Retention,
 def test_prune_keeps_what_the_reference_keeps_files_and_rows_together(
         tmp_path: Path, max_bytes: int, max_days: float) -> None:
     now = 1.7e9
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     rounds = fill(store, 40, now)
     keep = Retention(max_bytes, max_days * DAY)
     want = kept_reference(rounds, keep, now)
@@ -87,7 +88,7 @@ def test_prune_keeps_what_the_reference_keeps_files_and_rows_together(
 
 
 def test_each_save_prunes_to_the_budget_and_the_newest_round_stays(tmp_path: Path) -> None:
-    store = ReplayStore(tmp_path, retention=Retention(50_000, 30 * DAY))
+    store = SqliteIndex(tmp_path, retention=Retention(50_000, 30 * DAY))
     now = time.time()  # saves prune by the clock
     rounds: dict[str, tuple[float, int]] = {}
     for i in range(12):
@@ -101,7 +102,7 @@ def test_each_save_prunes_to_the_budget_and_the_newest_round_stays(tmp_path: Pat
 
 
 def test_a_file_that_cannot_be_removed_keeps_its_row(tmp_path: Path, monkeypatch) -> None:
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     rounds = fill(store, 5, 1.7e9)
 
     def refuse(src: Any, dst: Any) -> None:
@@ -116,7 +117,7 @@ def test_a_file_that_cannot_be_removed_keeps_its_row(tmp_path: Path, monkeypatch
 
 
 def test_a_failed_commit_puts_the_file_back(tmp_path: Path, monkeypatch) -> None:
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     rounds = fill(store, 3, 1.7e9)
     real = store._transaction
 
@@ -138,8 +139,9 @@ def test_a_failed_commit_puts_the_file_back(tmp_path: Path, monkeypatch) -> None
 # A process that prunes one round and is killed (os._exit: nothing more runs) at one point.
 CRASH = """
 import os, sys
-from clothball.server.replays import ReplayStore, Retention
-store = ReplayStore(sys.argv[1])
+from clothball.server.storage.index import Retention
+from clothball.server.storage.sqlite import SqliteIndex
+store = SqliteIndex(sys.argv[1])
 if sys.argv[2] == "before-commit":
     real = os.replace
     def replace(a, b):
@@ -147,7 +149,7 @@ if sys.argv[2] == "before-commit":
         os._exit(9)  # the file is aside, the row's deletion not committed
     os.replace = replace
 else:
-    ReplayStore._discard = staticmethod(lambda p: os._exit(9))  # committed, file aside
+    SqliteIndex._discard = staticmethod(lambda p: os._exit(9))  # committed, file aside
 store.prune(Retention(1, 1e12), now=1.7e9)
 """
 
@@ -155,14 +157,14 @@ store.prune(Retention(1, 1e12), now=1.7e9)
 @pytest.mark.parametrize("when", ["before-commit", "after-commit"])
 def test_a_prune_killed_midway_leaves_both_or_neither_after_the_next_start(
         tmp_path: Path, when: str) -> None:
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     rounds = fill(store, 3, 1.7e9)
     store.close()
     oldest = min(rounds, key=lambda r: rounds[r][0])
     proc = subprocess.run([sys.executable, "-c", CRASH, str(tmp_path), when])
     assert proc.returncode == 9
     assert (tmp_path / "replays" / f"{oldest}.cbr.del").exists()
-    again = ReplayStore(tmp_path)  # the next start
+    again = SqliteIndex(tmp_path)  # the next start
     # One transaction removes the batch (every round but the newest here): all or none.
     newest = max(rounds, key=lambda r: rounds[r][0])
     want = set(rounds) if when == "before-commit" else {newest}
@@ -172,7 +174,7 @@ def test_a_prune_killed_midway_leaves_both_or_neither_after_the_next_start(
 
 
 def test_stats_show_the_disk_in_use_and_the_limits(tmp_path: Path) -> None:
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     rounds = fill(store, 6, time.time() + 11 * DAY)  # ended 1 to 11 days from now: none too old
     store.close()
     sizes = sum(p.stat().st_size for p in (tmp_path / "replays").glob("*.cbr"))
@@ -188,7 +190,7 @@ def test_stats_show_the_disk_in_use_and_the_limits(tmp_path: Path) -> None:
 
 
 def test_the_server_prunes_at_start_by_its_limits(tmp_path: Path) -> None:
-    store = ReplayStore(tmp_path)
+    store = SqliteIndex(tmp_path)
     now = time.time()
     old = store.save(header(1, now - 9 * DAY), [])["id"]
     new = store.save(header(2, now - 1 * DAY), [])["id"]
@@ -212,7 +214,7 @@ def test_the_server_prunes_at_start_by_its_limits(tmp_path: Path) -> None:
 
 def test_cli_lists_prunes_and_exports(tmp_path: Path, capsys) -> None:
     data = tmp_path / "data"
-    store = ReplayStore(data)
+    store = SqliteIndex(data)
     rounds = fill(store, 8, 1.7e9)
     secret = header(99, 1.8e9, access=access_key("r", "pw"))
     store.save(secret, [(0, b'{"type":"x"}')])
@@ -255,7 +257,7 @@ def test_cli_errors_name_the_problem(tmp_path: Path, capsys, argv: list[str],
                                      words: str) -> None:
     data = tmp_path / "data"
     if argv[0] != "list":
-        ReplayStore(data).close()
+        SqliteIndex(data).close()
     else:
         data = tmp_path / "nothing-here"
     assert cli(["replays", "--data", str(data), *argv]) == 1
@@ -264,7 +266,7 @@ def test_cli_errors_name_the_problem(tmp_path: Path, capsys, argv: list[str],
 
 
 def test_cli_export_refuses_to_overwrite(tmp_path: Path, capsys) -> None:
-    store = ReplayStore(tmp_path / "data")
+    store = SqliteIndex(tmp_path / "data")
     (rid,) = fill(store, 1, 1.7e9)
     store.close()
     target = tmp_path / "x.cbr"

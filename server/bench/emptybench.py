@@ -19,8 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..game.net.client import NetClient
-from .hostproc import start_host, stats, stop_host
+from ...game.net.client import NetClient
+from ..hostproc import start_host, stats, stop_host
 
 MESH_TARGET_HZ = 30.0
 

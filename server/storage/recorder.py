@@ -23,8 +23,8 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from ..game.wire import protocol as P
-from ..game.wire.replay import RECORD
+from ...game.wire import protocol as P
+from ...game.wire.replay import RECORD
 
 log = logging.getLogger("clothball.server")
 

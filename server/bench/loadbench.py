@@ -12,7 +12,7 @@ second in and out of the server, spectator mesh rates, and CPU use of each proce
 desktop client: HIP at ``--hip-rate``, 120 Hz, ``corner_rate`` ``--corner-rate``, 120, MESH
 on) and ``--load-spectators`` spectators each are added a step at a time (1 room, then
 ``--rooms-step`` K more each step) and measured for ``--load-seconds``. The clients are the
-lean ones of ``server/benchclients.py``, many rooms to a process (``--client-procs``), so that
+lean ones of ``server/bench/benchclients.py``, many rooms to a process (``--client-procs``), so that
 they cost a small part of what they measure; their CPU is reported beside the server's.
 A step holds while every room's frame lateness p99 is within ``--lateness-target`` (2 ms)
 and the players receive at least 90 % of the CORNER rate they asked; the first step that
@@ -34,7 +34,7 @@ one, and their clients connect through it too (redirected to the room's host). E
 measures all the hosts; on one machine they share its cores with each other and with the
 clients, which the figures say.
 
-Run ``python -m clothball.server.loadbench --role server|spectators ...`` only through the
+Run ``python -m clothball.server.bench.loadbench --role server|spectators ...`` only through the
 bench; ``run(args)`` and ``run_load(args)`` start the others themselves.
 """
 
@@ -57,9 +57,9 @@ from typing import Any
 
 import numpy as np
 
-from . import loops
+from .. import loops
+from ..hostproc import free_port, get_json, start_redis
 from .benchclients import HIST_BIN_S, raise_fd_limit
-from .hostproc import free_port, get_json, start_redis
 
 TARGET_LATENCY_P99_MS = 5.0
 TARGET_LATENESS_P99_MS = 5.0
@@ -130,7 +130,7 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    """Stand-alone use (``python -m clothball.server.loadbench``)."""
+    """Stand-alone use (``python -m clothball.server.bench.loadbench``)."""
     configure_server_flags(parser)
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     parser.add_argument("--scene", default=None, help="scene name or path (default classic)")
@@ -152,7 +152,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def bench_scene(args: argparse.Namespace) -> Any:
     """The bench rooms' scene: ``--scene`` (default classic) with ``--server-n`` nodes a side
     (default: 64 on classic, else the scene's own). ``SceneError`` when there is none such."""
-    from ..game.sim.scene import Scene
+    from ...game.sim.scene import Scene
 
     scene = Scene.load(getattr(args, "scene", None) or "classic")
     n = args.server_n if args.server_n is not None else (
@@ -161,16 +161,16 @@ def bench_scene(args: argparse.Namespace) -> Any:
 
 
 async def _serve(args: argparse.Namespace) -> None:
-    from .app import GameServer
-    from .limits import Limits
-    from .room import RoomSettings
+    from ..app import GameServer
+    from ..limits import Limits
+    from ..room import RoomSettings
 
     sys.setswitchinterval(0.0005)
     scene = bench_scene(args)
     scene_name, scene.name = scene.name, "bench"
     cluster: dict[str, Any] = {}
     if getattr(args, "directory", None):  # a host of --load --cluster
-        from .directory import RedisDirectory
+        from ..directory import RedisDirectory
 
         cluster = {"directory": RedisDirectory(args.directory), "host_id": f"bench-{os.getpid()}"}
     if getattr(args, "engine_socket", None) is not None:  # the engine of --workers
@@ -189,7 +189,7 @@ async def _serve(args: argparse.Namespace) -> None:
         room = srv.main_room
         probe = room.sim if room is not None else None
         if probe is None:  # no room yet: a throw-away cloth says what a room will run
-            from ..game.sim.cloth import Cloth
+            from ...game.sim.cloth import Cloth
 
             probe = Cloth(scene, backend=args.server_backend, threads=1)
         print(json.dumps({"port": srv.port, "room": room.id if room is not None else None,
@@ -210,7 +210,7 @@ async def _serve(args: argparse.Namespace) -> None:
 
 
 async def _spectate(args: argparse.Namespace) -> None:
-    from ..game.net.client import NetClient
+    from ...game.net.client import NetClient
 
     room = json.loads(args.url)["room"]
     url = json.loads(args.url)["ws"]
@@ -260,7 +260,7 @@ async def _drive(i: int, p: Any, rate: float, stop_at: list[float], sent: list[i
 
 async def _play(ws_url: str, room: str, n_players: int, rate: float,
                 corner_rate: float | None, seconds: float, reset_stats: Any) -> dict[str, Any]:
-    from ..game.net.client import NetClient
+    from ...game.net.client import NetClient
 
     players = [await NetClient.connect(ws_url, name=f"p{i}", role="player", room=room, seat=i,
                                        record_latency=True, mesh=False, corner_rate=corner_rate)
@@ -343,7 +343,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"clothball bench: {err}", file=sys.stderr)
         return 2
     seconds = float(args.seconds)
-    base = [sys.executable, "-m", "clothball.server.loadbench", *_scene_flags(args),
+    base = [sys.executable, "-m", "clothball.server.bench.loadbench", *_scene_flags(args),
             "--server-backend", args.server_backend, "--seconds", str(seconds),
             "--spectators", str(args.spectators)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -422,7 +422,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _write_json(result: dict[str, Any], dest: object) -> bool:
     """``--json``: ``clothball bench --json FILE`` gives a path (the figures are written
-    there, the summary still printed); ``python -m clothball.server.loadbench --json`` gives
+    there, the summary still printed); ``python -m clothball.server.bench.loadbench --json`` gives
     True (the figures are printed instead of the summary). True when they are to be
     printed."""
     if isinstance(dest, str | os.PathLike):
@@ -461,7 +461,7 @@ def _print(r: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m clothball.server.loadbench")
+    parser = argparse.ArgumentParser(prog="python -m clothball.server.bench.loadbench")
     configure(parser)
     return run(parser.parse_args(argv))
 
@@ -480,7 +480,7 @@ def load_arg_error(args: argparse.Namespace) -> str | None:
     if args.corner_rate is not None and bad(args.corner_rate, 1.0, 1000.0):
         return (f"--corner-rate must be 1 to 1000 (CORNER messages a second a player asks, "
                 f"as join's corner_rate), got {args.corner_rate:g}")
-    from ..game.sim.scene import SceneError
+    from ...game.sim.scene import SceneError
 
     try:
         bench_scene(args)
@@ -527,11 +527,11 @@ def _server_env(args: argparse.Namespace) -> dict[str, str]:
 
 
 class _Clients:
-    """The lean client processes (``server/benchclients.py``): rooms are given to them in
+    """The lean client processes (``server/bench/benchclients.py``): rooms are given to them in
     turn; each answers one JSON line per command."""
 
     def __init__(self, args: argparse.Namespace, n: int) -> None:
-        cmd = [sys.executable, "-m", "clothball.server.benchclients",
+        cmd = [sys.executable, "-m", "clothball.server.bench.benchclients",
                "--hip-rate", repr(args.hip_rate), "--corner-rate", repr(args.corner_rate),
                "--spectators", str(args.load_spectators)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -663,7 +663,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
     with ``shared_port`` the one server is the engine of ``--workers`` - 1 gateways on
     that port, and every client connects there, else rooms are asked of the first host."""
     seconds = float(args.load_seconds)
-    base = [sys.executable, "-m", "clothball.server.loadbench", *_scene_flags(args),
+    base = [sys.executable, "-m", "clothball.server.bench.loadbench", *_scene_flags(args),
             "--server-backend", args.server_backend, "--role", "server", "--no-room",
             *_loop_flag(args)]
     if directory is not None:

@@ -25,7 +25,7 @@ followed, as with ``clothball host --workers``) and connects their clients;
 answers the counters (cumulative) and the histogram since the mark. End of stdin closes
 everything.
 
-Run only through ``clothball bench --load`` (``server/loadbench.py``)."""
+Run only through ``clothball bench --load`` (``server/bench/loadbench.py``)."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ import time
 import urllib.parse
 from typing import Any, cast
 
-from ..game.wire import protocol as P
+from ...game.wire import protocol as P
 
 HIST_BIN_S = 1e-5  # latency histogram: 10 µs bins ...
 HIST_BINS = 100_000  # ... to 1 s; the last bin holds everything later (a quantile there: ≥ 1 s)
@@ -299,7 +299,7 @@ class Load:
         self._wake = asyncio.Event()
 
     async def add_room(self, ws: str) -> str:
-        from ..game.net.client import NetClient  # room creation only: redirects handled there
+        from ...game.net.client import NetClient  # room creation only: redirects handled there
 
         c = await NetClient.connect(ws, name="load")
         try:
@@ -433,7 +433,7 @@ def raise_fd_limit() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m clothball.server.benchclients")
+    p = argparse.ArgumentParser(prog="python -m clothball.server.bench.benchclients")
     p.add_argument("--hip-rate", type=float, required=True)
     p.add_argument("--corner-rate", type=float, required=True)
     p.add_argument("--spectators", type=int, required=True)

@@ -18,8 +18,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from ..game.net.client import NetClient, ServerError
-from .hostproc import start_host, stats, stop_host
+from ...game.net.client import NetClient, ServerError
+from ..hostproc import start_host, stats, stop_host
 
 
 def configure_admit_flags(parser: argparse.ArgumentParser) -> None:

@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from .replays import ReplayStore, access_key
+from ..storage.index import access_key
+from ..storage.sqlite import SqliteIndex
 
 TARGET_QUERY_MS = 20.0
 TARGET_HEALTHZ_MS = 50.0
@@ -51,10 +52,10 @@ def configure_index_flags(parser: argparse.ArgumentParser) -> None:
 
 def fill(data: Path, n: int, seed: int = 1) -> dict[str, str]:
     """An index of ``n`` rounds under ``data``; the ids and names the queries use."""
-    from ..game.wire.replay import write_replay
+    from ...game.wire.replay import write_replay
 
     rng = random.Random(seed)
-    store = ReplayStore(data)
+    store = SqliteIndex(data)
     names = [f"player{i}" for i in range(5000)]
     batch: list[tuple[dict[str, Any], str, int]] = []
     for i in range(n):
@@ -93,9 +94,9 @@ def _header(i: int, room: str, seats: list[str]) -> dict[str, Any]:
 
 def serve(data: Path, limits: list[str]) -> None:
     """The server process: prints its port, serves until killed."""
-    from ..game.sim.scene import Scene
-    from .app import GameServer
-    from .limits import Limits
+    from ...game.sim.scene import Scene
+    from ..app import GameServer
+    from ..limits import Limits
 
     lim = Limits(replays_max_days=1e6)  # the bench's rounds are dated 2023: keep them
     for text in limits:
@@ -144,7 +145,7 @@ def _ms(xs: list[float]) -> dict[str, float]:
 
 
 def _start_server(data: Path, limits: list[str]) -> tuple[subprocess.Popen[str], int]:
-    cmd = [sys.executable, "-m", "clothball.server.indexbench", "--role", "server",
+    cmd = [sys.executable, "-m", "clothball.server.bench.indexbench", "--role", "server",
            "--data", str(data), *[a for lim in limits for a in ("--limit", lim)]]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=os.environ.copy())
     assert proc.stdout is not None
@@ -153,7 +154,7 @@ def _start_server(data: Path, limits: list[str]) -> tuple[subprocess.Popen[str],
 
 def _healthz_under_load(port: int, clients: int, seconds: float) -> dict[str, Any]:
     load = subprocess.Popen(
-        [sys.executable, "-m", "clothball.server.indexbench", "--role", "hammer", "--port",
+        [sys.executable, "-m", "clothball.server.bench.indexbench", "--role", "hammer", "--port",
          str(port), "--clients", str(clients), "--seconds", str(seconds)],
         stdout=subprocess.PIPE, text=True)
 
@@ -192,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
         }
         results: dict[str, Any] = {"rounds": n, "queries": {}}
         proc, port = _start_server(data, ["index_rate=1000000", "index_burst=1000000"])
-        writer = ReplayStore(data)  # another connection, as a second server process would be
+        writer = SqliteIndex(data)  # another connection, as a second server process would be
         extra = n
         try:
             for name, target in queries.items():

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from ..game.net.client import NetClient
-from .hostproc import get, http_base, start_host, stats, stop_host
+from ...game.net.client import NetClient
+from ..hostproc import get, http_base, start_host, stats, stop_host
 
 
 def configure_soak_flags(parser: argparse.ArgumentParser) -> None:
