@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib.util
 import json
 import os
 import re
@@ -42,13 +41,8 @@ pytestmark = pytest.mark.skipif(NGINX is None, reason="nginx is not installed (a
                                 "install nginx): the reverse-proxy tests need it")
 _, _, NO_BROWSER = find_browser()
 
-# The gateway split (issue 33, item 1): every process serves every room, so no join through
-# one port is redirected. Before it, --workers 2 redirects about half the joins to a
-# process's own port, which a proxy does not pass.
-SPLIT = importlib.util.find_spec("clothball.server.gateway") is not None
-WORKERS = [1, pytest.param(2, marks=pytest.mark.skipif(
-    not SPLIT, reason="--workers 2 behind one port needs the engine/gateway split (issue "
-                      "33, item 1): until then joins are redirected to a process's own port"))]
+# 1: one process; 2: an engine and a gateway on the one port (no join is redirected).
+WORKERS = [1, 2]
 
 # Fast rounds for the recorded round the page replays (as tests/web/test_web_browser.py).
 FAST = RoomSettings(autoplay=True, first_to=3, countdown=0.6, reset_speed=1.5,
