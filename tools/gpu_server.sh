@@ -7,6 +7,8 @@
 # TESTS: the test paths (default tests/engine tests/study and the frame loop's); BASE: a
 # source tree (e.g. `git archive` of an older commit) built beside this one, whose
 # `bench --rooms` alternates with this tree's (REPEATS times) on the same machine.
+# CLOTHBALL_TEST_BACKEND=cuda with TESTS="tests/server/..." runs the server suites on the CUDA
+# engine (tests/server/conftest.py).
 OUT=${OUT:-gpu-results}
 mkdir -p "$OUT/run"
 if [ -n "${BASE:-}" ]; then

@@ -9,6 +9,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import socket
 import urllib.error
 import urllib.request
@@ -30,6 +31,9 @@ TINY = Scene.load("classic").with_changes({"cloth": {"n": 16}})
 TINY.name = "tiny"
 
 # Rounds that end fast: the ball is thrown sideways off the cloth at the start.
+# The engine backend of the servers the suites start: "cpu" here and in CI; the GPU run sets
+# CLOTHBALL_TEST_BACKEND=cuda to run the same suites on the CUDA engine (tools/gpu_server.sh).
+BACKEND = os.environ.get("CLOTHBALL_TEST_BACKEND", "cpu")
 FAST = dict(first_to=2, countdown=0.2, reset_speed=3.0, grace=1.0, restart_delay=30.0)
 
 
@@ -47,7 +51,7 @@ async def _one_process_server(data: Path, *, bots: int = 0,
     """A started server (scene TINY, CPU, port 0) in this process; ``server`` (below) is
     the tests' entry, with a second process when asked for."""
     kw["limits"] = no_admission(kw.get("limits"))
-    srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", host="127.0.0.1", port=0,
+    srv = GameServer(data, scenes={"tiny": TINY}, backend=BACKEND, host="127.0.0.1", port=0,
                      bots=bots, room_settings=settings or RoomSettings(), **kw)
     await srv.start()
     try:
@@ -89,7 +93,7 @@ def local_server(data: Path, *, bots: int = 0, **settings: Any) -> ServerThread:
     """A server with room ``main`` (scene TINY, CPU) on its own thread, not started: what
     ``clothball play --local`` runs. ``settings``: the main room's ``RoomSettings``."""
     settings.setdefault("autoplay", True)
-    return ServerThread(data, scenes={TINY.name: TINY}, backend="cpu", bots=bots,
+    return ServerThread(data, scenes={TINY.name: TINY}, backend=BACKEND, bots=bots,
                         room_settings=RoomSettings(**settings), limits=no_admission(None))
 
 
@@ -159,7 +163,7 @@ def _one_process_live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
         lg.addHandler(errors)
     kw.setdefault("room_settings", RoomSettings(bots_allowed=False, unguarded=True))
     kw["limits"] = no_admission(kw.get("limits"))
-    st = ServerThread(data, scenes={"tiny": TINY}, backend="cpu", **kw)
+    st = ServerThread(data, scenes={"tiny": TINY}, backend=BACKEND, **kw)
     try:
         st.start(30)
         try:
@@ -178,7 +182,7 @@ def _one_process_live_server(data: Path, **kw: Any) -> Iterator[LiveServer]:
 
 def _as_given(kw: dict[str, Any]) -> dict[str, Any]:
     """The GameServer arguments server() and live_server() give, for the second process."""
-    return {"scenes": {"tiny": TINY}, "backend": "cpu", "host": "127.0.0.1", **kw,
+    return {"scenes": {"tiny": TINY}, "backend": BACKEND, "host": "127.0.0.1", **kw,
             "limits": no_admission(kw.get("limits"))}
 
 
