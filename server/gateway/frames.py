@@ -1,14 +1,31 @@
 """Where a server's byte stream to a client stands, read as it passes through a gateway:
 still in the HTTP answer, or in websocket frames (between two, or inside one), and
-whether the server has sent its close frame. A gateway whose engine vanished uses it to
-end each websocket client's stream with a close frame of its own, which it may only
-write between two frames of a complete message (RFC 6455: server frames are unmasked,
-their lengths in the header)."""
+whether the server has sent its close frame, and the room the client is in. A gateway
+whose engine vanished uses it to tell each client in a room that its room stopped, then to
+end the stream with a close frame of its own, which it may only write between two frames
+of a complete message (RFC 6455: server frames are unmasked, their lengths in the header).
+
+The room is read from the start of the engine's text messages (compact JSON, keys in the
+order the engine writes them, ``game.wire.protocol.encode_json``): a ``joined`` puts the
+client in its ``room``, a ``left`` or an ``error`` ``room_stopped`` takes it out. The
+room's frame and server time come from the header of its binary messages (CORNER, MESH:
+``seq`` is the frame mod 2^32, then the time) and from its events. Only a message's first
+bytes are looked at, never parsed whole."""
 
 from __future__ import annotations
 
+import json
+import re
+import struct
+
 HEAD_MAX = 1 << 16  # an HTTP answer's head longer than this is not followed further
-OP_CLOSE = 0x8
+OP_TEXT, OP_BINARY, OP_CLOSE = 0x1, 0x2, 0x8
+PEEK = 256  # bytes of a text message's start kept: the fields read are among the first
+BINARY_HEAD = struct.Struct("<BBHId")  # docs/protocol.md's 16-byte header: type .. time
+_JOINED = re.compile(rb'\{"type":"joined","room":("(?:[^"\\]|\\.)*")')
+_EVENT = re.compile(rb'\{"type":"event","event":"[a-z_]+","room":"(?:[^"\\]|\\.)*",'
+                    rb'"frame":(\d+),"time":([0-9.eE+-]+)')
+_OUT = (b'{"type":"left"', b'{"type":"error","code":"room_stopped"')
 
 
 class ServerFrames:
@@ -22,6 +39,12 @@ class ServerFrames:
         self._fragmented = False  # inside a message sent in several frames
         self._skip = 0  # payload bytes of the current frame still to come
         self._partial = b""  # the start of a frame header
+        self._peek: bytearray | None = None  # the start of the text message coming in
+        self._peek_left = 0  # of its payload still to come into ``_peek``
+        self._peek_binary = False  # ``_peek`` is a binary message's header
+        self.room: str | None = None  # the room the client is in, as the engine said
+        # The room's frame and server time, as last seen (-1: none seen yet in this room).
+        self.frame, self.time = -1, 0.0
 
     def feed(self, data: bytes) -> None:
         if self.given_up or self.closed:
@@ -39,8 +62,14 @@ class ServerFrames:
         while True:
             if self._skip:
                 take = min(self._skip, len(buf) - i)
+                if self._peek is not None:
+                    self._peek += buf[i:i + min(take, self._peek_left)]
+                    self._peek_left -= min(take, self._peek_left)
                 self._skip -= take
                 i += take
+                if self._peek is not None and (not self._peek_left or not self._skip):
+                    self._seen(bytes(self._peek))
+                    self._peek = None
                 if self._skip:
                     break
             if len(buf) - i < 2:
@@ -60,12 +89,43 @@ class ServerFrames:
                 self._fragmented = not b0 & 0x80
             i += hl
             self._skip = n
+            if (op == OP_TEXT and n) or (op == OP_BINARY and n >= BINARY_HEAD.size):
+                self._peek_binary = op == OP_BINARY
+                self._peek = bytearray()
+                self._peek_left = BINARY_HEAD.size if self._peek_binary else min(n, PEEK)
         self._partial = bytes(buf[i:])
+
+    def _seen(self, start: bytes) -> None:
+        """A message's first bytes: where the client is."""
+        if self._peek_binary:
+            _, _, _, seq, time = BINARY_HEAD.unpack(start)
+            ahead = (seq - self.frame) % (1 << 32)  # seq is the frame mod 2^32
+            if self.frame < 0 or ahead < 1 << 31:  # (not an older frame's message)
+                self.frame = seq if self.frame < 0 else self.frame + ahead
+                self.time = time
+        elif m := _JOINED.match(start):
+            self.room = json.loads(m.group(1))
+            self.frame = -1  # another room's frames: from its first message on
+        elif start.startswith(_OUT):
+            self.room = None
+        elif m := _EVENT.match(start):
+            self.frame, self.time = int(m.group(1)), float(m.group(2))
 
     def between_messages(self) -> bool:
         """A close frame may be written now: a websocket stream, open, between messages."""
         return (self.websocket and not self.closed and not self._skip
                 and not self._partial and not self._fragmented)
+
+
+def text_frame(msg: dict[str, object]) -> bytes:
+    """A server's (unmasked) text frame holding ``msg`` as compact JSON, as the engine
+    writes it."""
+    payload = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
+    n = len(payload)
+    head = (bytes([0x80 | OP_TEXT, n]) if n < 126
+            else bytes([0x80 | OP_TEXT, 126]) + n.to_bytes(2, "big") if n < 1 << 16
+            else bytes([0x80 | OP_TEXT, 127]) + n.to_bytes(8, "big"))
+    return head + payload
 
 
 def close_frame(code: int, reason: str) -> bytes:

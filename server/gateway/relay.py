@@ -7,7 +7,10 @@ one port whichever gateway the kernel gave it to, and never a redirect inside th
 While the engine cannot be reached (it is being restarted), a request is answered
 ``503`` with a JSON body saying so, and the client retries. When the engine vanishes under
 a websocket client (its stream ends with no close frame, and the engine's socket no longer
-answers), the gateway closes the client 1011 saying so (``frames``)."""
+answers), the gateway tells a client that was in a room that the room stopped, as the
+engine does when a room's simulation fails (the event and the error ``room_stopped``),
+then closes the client 1011 saying so (``frames``): the engine held the client's session,
+so its connection cannot stay open in the lobby as after a room's own failure."""
 
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ import socket
 from pathlib import Path
 
 from ..shared import proxyline
-from .frames import ServerFrames, close_frame
+from .frames import ServerFrames, close_frame, text_frame
 
 CHUNK = 1 << 16  # bytes read at a time, each way
 WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
@@ -26,6 +29,7 @@ HEAD_WAIT_S = 5.0  # for a request's head, before a 503 while the engine is away
 RETRY_AFTER_S = 2  # told to a client while the engine is away
 ENGINE_CHECK_S = 0.3  # an engine holds a new connection open this long, waiting for its line
 ENGINE_GONE = "the host's engine stopped: its rooms are lost; reconnect in a few seconds"
+ROOM_GONE = "the host's engine stopped"  # room_stopped's reason
 
 
 class Gateway:
@@ -104,6 +108,15 @@ class Gateway:
         except (ConnectionError, OSError):
             pass
         if frames.between_messages() and not await self._engine_answers():
+            if frames.room is not None:
+                # docs/protocol.md's event and error (the gateway imports nothing of the
+                # game: the two messages are written here).
+                cwriter.write(text_frame(
+                    {"type": "event", "event": "room_stopped", "room": frames.room,
+                     "frame": max(frames.frame, 0), "time": frames.time, "reason": ROOM_GONE}))
+                cwriter.write(text_frame(
+                    {"type": "error", "code": "room_stopped",
+                     "message": f"room {frames.room} stopped: {ROOM_GONE}"}))
             cwriter.write(close_frame(1011, ENGINE_GONE))
         with contextlib.suppress(ConnectionError, OSError):
             await cwriter.drain()

@@ -15,7 +15,8 @@ import urllib.error
 import urllib.request
 
 import pytest
-from clothball.server.gateway.frames import ServerFrames, close_frame
+from clothball.game.wire import protocol as P
+from clothball.server.gateway.frames import ServerFrames, close_frame, text_frame
 from clothball.server.limits import Limits
 from clothball.server.shared import proxyline
 from hypothesis import given, settings
@@ -88,6 +89,77 @@ def test_the_close_frame_is_what_websockets_reads() -> None:
         frame = done.value
     assert frame.opcode is Opcode.CLOSE
     assert Close.parse(frame.data) == Close(1011, "the host's engine stopped")
+
+
+def _text(msg: dict) -> bytes:
+    """``msg`` as the engine sends it: its encoder, websockets' framing."""
+    return Frame(Opcode.TEXT, P.encode_json(msg).encode()).serialize(mask=False,
+                                                                     extensions=[])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32))
+def test_the_room_a_client_is_in_as_the_engine_said(seed: int) -> None:
+    """Followed through any split of the stream: a ``joined`` (however long: its geometry
+    and state follow the room) puts the client in its room, binary messages' headers and
+    events give the room's frame and time, and ``left`` or an error ``room_stopped`` take
+    it out; other errors do not."""
+    rng = random.Random(seed)
+    # The engine's room ids: "main", "main-" and 6 hex digits, token_urlsafe(6); and any.
+    room = rng.choice(["main", "main-0a1b2c", "aB3-_x9Q", 'r"q\\x', "room-" + "é" * 20])
+    joined = {"type": "joined", "room": room, "role": "player", "seat": 2,
+              "geometry": {"n": 48, "pad": "x" * rng.choice((10, 200, 70000))}}
+    mesh = P.HEADER.pack(3, 1, 0, 7, 0.25) + bytes(rng.randrange(256) for _ in range(300))
+    steps = [
+        (_text({"type": "welcome", "rooms": [{"id": "other"}]}), None, -1),
+        (_text(joined), room, -1),
+        (Frame(Opcode.BINARY, mesh).serialize(mask=False, extensions=[]), room, 7),
+        (_text({"type": "event", "event": "score", "room": room, "frame": 12345,
+                "time": 12.5, "round": 1}), room, 12345),
+        (_text(P.error_message("rate_limited", "slow down")), room, 12345),
+        (_text({"type": "left", "room": room, "re": 3}), None, 12345),
+        (_text(joined), room, -1),
+        (Frame(Opcode.BINARY, P.HEADER.pack(2, 1, 0, 2**32 - 1, 3.0) + bytes(88)).serialize(
+            mask=False, extensions=[]), room, 2**32 - 1),
+        (Frame(Opcode.BINARY, P.HEADER.pack(2, 1, 0, 1, 3.5) + bytes(88)).serialize(
+            mask=False, extensions=[]), room, 2**32 + 1),  # seq wrapped: the frame goes on
+        (Frame(Opcode.BINARY, P.HEADER.pack(2, 1, 0, 2**32 - 2, 9.0) + bytes(88)).serialize(
+            mask=False, extensions=[]), room, 2**32 + 1),  # an older frame's: not taken
+        (_text(P.error_message("room_stopped", "room stopped: non-finite")), None, 2**32 + 1),
+    ]
+    f = ServerFrames()
+    data = HEAD + b"".join(b for b, _, _ in steps)
+    at, ends, end = 0, [], len(HEAD)
+    for b, r, fr in steps:  # each message's end in the stream, and what holds there
+        end += len(b)
+        ends.append((end, r, fr))
+    expect = iter(ends)
+    end, r, fr = next(expect)
+    while at < len(data):
+        step = min(rng.choice((1, 2, 5, 64, 1000, 70000)), end - at)
+        f.feed(data[at:at + step])
+        at += step
+        if at == end:
+            assert (f.room, f.frame) == (r, fr), (at, f.room, f.frame)
+            if fr == 12345:
+                assert f.time == 12.5
+            end, r, fr = next(expect, (len(data) + 1, None, 0))
+
+
+def test_the_gateways_own_messages_are_what_websockets_reads() -> None:
+    from websockets.streams import StreamReader
+
+    msg = {"type": "event", "event": "room_stopped", "room": "x" * 200, "frame": 1,
+           "time": 0.5, "reason": "gone"}
+    reader = StreamReader()
+    reader.feed_data(text_frame(msg))
+    parser = Frame.parse(reader.read_exact, mask=False)
+    try:
+        next(parser)
+    except StopIteration as done:
+        frame = done.value
+    assert frame.opcode is Opcode.TEXT and frame.fin
+    assert P.decode_json(frame.data.decode()) == msg
 
 
 def test_proxy_lines_as_the_protocol_writes_them() -> None:

@@ -219,10 +219,18 @@ def test_a_killed_gateway_is_restarted_and_its_player_resumes_the_seat(tmp_path)
 def test_a_killed_engine_is_restarted_and_the_page_and_lobby_come_back(tmp_path) -> None:
     async def main(h: Host) -> None:
         w = await NetClient.connect(h.url, name="w", role="spectator", room="main")
+        await until(lambda: w.mesh is not None, 10, "a mesh")
         [engine] = [pid for pid, kind in h.children().items() if kind == "engine"]
         os.kill(engine, signal.SIGKILL)
         await w.wait_closed(WAIT_S)
-        # The gateway says why, with a close frame of its own (the engine sent none).
+        # The gateway says why: the room stopped (as docs/protocol.md's room_stopped), then
+        # a close frame of its own (the engine sent none).
+        stopped = [m for m in w.messages if m.get("event") == "room_stopped"
+                   or m.get("code") == "room_stopped"]
+        assert [(m["type"], m["room"] if m["type"] == "event" else None) for m in stopped] \
+            == [("event", "main"), ("error", None)], list(w.messages)[-5:]
+        assert "engine stopped" in stopped[0]["reason"]
+        assert stopped[0]["frame"] >= w.mesh.frame > 0, (stopped[0], w.mesh.frame)
         assert w.ws.close_code == 1011 and "engine stopped" in w.ws.close_reason, \
             (w.ws.close_code, w.ws.close_reason)
 
