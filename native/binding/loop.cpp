@@ -76,9 +76,9 @@ class Loop {
   }
   void lock() {
     py::gil_scoped_release release;
-    loop_->mutex().lock();
+    loop_->acquire();
   }
-  void unlock() { loop_->mutex().unlock(); }
+  void unlock() { loop_->release(); }
   void add_room(int slot, bool awake) { loop_->add_room(check(slot), awake); }
   void remove_room(int slot) { loop_->remove_room(check(slot)); }
   void set_awake(int slot, bool awake) {

@@ -113,11 +113,16 @@ void FrameLoop::start() {
   thread_ = std::thread([this] { run(); });
 }
 
+void FrameLoop::acquire() {
+  waiting_.fetch_add(1, std::memory_order_acq_rel);
+  mutex_.lock();
+  waiting_.fetch_sub(1, std::memory_order_acq_rel);
+}
+
 void FrameLoop::stop() {
-  {
-    std::lock_guard<std::mutex> g(mutex_);
-    stop_ = true;
-  }
+  acquire();
+  stop_ = true;
+  release();
   idle_cv_.notify_all();
   notify_service();
   if (thread_.joinable()) thread_.join();
@@ -162,7 +167,8 @@ void FrameLoop::remove_room(int slot) {
 void FrameLoop::set_awake(int slot, bool awake) {
   store(rooms_[slot].awake, std::uint32_t(awake ? 1 : 0));
   if (awake) {
-    std::lock_guard<std::mutex> g(mutex_);  // not lost between the loop's check and wait
+    acquire();  // not lost between the loop's check and wait
+    release();
     idle_cv_.notify_all();
   }
 }
@@ -294,6 +300,16 @@ void FrameLoop::run() {
   live.reserve(size_t(cap_));
   std::unique_lock<std::mutex> lock(mutex_);
   while (!stop_) {
+    if (waiting_.load(std::memory_order_acquire) > 0) {
+      // Someone waits to change the batch (a room added or removed, the server stopping):
+      // a loop that is behind would otherwise hold the lock from pass to pass and starve
+      // it (a std::mutex hands over to no one in particular), freezing the event loop
+      // that waits. Let every waiter in, then take the lock back.
+      lock.unlock();
+      while (waiting_.load(std::memory_order_acquire) > 0) std::this_thread::yield();
+      lock.lock();
+      continue;
+    }
     live.clear();
     for (int s = 0; s < cap_; ++s) {
       RoomRecord& r = rooms_[s];

@@ -12,6 +12,7 @@
 #pragma once
 #include <condition_variable>
 #include <cstdint>
+#include <atomic>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -69,7 +70,10 @@ class FrameLoop {
   double cpu_seconds() const;
 
   // Held by the loop for a whole pass: hold it to change the batch (add, remove, set_ball).
-  std::mutex& mutex() { return mutex_; }
+  // Take it with acquire(), never mutex().lock(): a loop that is behind runs pass after
+  // pass without sleeping, and only a waiter it knows of is let in between two passes.
+  void acquire();
+  void release() { mutex_.unlock(); }
 
   // Under mutex(): a room on `slot` (the batch slot is open), frame 0, nothing armed.
   void add_room(int slot, bool awake);
@@ -124,6 +128,7 @@ class FrameLoop {
   std::uint32_t signalled_ = 0;  // an eventfd write is pending (atomic)
   // the loop's own
   std::mutex mutex_;
+  std::atomic<int> waiting_{0};  // threads in acquire(): the loop lets them in between passes
   std::condition_variable idle_cv_;
   std::thread thread_;
   bool stop_ = false;

@@ -1,12 +1,17 @@
 """The native frame loop (native/loop, server/frameloop.py; docs/frameloop.md): its exit
 check against ``game.rules.exit_edge``, its block's layout as the binding exports it, its
 rooms stepped and published without Python, its meshes (one gather of the due rooms'
-nodes) against the batch's own, and a stalled event loop that loses nothing."""
+nodes) against the batch's own, a stalled event loop that loses nothing, and a loop that
+is behind which still lets rooms in and out."""
 
 from __future__ import annotations
 
 import asyncio
 import math
+import os
+import subprocess
+import sys
+import textwrap
 import time
 
 import numpy as np
@@ -207,3 +212,45 @@ def test_a_stalled_event_loop_loses_no_frames_and_gets_the_newest_late() -> None
 
     run(stall())
 
+
+
+def test_a_loop_that_cannot_keep_up_still_lets_rooms_in_and_out_and_stops() -> None:
+    """Rooms too large for 1 kHz here keep the loop behind, pass after pass with no sleep
+    between (catching up); adding a room, removing one and stopping the loop, which wait
+    for its lock from the event loop's thread, still happen (they waited forever when the
+    loop kept its lock from one pass to the next). In a process of its own, so that a
+    hang fails the test (by the timeout, a bound on a hang, not a speed claim) instead of
+    hanging the suite."""
+    script = textwrap.dedent("""
+        import asyncio, time
+        from clothball.game.sim.scene import Scene
+        from clothball.server.sim import RoomSim, SimPool
+
+        async def main():
+            big = Scene.load("default").with_changes({"cloth": {"n": 64}})
+            pool = SimPool()
+            sims = [RoomSim(big, "cpu", pool=pool) for _ in range(3)]
+            for s in sims:
+                s.start()
+            await asyncio.sleep(0.5)
+            assert sims[0].worker.native, "not the native loop"
+            f0 = sims[0].frame
+            await asyncio.sleep(0.5)
+            assert sims[0].frame - f0 < 450, ("1 kHz kept: not a test of a loop behind",
+                                              sims[0].frame - f0)
+            extra = RoomSim(big, "cpu", pool=pool)
+            extra.start()  # waits for the loop's lock
+            extra.stop()   # and again
+            for s in sims:
+                s.stop()
+            pool.close()   # stops the loop
+            print("ok")
+
+        asyncio.run(main())
+    """)
+    # The machine's cores for the loop, one thread: the rooms are behind wherever this
+    # runs (n = 64, the default scene's substeps: tens of ms a frame on one core).
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60, env={**os.environ, "OMP_NUM_THREADS": "1",
+                                           frameloop.FRAME_LOOP_ENV: "native"})
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stdout + out.stderr
