@@ -20,6 +20,7 @@ class Config:
     k_struct: float
     k_shear: float
     k_bend: float
+    k_plate: float  # N/m: plate bending term a stencil (derived from bending_stiffness)
     struct_compress: float
     gravity: list[float]
     damping: float
@@ -30,6 +31,7 @@ class Config:
     ball_edges: bool
     damping_rate: float  # 1/s; negative: not given (damping holds)
     ball_k_area: float  # N/m^3; negative: not given (ball_k holds)
+    bending_stiffness: float  # N m; negative: not given (k_plate holds)
     coupling_k: float
     grip_radius: float
     air_density: float

@@ -10,7 +10,8 @@ from ..sim.oracle import grips
 from ..sim.scene import MATERIAL_KEYS, Scene, available, schema_markdown
 
 UNITS = {"damping": "N s/m per node", "stiffness": "N/m per node"}
-MATERIAL_UNITS = {"damping_rate": "1/s", "stiffness_per_area": "N/m^3"}
+MATERIAL_UNITS = {"damping_rate": "1/s", "stiffness_per_area": "N/m^3",
+                  "bending_stiffness": "N m"}
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -33,6 +34,10 @@ def describe(s: Scene) -> list[str]:
         else:
             lines.append(f"{'':14}{section}.{material} = {given:.6g} "
                          f"{MATERIAL_UNITS[material]} -> {got} at n = {s.n}")
+    if "bend" in s.effects and s["cloth"]["bending_stiffness"] > 0:
+        lines.append(f"{'':14}cloth.bending_stiffness = {s['cloth']['bending_stiffness']:.6g} "
+                     f"{MATERIAL_UNITS['bending_stiffness']} -> plate k {derived.plate_k:.6g} "
+                     f"N/m a stencil (D / L^2) at n = {s.n}")
     if "coupling" in s.effects:
         k, a = s["coupling"]["stiffness"], s["coupling"]["grip_radius"]
         held = [g for g in grips(s) if g.corner == 0]

@@ -26,6 +26,7 @@ def native_config(scene: Scene, threads: int = 0) -> _native.Config:
     c.k_struct = cloth["k_structural"]
     c.k_shear = cloth["k_shear"]
     c.k_bend = cloth["k_bend"]
+    c.bending_stiffness = cloth["bending_stiffness"]  # D, N m: the engine derives its k
     c.struct_compress = 1.0 if cloth["structural_two_sided"] else 0.0
     c.gravity = list(scene["sim"]["gravity"])
     # A material key leaves its per-node key None; the engine derives that value (-1: not
@@ -60,6 +61,7 @@ class NodeValues:
 
     damping: float  # beta1, N s/m per node
     ball_k: float  # k_b, N/m per node (per structural edge with edge contact)
+    plate_k: float  # D / L^2, N/m: the plate bending term's stiffness a stencil
 
 
 @lru_cache(maxsize=256)  # a scene is immutable; the stability bound asks every few frames
@@ -67,7 +69,8 @@ def node_values(scene: Scene) -> NodeValues:
     """What the engine derives from the scene's material values and n (or the scene's own
     per-node values where it gives those)."""
     c = _native.per_node(native_config(scene))
-    return NodeValues(damping=float(c.damping), ball_k=float(c.ball_k))
+    return NodeValues(damping=float(c.damping), ball_k=float(c.ball_k),
+                      plate_k=float(c.k_plate))
 
 
 def effect_bits(effects: frozenset[str] | Sequence[str]) -> int:

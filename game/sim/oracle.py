@@ -41,6 +41,50 @@ def add_springs(f: np.ndarray, pos: np.ndarray, dirs, k: float, rest: float, com
         f[rows, cols] += spring(pos[rows, cols], pos[nrows, ncols], k, rest, compress)
 
 
+def plate_force(pos: np.ndarray, k: float) -> np.ndarray:
+    """The plate bending force (cloth.bending_stiffness) on every node: minus the gradient
+    of E = k/2 (sum of |x_a - 2 x_b + x_c|^2 over the row and column triples + 2 sum of
+    |x_00 - x_01 - x_10 + x_11|^2 over the cells), k = D / L^2, each second difference
+    scattered back to its nodes (B^T B x; the engine sums a 13-node stencil instead). Linear
+    in the positions; zero on any plane."""
+    f = np.zeros_like(pos)
+    rows = pos[:, :-2] - 2.0 * pos[:, 1:-1] + pos[:, 2:]
+    f[:, :-2] -= k * rows
+    f[:, 1:-1] += 2.0 * k * rows
+    f[:, 2:] -= k * rows
+    cols = pos[:-2] - 2.0 * pos[1:-1] + pos[2:]
+    f[:-2] -= k * cols
+    f[1:-1] += 2.0 * k * cols
+    f[2:] -= k * cols
+    cells = pos[:-1, :-1] - pos[:-1, 1:] - pos[1:, :-1] + pos[1:, 1:]
+    f[:-1, :-1] -= 2.0 * k * cells
+    f[:-1, 1:] += 2.0 * k * cells
+    f[1:, :-1] += 2.0 * k * cells
+    f[1:, 1:] -= 2.0 * k * cells
+    return f
+
+
+def plate_energy(pos: np.ndarray, k: float) -> float:
+    """The plate bending energy whose negative gradient is ``plate_force``, J."""
+    rows = pos[:, :-2] - 2.0 * pos[:, 1:-1] + pos[:, 2:]
+    cols = pos[:-2] - 2.0 * pos[1:-1] + pos[2:]
+    cells = pos[:-1, :-1] - pos[:-1, 1:] - pos[1:, :-1] + pos[1:, 1:]
+    return 0.5 * k * float(np.sum(rows * rows) + np.sum(cols * cols) + 2.0 * np.sum(cells * cells))
+
+
+def plate_diagonal(n: int, k: float) -> np.ndarray:
+    """The diagonal of k B^T B (n, n): each node's squared coefficients over the stencils
+    that hold it (1 or 4 a triple, 2 a cell)."""
+    d = np.zeros((n, n))
+    for sl in (np.s_[:, :-2], np.s_[:, 2:], np.s_[:-2], np.s_[2:]):
+        d[sl] += 1.0
+    for sl in (np.s_[:, 1:-1], np.s_[1:-1]):
+        d[sl] += 4.0
+    for sl in (np.s_[:-1, :-1], np.s_[:-1, 1:], np.s_[1:, :-1], np.s_[1:, 1:]):
+        d[sl] += 2.0
+    return k * d
+
+
 def ball_contact(pos: np.ndarray, centre: np.ndarray, radius: float, k: float) -> np.ndarray:
     """Eq. (4) on every node inside the ball; a node at the very centre is pushed down."""
     d = pos - centre
@@ -176,6 +220,15 @@ def node_contact_stiffness(scene: Scene) -> float:
     return float(ball["stiffness_per_area"]) * spacing * spacing * share
 
 
+def node_plate_stiffness(scene: Scene) -> float:
+    """k = D / L^2 (N/m) of the plate bending term from the scene's bending stiffness D
+    (N m): each of its stencils stands for L^2 of sheet and divides by L^2 twice."""
+    if "bend" not in scene.effects:
+        return 0.0
+    spacing = float(scene["cloth"]["size"]) / (scene.n - 1)
+    return float(scene["cloth"]["bending_stiffness"]) / (spacing * spacing)
+
+
 class Grip(NamedTuple):
     """One node a hand holds: its hand (corner slot), the node, its share of the hand's
     stiffness K and its rest offset from the corner (m; the hand pulls it to hip + offset)."""
@@ -245,6 +298,7 @@ class ReferenceCloth:
         # the engine's derivation (native per_node), so the tests check that too.
         self.damping = node_damping(scene)
         self.ball_k = node_contact_stiffness(scene)
+        self.plate_k = node_plate_stiffness(scene)
         self.grips = grips(scene)
 
     def forces(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -259,6 +313,8 @@ class ReferenceCloth:
             add_springs(f, pos, SHEAR_DIRS, cloth["k_shear"], L * np.sqrt(2.0), 1.0)
         if "bend" in fx:
             add_springs(f, pos, BEND_DIRS, cloth["k_bend"], 2.0 * L, 1.0)
+            if self.plate_k:
+                f += plate_force(pos, self.plate_k)
         if "gravity" in fx:
             f += s.node_mass * np.array(s["sim"]["gravity"])
         if "damping" in fx:

@@ -61,6 +61,9 @@ MATERIAL_KEYS = {
     ("cloth", "damping_rate"): "damping",
     ("ball", "stiffness_per_area"): "stiffness",
 }
+# Material keys with no per-node key to replace (the engine derives their per-node values
+# the same way): the plate's bending stiffness, a term of its own beside the bend springs.
+MATERIAL_ONLY_KEYS = (("cloth", "bending_stiffness"),)
 
 # The schema: section -> key -> Key. Defaults give the paper's set-up ("classic").
 SCHEMA: dict[str, dict[str, Key]] = {
@@ -75,6 +78,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "k_shear": Key(200.0, "float", 0.0, 1e9, effect="shear", doc="shear spring stiffness, N/m"),
         "k_bend": Key(50.0, "float", 0.0, 1e9, effect="bend", doc="bending spring stiffness, N/m"),
+        "bending_stiffness": Key(
+            0.0, "float", 0.0, 1e3, effect="bend",
+            doc="plate bending stiffness D, N m (material: a linear bending force, the discrete "
+            "D grad^4 x, k = D / L^2 a stencil, independent of n; beside or instead of the "
+            "k_bend springs: set k_bend = 0 for none); 0: none",
+        ),
         "damping": Key(
             0.002, "float", 0.0, 1e3, effect="damping",
             doc="velocity damping beta1 per node, N s/m (per node: its effect grows as n^2)",
@@ -342,7 +351,8 @@ class Scene:
     @property
     def material_keys(self) -> list[str]:
         """The material keys (independent of n) this scene gives, as "section.key"."""
-        return [f"{s}.{k}" for (s, k) in MATERIAL_KEYS if k in self.explicit.get(s, {})]
+        keys = [*MATERIAL_KEYS, *MATERIAL_ONLY_KEYS]
+        return [f"{s}.{k}" for (s, k) in keys if k in self.explicit.get(s, {})]
 
     @property
     def effects(self) -> frozenset[str]:
@@ -379,8 +389,16 @@ GRID_MARKDOWN = (
     "| `cloth.k_bend` | N/m per spring | adds 4 k_bend to the stretch and compression modulus "
     "(two cross each cut a row): yes. Its resistance to bending proper is geometric (a bend "
     "of curvature c shortens a spring by c^2 L^3 / 3, a quartic energy) and shrinks as the "
-    "grid refines; one k a spring cannot make both n-independent, so there is no bending "
-    "stiffness key (that needs a hinge force, a new effect) | as given |",
+    "grid refines; one k a spring cannot make both n-independent: a bending stiffness is "
+    "`bending_stiffness`'s term | as given |",
+    "| `cloth.bending_stiffness` | N m | yes: a plate's bending stiffness D (Poisson's ratio "
+    "0), energy D/2 \\|grad grad x\\|^2 per area, so a bend of curvature c holds D c^2 / 2 "
+    "per area and the force per area tends to -D grad^4 x. Part of the `bend` effect, beside "
+    "its springs (`k_bend = 0` for none); 0 (the default): no such term | k = D / L^2 a "
+    "stencil: the second differences of the positions along each row and column triple and "
+    "the mixed one on each cell, squared (the 13-node biharmonic stencil, "
+    "native/core/forces.hpp: plate_sum); zero on any plane, so the flat cloth and its rigid "
+    "motions feel nothing |",
     "| `cloth.damping` | N s/m per node | no: total damping n^2 damping, rate n^2 damping / "
     "mass | beta1 as given |",
     "| `cloth.damping_rate` | 1/s | yes: every node loses velocity at this rate per unit "
@@ -413,8 +431,10 @@ GRID_MARKDOWN = (
     "The paper's per-node keys stay: `classic` (the paper's set-up) uses them and holds each",
     "corner by its node; `default` (the game's) gives `damping_rate` and `stiffness_per_area`,",
     "chosen so that at its n = 48 they derive the per-node values it had before (0.02 N s/m,",
-    "5000 N/m), and a 1 cm `grip_radius` (its sag at n = 49 3 % under the single corner",
-    "node's; docs/accuracy.md: the grid study).",
+    "5000 N/m), a 1 cm `grip_radius` (its sag at n = 49 3 % under the single corner",
+    "node's), and a `bending_stiffness` of 0.0005 N m beside its bending springs, with which",
+    "the ball's rebound converges as n grows (with the springs alone it turned at n = 97);",
+    "docs/accuracy.md: the grid study.",
 )
 
 

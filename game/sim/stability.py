@@ -6,7 +6,7 @@ motion to m x'' = -k_eff x - c x'. Semi-implicit Euler is then stable when
 ``dt < (sqrt(gamma^2 + 4 omega^2) - gamma) / omega^2``. Gershgorin's theorem bounds the
 largest k_eff of the coupled system by each node's row sum: twice the stiffness of every
 spring at the node (structural, shear, bending, ball contact; edge contact counts 8 k_b)
-plus the coupling spring to
+plus the plate bending term's row (64 D / L^2) plus the coupling spring to
 the fixed hand. The ball is bounded the same way from the contacts it can have at once,
 and must not move more than ``BALL_TRAVEL`` of its radius per substep (no tunnelling).
 
@@ -52,6 +52,9 @@ def node_stiffness(scene: Scene) -> float:
         k += 2 * 4 * cloth["k_shear"]
     if "bend" in fx:
         k += 2 * 4 * cloth["k_bend"]
+        # The plate term's row of k B^T B: |20| + 4 |-8| + 4 |2| + 4 |1| = 64 k in the interior
+        # (less at the border).
+        k += 64 * node_values(scene).plate_k
     if "ball" in fx:
         # Nodes: the contact's k_b on the diagonal and -k_b in the ball's column. Edges: each
         # of the 4 structural edges adds at most 2 k_b (docs/stability.md).

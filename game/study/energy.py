@@ -5,7 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..sim.oracle import BEND_DIRS, STRUCTURAL_DIRS, grips, node_contact_stiffness
+from ..sim.oracle import (
+    BEND_DIRS,
+    STRUCTURAL_DIRS,
+    grips,
+    node_contact_stiffness,
+    node_plate_stiffness,
+    plate_energy,
+)
 from ..sim.scene import Scene
 
 
@@ -56,6 +63,7 @@ def total_energy(
             e += 0.5 * cloth["k_shear"] * float(np.sum(ext * ext))
     if "bend" in fx:
         e += _spring_energy(pos, BEND_DIRS, cloth["k_bend"], 2 * L, True)
+        e += plate_energy(pos, node_plate_stiffness(scene))
     if "coupling" in fx and hips is not None:
         K = scene["coupling"]["stiffness"]
         for grip in grips(scene):

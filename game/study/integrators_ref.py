@@ -61,6 +61,10 @@ from ..sim.oracle import (
     ReferenceCloth,
     grips,
     node_contact_stiffness,
+    node_plate_stiffness,
+    plate_diagonal,
+    plate_energy,
+    plate_force,
 )
 from ..sim.scene import SCHEMA, Scene
 
@@ -155,6 +159,9 @@ class Linearization:
                                           ball["radius"], 1.0, definite)
         K = scene["coupling"]["stiffness"] if "coupling" in scene.effects else 0.0
         self.coupling = [(g.i, g.j, K * g.share) for g in grips(scene)] if K else []
+        # The plate bending force is linear in the positions: its Jacobian is itself,
+        # constant and negative semidefinite (-k B^T B).
+        self.plate_k = node_plate_stiffness(scene)
 
     def jvp(self, w: np.ndarray, wb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """K·(w, wb): the change of every node force and of the ball force for a change w
@@ -169,6 +176,8 @@ class Linearization:
             out_b -= df.sum(axis=0)
         for i, j, k in self.coupling:
             out[i, j] -= k * w[i, j]
+        if self.plate_k:
+            out += plate_force(w, self.plate_k)
         return out, out_b
 
     def neg_diag(self) -> tuple[np.ndarray, np.ndarray]:
@@ -183,6 +192,8 @@ class Linearization:
             out_b += dg.sum(axis=0)
         for i, j, k in self.coupling:
             out[i, j] += k
+        if self.plate_k:
+            out += plate_diagonal(self.shape[0], self.plate_k)[..., None]
         return out, out_b
 
 
@@ -216,6 +227,7 @@ def potential_energy(scene: Scene, pos: np.ndarray, ball_pos: np.ndarray,
             e = np.linalg.norm(pos[there] - pos[here], axis=-1) - rest
             # Each spring is seen from both ends: half its energy each time.
             energy += 0.5 * 0.5 * k * float(np.sum(np.where(e > 0, e * e, compress * e * e)))
+    energy += plate_energy(pos, node_plate_stiffness(scene))
     g = np.array(scene["sim"]["gravity"]) if "gravity" in fx else np.zeros(3)
     energy -= scene.node_mass * float(np.sum(pos @ g))
     if "ball" in fx:

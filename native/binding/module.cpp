@@ -57,6 +57,7 @@ PYBIND11_MODULE(_native, m) {
       .def_readwrite("k_struct", &cb::Config::k_struct)
       .def_readwrite("k_shear", &cb::Config::k_shear)
       .def_readwrite("k_bend", &cb::Config::k_bend)
+      .def_readwrite("k_plate", &cb::Config::k_plate)
       .def_readwrite("struct_compress", &cb::Config::struct_compress)
       .def_property(
           "gravity", [](const cb::Config& c) { return std::array<double, 3>{c.gravity[0], c.gravity[1], c.gravity[2]}; },
@@ -69,6 +70,7 @@ PYBIND11_MODULE(_native, m) {
       .def_readwrite("ball_edges", &cb::Config::ball_edges)
       .def_readwrite("damping_rate", &cb::Config::damping_rate)
       .def_readwrite("ball_k_area", &cb::Config::ball_k_area)
+      .def_readwrite("bending_stiffness", &cb::Config::bending_stiffness)
       .def_readwrite("coupling_k", &cb::Config::coupling_k)
       .def_readwrite("grip_radius", &cb::Config::grip_radius)
       .def_readwrite("air_density", &cb::Config::air_density)
@@ -155,7 +157,8 @@ PYBIND11_MODULE(_native, m) {
   m.attr("TILED_MIN_N") = cb::kTiledMinN;
   m.def("per_node", &cb::per_node, py::arg("config"),
         "The configuration with its material values turned into per-node ones, as the "
-        "backends see it (damping from damping_rate, ball_k from ball_k_area).");
+        "backends see it (damping from damping_rate, ball_k from ball_k_area, k_plate from "
+        "bending_stiffness).");
   m.def("cuda_copy_bandwidth_gbs", &cb::cuda_copy_bandwidth_gbs, py::arg("bytes"),
         py::arg("reps") = 20, py::call_guard<py::gil_scoped_release>());
   clothball_falcon::bind(m);

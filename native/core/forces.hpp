@@ -78,6 +78,66 @@ CB_HD V3<R> triangle_wind(V3<R> p0, V3<R> p1, V3<R> p2, V3<R> v0, V3<R> v1, V3<R
   return (drag + lift) * on;
 }
 
+// Plate bending (cloth.bending_stiffness D; the `bend` effect's second term, beside its
+// springs). The energy is D/2 times the integral of |grad grad x|^2 (every second
+// derivative of the position, a plate of Poisson's ratio 0) over the sheet, discretised as
+//   E = k/2 [sum over row and column triples |x_a - 2 x_b + x_c|^2
+//            + 2 sum over cells |x_00 - x_01 - x_10 + x_11|^2],   k = D / L^2,
+// every stencil inside the grid (a free edge's natural boundary). Why this one: it is the
+// quadratic bending energy of Bergou et al. 2006 on a regular grid. Each stencil
+// annihilates a plane, so the flat cloth at rest, and any rigid motion of it, feel nothing,
+// and since it is a norm of linear combinations of positions it is invariant under
+// rotations too; for a bend without stretching it is the bending energy D/2 (c1^2 + c2^2).
+// It is quadratic: the force -k B^T B x is linear (f_i = -k sum_m c_m x_m, the 13-node
+// biharmonic stencil 20, -8, 2, 1 in the interior, so force per area -D grad^4 x as L -> 0)
+// and its Jacobian -k B^T B is exact, constant and negative semidefinite (what CG needs).
+// Unlike the bend springs, whose resistance to bending is geometric (second order at rest)
+// and fades as the grid refines, it resists a curvature alike at every n.
+// plate_sum returns sum over m != i of c_m (at(m) - xi), the coefficients c_m = sum over
+// the stencils holding i and m of their product (fewer stencils near the border); the
+// force is -k times it. Differences against xi, not the positions, keep float32 accurate.
+// Interior: every node within two exists (then 20, -8, 2, 1). `at(r)` is node r's vector
+// (a position or a CG direction) at view index r; s is a row's step in the view.
+template <class R, bool Interior, class At>
+CB_HD V3<R> plate_sum(int n, int i, int j, int q, int s, At&& at, V3<R> xi) {
+  // Row triples that hold node j: centred at j - 1 (a), j (b), j + 1 (c); columns alike.
+  const R a = (Interior || j >= 2) ? R(1) : R(0), c = (Interior || j <= n - 3) ? R(1) : R(0);
+  const R b = (Interior || (j >= 1 && j <= n - 2)) ? R(1) : R(0);
+  const R av = (Interior || i >= 2) ? R(1) : R(0), cv = (Interior || i <= n - 3) ? R(1) : R(0);
+  const R bv = (Interior || (i >= 1 && i <= n - 2)) ? R(1) : R(0);
+  // Cells that hold the node: rows of cells above and below it (u), columns aside (v).
+  const R u = ((Interior || i >= 1) ? R(1) : R(0)) + ((Interior || i <= n - 2) ? R(1) : R(0));
+  const R v = ((Interior || j >= 1) ? R(1) : R(0)) + ((Interior || j <= n - 2) ? R(1) : R(0));
+  V3<R> t{R(0), R(0), R(0)};
+  if (Interior || j >= 1) t += (at(q - 1) - xi) * (R(-2) * (a + b + u));
+  if (Interior || j <= n - 2) t += (at(q + 1) - xi) * (R(-2) * (c + b + u));
+  if (Interior || i >= 1) t += (at(q - s) - xi) * (R(-2) * (av + bv + v));
+  if (Interior || i <= n - 2) t += (at(q + s) - xi) * (R(-2) * (cv + bv + v));
+  if (Interior || j >= 2) t += at(q - 2) - xi;
+  if (Interior || j <= n - 3) t += at(q + 2) - xi;
+  if (Interior || i >= 2) t += at(q - 2 * s) - xi;
+  if (Interior || i <= n - 3) t += at(q + 2 * s) - xi;
+  if (Interior || (i >= 1 && j >= 1)) t += (at(q - s - 1) - xi) * R(2);
+  if (Interior || (i >= 1 && j <= n - 2)) t += (at(q - s + 1) - xi) * R(2);
+  if (Interior || (i <= n - 2 && j >= 1)) t += (at(q + s - 1) - xi) * R(2);
+  if (Interior || (i <= n - 2 && j <= n - 2)) t += (at(q + s + 1) - xi) * R(2);
+  return t;
+}
+
+// The plate term's diagonal coefficient c_i (20 in the interior): the sum of the others'
+// negatives, the stencils' coefficients summing to zero.
+template <class R, bool Interior>
+CB_HD R plate_diag(int n, int i, int j) {
+  auto in = [](bool x) { return x ? R(1) : R(0); };
+  const R rows = in(Interior || j >= 2) + R(4) * in(Interior || (j >= 1 && j <= n - 2)) +
+                 in(Interior || j <= n - 3);
+  const R cols = in(Interior || i >= 2) + R(4) * in(Interior || (i >= 1 && i <= n - 2)) +
+                 in(Interior || i <= n - 3);
+  const R u = in(Interior || i >= 1) + in(Interior || i <= n - 2);
+  const R v = in(Interior || j >= 1) + in(Interior || j <= n - 2);
+  return rows + cols + R(2) * u * v;
+}
+
 // Which coupled corner (0..3) node (i, j) is, or -1. Order: (0,0), (0,n-1), (n-1,n-1), (n-1,0).
 CB_HD int corner_slot(int i, int j, int n) {
   int last = n - 1;
@@ -190,6 +250,10 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
     if (Interior || j < n - 2) f += spring_force(pi, pos.get(q + 2), k, L, R(1));
     if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * s), k, L, R(1));
     if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * s), k, L, R(1));
+    // The plate term, always summed: with k_plate 0 it adds -0 or +0, and f (never -0, see
+    // Params::from) is unchanged, bit for bit (scenes without a bending stiffness).
+    auto at = [&](int r) { return pos.get(r); };
+    f += plate_sum<R, Interior>(n, i, j, q, s, at, pi) * (-p.k_plate);
   }
   // Run-time effects (params.hpp): both terms are zero when the scene lacks them.
   f += p.gravity_force;

@@ -47,6 +47,7 @@ struct Config {
   double rest_len = 0;      // L = size / (n - 1)
   double node_mass = 0;     // total mass / n^2
   double k_struct = 0, k_shear = 0, k_bend = 0;
+  double k_plate = 0;       // N/m: the plate bending term's k a stencil (BEND), D / L^2; 0: none
   double struct_compress = 0;  // 0: tension-only structural springs (eq. 2); 1: two-sided
   double gravity[3] = {0, -9.81, 0};
   double damping = 0;       // beta1, N s/m per node (eq. 1)
@@ -56,6 +57,7 @@ struct Config {
   // per-node value above holds. per_node() below turns them into per-node values.
   double damping_rate = -1;  // 1/s: damping force per unit mass and unit velocity
   double ball_k_area = -1;   // N/m^3: contact force per unit penetration and contact area
+  double bending_stiffness = -1;  // N m: the plate's D (Poisson's ratio 0), derives k_plate
   double coupling_k = 0;    // K of eq. (7): a hand's total
   double grip_radius = 0;   // m: a hand holds the border this near its corner; 0: the corner node
   double air_density = 1.2, drag = 1.0, lift = 0.3;  // wind on each triangle
@@ -78,12 +80,18 @@ struct Config {
 //    L^2 of the grid (or each structural edge for half of it: a node inside the ball gets
 //    about one edge contact per direction, see edge_contact_share), so the ball's total
 //    stiffness no longer grows with the nodes it covers.
+//  * bending: a plate's bending stiffness D (N m), so k_plate = D / L^2: the plate term
+//    (plate_sum in forces.hpp) sums second differences of the positions, each over L^2,
+//    squared and weighted by the L^2 of sheet a stencil stands for: D / L^2 a stencil, and
+//    the force per area tends to -D grad^4 x whatever n.
 inline Config per_node(Config c) {
   if (c.damping_rate >= 0) c.damping = c.damping_rate * c.node_mass;
   if (c.ball_k_area >= 0)
     c.ball_k = c.ball_k_area * c.rest_len * c.rest_len * (c.ball_edges ? 0.5 : 1.0);
+  if (c.bending_stiffness >= 0) c.k_plate = c.bending_stiffness / (c.rest_len * c.rest_len);
   c.damping_rate = -1;
   c.ball_k_area = -1;
+  c.bending_stiffness = -1;
   return c;
 }
 
@@ -137,6 +145,7 @@ struct Params {
   R L, L_diag, L_bend;
   R inv_mass;
   R k_struct, k_shear, k_bend, struct_compress;
+  R k_plate;            // the plate bending term's k (BEND); 0: none, and the term adds 0
   unsigned effects;     // Config::effects: the run-time effects are tested here
   V3<R> gravity_force;  // m g per node; 0 without GRAVITY
   V3<R> gravity;
@@ -161,6 +170,7 @@ struct Params {
     p.k_struct = R(c.k_struct);
     p.k_shear = R(c.k_shear);
     p.k_bend = R(c.k_bend);
+    p.k_plate = R(c.k_plate);
     p.struct_compress = R(c.struct_compress);
     p.gravity = {R(c.gravity[0]), R(c.gravity[1]), R(c.gravity[2])};
     // Added to every node's force whether or not the scene has gravity or damping: zero

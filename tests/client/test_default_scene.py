@@ -16,7 +16,11 @@ import pytest
 from clothball.game import Cloth, Scene
 from clothball.game.sim.cloth import corners_of, rest_positions
 from clothball.game.sim.config import node_values
-from clothball.game.sim.oracle import node_contact_stiffness, node_damping
+from clothball.game.sim.oracle import (
+    node_contact_stiffness,
+    node_damping,
+    node_plate_stiffness,
+)
 from clothball.game.sim.scene import DEFAULT_EFFECTS
 
 # A kink: a node further off its neighbours' midpoint than this many rest spacings turns
@@ -88,9 +92,15 @@ def test_default_scene_keeps_its_per_node_values_at_n48() -> None:
     """The default scene gives material values derived from the per-node ones it had at
     n = 48 (damping 0.02 N s/m, contact 5000 N/m): at n = 48 they come back to rounding."""
     s = Scene.load("default")
-    assert s.n == 48 and s.material_keys == ["cloth.damping_rate", "ball.stiffness_per_area"]
+    assert s.n == 48 and s.material_keys == [
+        "cloth.damping_rate", "ball.stiffness_per_area", "cloth.bending_stiffness"]
     engine = node_values(s)
     for damping, k in ((engine.damping, engine.ball_k), (node_damping(s),
                                                           node_contact_stiffness(s))):
         assert damping == pytest.approx(0.02, rel=1e-12)
         assert k == pytest.approx(5000.0, rel=1e-12)
+    # Its bending stiffness, beside the bending springs (docs/accuracy.md: the rebound
+    # converges with it): D = 0.5 mN m, k = D / L^2 a stencil.
+    assert s["cloth"]["k_bend"] == 2000.0 and s["cloth"]["bending_stiffness"] == 5e-4
+    for plate_k in (engine.plate_k, node_plate_stiffness(s)):
+        assert plate_k == pytest.approx(5e-4 * 47**2, rel=1e-12)

@@ -77,6 +77,15 @@ CASES = {
         {"ball": {"stiffness_per_area": 3.4e6, "position": [0.03, 1.085, -0.02],
                   "velocity": [0.0, -0.3, 0.0], "contact": "edges"}},
     ),
+    # The plate bending term (cloth.bending_stiffness): instead of the bend springs, and
+    # beside them with every other effect (the oracle derives k = D / L^2 on its own).
+    "plate": (["structural", "bend", "gravity", "coupling"],
+              {"cloth": {"k_bend": 0.0, "bending_stiffness": 0.02}}),
+    "plate_all": (
+        ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],
+        {"cloth": {"bending_stiffness": 0.02, "damping_rate": 4.0},
+         "ball": {"position": [0.0, 1.085, 0.0], "velocity": [0.0, -0.3, 0.0]}},
+    ),
     # 1600 nodes: several GPU blocks, so the cross-block ball force sum is exercised.
     "all_large": (
         ["structural", "shear", "bend", "gravity", "damping", "ball", "coupling"],
