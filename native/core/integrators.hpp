@@ -104,7 +104,8 @@ CB_HD V3<R> node_jvp(const Params<R>& p, const Planes<R>& pos, const W& w, V3<R>
     out += pair_jvp(pair_terms(pos.get(r) - xi, k, rest, c), w(r) - wi);
   });
   if constexpr ((S & BEND) != 0)  // the plate term is linear: K w = -k_plate B^T B w
-    out += plate_sum<R, Interior>(p.n, i, j, i * p.n + j, p.n, w, wi) * (-p.k_plate);
+    if (p.k_plate != R(0))
+      out += plate_sum<R, Interior>(p.n, i, j, i * p.n + j, p.n, w, wi) * (-p.k_plate);
   if constexpr ((S & BALL) != 0) {
     cj = pair_jvp(contact_terms(p, xi, ball_p), wb - wi);
     out += cj;
@@ -128,8 +129,10 @@ CB_HD V3<R> node_neg_diag(const Params<R>& p, const Planes<R>& pos, V3<R> xi, in
     out += pair_diag(pair_terms(pos.get(r) - xi, k, rest, c));
   });
   if constexpr ((S & BEND) != 0) {
-    const R d = p.k_plate * plate_diag<R, Interior>(p.n, i, j);
-    out += V3<R>{d, d, d};
+    if (p.k_plate != R(0)) {
+      const R d = p.k_plate * plate_diag<R, Interior>(p.n, i, j);
+      out += V3<R>{d, d, d};
+    }
   }
   if constexpr ((S & BALL) != 0) {
     cd = pair_diag(contact_terms(p, xi, ball_p));
