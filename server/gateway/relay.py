@@ -10,7 +10,13 @@ a websocket client (its stream ends with no close frame, and the engine's socket
 answers), the gateway tells a client that was in a room that the room stopped, as the
 engine does when a room's simulation fails (the event and the error ``room_stopped``),
 then closes the client 1011 saying so (``frames``): the engine held the client's session,
-so its connection cannot stay open in the lobby as after a room's own failure."""
+so its connection cannot stay open in the lobby as after a room's own failure.
+
+The relay works on the transports themselves (``asyncio.Protocol``): each chunk read on
+one side is written to the other from the read callback, with no stream buffer and no
+task in between; a side whose write buffer is full pauses the other side's reading
+(backpressure). An end of file is passed on (a half-close), and a side that fails aborts
+the other."""
 
 from __future__ import annotations
 
@@ -18,7 +24,9 @@ import asyncio
 import contextlib
 import json
 import socket
+from collections.abc import Coroutine
 from pathlib import Path
+from typing import Any
 
 from ..shared import proxyline
 from .frames import ServerFrames, close_frame, text_frame
@@ -42,9 +50,9 @@ class Gateway:
         self._tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
-        self.server = await asyncio.start_server(
-            self._client, self.host, self.port, reuse_port=True, limit=CHUNK,
-            backlog=1024)
+        loop = asyncio.get_running_loop()
+        self.server = await loop.create_server(
+            lambda: _Client(self), self.host, self.port, reuse_port=True, backlog=1024)
 
     async def stop(self) -> None:
         """Stop accepting and cut every relayed connection (both sides)."""
@@ -54,74 +62,10 @@ class Gateway:
             transport.abort()
         await asyncio.gather(*self._tasks, return_exceptions=True)
 
-    async def _client(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter
-                      ) -> None:
-        task = asyncio.current_task()
-        assert task is not None
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
-        self._open.add(cwriter.transport)
-        try:
-            await self._relay(creader, cwriter)
-        except (ConnectionError, OSError, asyncio.IncompleteReadError):
-            pass
-        finally:
-            self._open.discard(cwriter.transport)
-            self._tasks.discard(task)
-            cwriter.close()
-
-    async def _relay(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter
-                     ) -> None:
-        sock = cwriter.get_extra_info("socket")
-        if sock is not None:
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        try:
-            ereader, ewriter = await asyncio.open_unix_connection(str(self.engine),
-                                                                  limit=CHUNK)
-        except OSError:
-            await self._engine_away(creader, cwriter)
-            return
-        self._open.add(ewriter.transport)
-        try:
-            for w in (cwriter, ewriter):
-                w.transport.set_write_buffer_limits(high=WRITE_HIGH)
-            ewriter.write(proxyline.encode(cwriter.get_extra_info("peername"),
-                                           cwriter.get_extra_info("sockname")))
-            # Both ways at once; one side's end of file is passed on, and the relay ends
-            # when both have ended (or either fails).
-            await asyncio.gather(_pump(creader, ewriter), self._down(ereader, cwriter),
-                                 return_exceptions=True)
-        finally:
-            self._open.discard(ewriter.transport)
-            ewriter.close()
-
-    async def _down(self, ereader: asyncio.StreamReader, cwriter: asyncio.StreamWriter
-                    ) -> None:
-        """The engine's bytes to the client, followed (``ServerFrames``) so that a client
-        whose engine vanished gets a close frame that says so."""
-        frames = ServerFrames()
-        try:
-            while data := await ereader.read(CHUNK):
-                frames.feed(data)
-                cwriter.write(data)
-                await cwriter.drain()
-        except (ConnectionError, OSError):
-            pass
-        if frames.between_messages() and not await self._engine_answers():
-            if frames.room is not None:
-                # docs/protocol.md's event and error (the gateway imports nothing of the
-                # game: the two messages are written here).
-                cwriter.write(text_frame(
-                    {"type": "event", "event": "room_stopped", "room": frames.room,
-                     "frame": max(frames.frame, 0), "time": frames.time, "reason": ROOM_GONE}))
-                cwriter.write(text_frame(
-                    {"type": "error", "code": "room_stopped",
-                     "message": f"room {frames.room} stopped: {ROOM_GONE}"}))
-            cwriter.write(close_frame(1011, ENGINE_GONE))
-        with contextlib.suppress(ConnectionError, OSError):
-            await cwriter.drain()
-            if cwriter.can_write_eof():
-                cwriter.write_eof()
+        task.add_done_callback(self._tasks.discard)
 
     async def _engine_answers(self) -> bool:
         """Whether the engine is there: its socket takes a connection and holds it open,
@@ -141,32 +85,185 @@ class Gateway:
         finally:
             w.transport.abort()
 
-    async def _engine_away(self, creader: asyncio.StreamReader,
-                           cwriter: asyncio.StreamWriter) -> None:
-        with contextlib.suppress(asyncio.TimeoutError, asyncio.LimitOverrunError,
-                                 asyncio.IncompleteReadError, ValueError):
-            await asyncio.wait_for(creader.readuntil(b"\r\n\r\n"), HEAD_WAIT_S)
+
+class _Client(asyncio.Protocol):
+    """A client's connection on the public port, and its relay to the engine."""
+
+    def __init__(self, gw: Gateway) -> None:
+        self.gw = gw
+        self.t: asyncio.Transport | None = None
+        self.engine: _Engine | None = None
+        self.early: bytearray | None = bytearray()  # read before the engine answered
+        self.head = asyncio.Event()  # a request's head is in ``early`` (or the client ended)
+        self.eof = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.t = transport
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        transport.set_write_buffer_limits(high=WRITE_HIGH)
+        self.gw._open.add(transport)
+        self.gw._spawn(self._connect())
+
+    async def _connect(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            _, engine = await loop.create_unix_connection(lambda: _Engine(self),
+                                                          str(self.gw.engine))
+        except OSError:
+            await self._engine_away()
+            return
+        assert self.t is not None and engine.t is not None
+        if self.t.is_closing():  # the client went while the engine answered
+            engine.t.abort()
+            return
+        self.engine = engine
+        early, self.early = self.early or b"", None
+        engine.t.write(proxyline.encode(self.t.get_extra_info("peername"),
+                                        self.t.get_extra_info("sockname")) + early)
+        if self.eof and engine.t.can_write_eof():
+            engine.t.write_eof()
+        self.t.resume_reading()
+
+    def data_received(self, data: bytes) -> None:
+        if self.engine is not None:
+            assert self.engine.t is not None
+            self.engine.t.write(data)
+        elif self.early is not None:
+            self.early += data
+            if b"\r\n\r\n" in self.early:
+                self.head.set()
+            if len(self.early) >= CHUNK:  # no engine yet: read no more until it answers
+                assert self.t is not None
+                self.t.pause_reading()
+
+    def eof_received(self) -> bool:
+        self.eof = True
+        self.head.set()
+        if self.engine is not None:
+            assert self.engine.t is not None
+            if self.engine.t.can_write_eof():
+                self.engine.t.write_eof()
+        self.close_if_done()
+        return True  # the engine's answer may still be on its way: keep writing
+
+    def close_if_done(self) -> None:
+        """Both ways have ended (the client's end of file, the engine's passed on): close
+        the connection (and with it the engine's side, ``connection_lost``)."""
+        if self.eof and self.engine is not None and self.engine.done and self.t is not None:
+            self.t.close()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.head.set()
+        if self.t is not None:
+            self.gw._open.discard(self.t)
+        if self.engine is not None and self.engine.t is not None:
+            # One side failed (or both ended): end the other too.
+            if exc is None:
+                self.engine.t.close()
+            else:
+                self.engine.t.abort()
+
+    def pause_writing(self) -> None:  # the client reads slowly: stop reading the engine
+        if self.engine is not None and self.engine.t is not None:
+            self.engine.t.pause_reading()
+
+    def resume_writing(self) -> None:
+        if self.engine is not None and self.engine.t is not None:
+            self.engine.t.resume_reading()
+
+    async def _engine_away(self) -> None:
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self.head.wait(), HEAD_WAIT_S)
         body = json.dumps({"error": "the host's engine is restarting: try again in a few "
                                     "seconds", "status": 503}).encode()
         head = (f"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
                 f"Content-Length: {len(body)}\r\nRetry-After: {RETRY_AFTER_S}\r\n"
                 "Connection: close\r\n\r\n").encode()
-        cwriter.write(head + body)
-        with contextlib.suppress(ConnectionError, OSError):
-            await cwriter.drain()
+        assert self.t is not None
+        if not self.t.is_closing():
+            self.t.write(head + body)
+            self.t.close()
 
 
-async def _pump(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-    try:
-        while data := await reader.read(CHUNK):
-            writer.write(data)
-            await writer.drain()
-        if writer.can_write_eof():
-            writer.write_eof()
-    except (ConnectionError, OSError):
-        # One side is gone: end the other too (its own pump then reads end of file).
-        writer.transport.abort()
-        raise
+class _Engine(asyncio.Protocol):
+    """The engine's side of one relay: its bytes to the client, followed (``ServerFrames``)
+    so that a client whose engine vanished is told its room stopped and gets a close frame
+    that says so."""
+
+    def __init__(self, client: _Client) -> None:
+        self.client = client
+        self.t: asyncio.Transport | None = None
+        self.frames = ServerFrames()
+        self.ended = False  # the engine's stream ended
+        self.done = False  # and what follows it was written to the client
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.t = transport
+        transport.set_write_buffer_limits(high=WRITE_HIGH)
+        self.client.gw._open.add(transport)
+
+    def data_received(self, data: bytes) -> None:
+        self.frames.feed(data)
+        ct = self.client.t
+        if ct is not None and not ct.is_closing():
+            ct.write(data)
+
+    def eof_received(self) -> bool:
+        self._end()
+        return True  # the client's last bytes may still be on their way: keep writing
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.t is not None:
+            self.client.gw._open.discard(self.t)
+        self._end()
+
+    def pause_writing(self) -> None:  # the engine reads slowly: stop reading the client
+        if self.client.t is not None:
+            self.client.t.pause_reading()
+
+    def resume_writing(self) -> None:
+        if self.client.t is not None:
+            self.client.t.resume_reading()
+
+    def _end(self) -> None:
+        if not self.ended:
+            self.ended = True
+            self.client.gw._spawn(self._ended())
+
+    async def _ended(self) -> None:
+        """The engine's stream ended: when the engine itself is gone (its socket no longer
+        answers), the room's room_stopped and a close frame of the gateway's own, then the
+        end of file to the client."""
+        try:
+            await self._tell_client()
+        finally:
+            self.done = True
+            self.client.close_if_done()
+
+    async def _tell_client(self) -> None:
+        ct, frames = self.client.t, self.frames
+        if ct is None or ct.is_closing():
+            return
+        if frames.between_messages() and not await self.client.gw._engine_answers():
+            if ct.is_closing():
+                return
+            if frames.room is not None:
+                # docs/protocol.md's event and error (the gateway imports nothing of the
+                # game: the two messages are written here).
+                ct.write(text_frame(
+                    {"type": "event", "event": "room_stopped", "room": frames.room,
+                     "frame": max(frames.frame, 0), "time": frames.time, "reason": ROOM_GONE}))
+                ct.write(text_frame(
+                    {"type": "error", "code": "room_stopped",
+                     "message": f"room {frames.room} stopped: {ROOM_GONE}"}))
+            ct.write(close_frame(1011, ENGINE_GONE))
+        if not ct.is_closing() and ct.can_write_eof():
+            ct.write_eof()
 
 
 __all__ = ["Gateway"]
