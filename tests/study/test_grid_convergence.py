@@ -39,6 +39,7 @@ import pytest
 from clothball.game import Scene
 from clothball.game.study.grid import (
     QUANTITIES,
+    Convergence,
     GridRun,
     convergence,
     measure,
@@ -142,18 +143,25 @@ def test_point_supports_drift_logarithmically(record_property) -> None:
     assert min(abs(d) for d in rebound.differences) > 10 * max(abs(d) for d in sag.differences)
 
 
+def rebounds(names: tuple[str, ...], sizes: tuple[int, ...], record_property
+             ) -> dict[str, Convergence]:
+    """Each cloth's rebound over ``sizes`` on the CPU, recorded."""
+    out = {}
+    for name in names:
+        out[name] = convergence([run(name, n, "cpu") for n in sizes], "rebound_m")
+        line = line_of(name, out[name])
+        print(line)
+        record_property(name, line)
+    return out
+
+
 def test_per_node_parameters_drift(record_property) -> None:
     """Documentation of issue 30's table: with the per-node values fixed, the ball's rebound
     changes between grids by several times what it does in material units (the damping
     rate grows as n^2 and the contact stiffness with the nodes covered). Of the ``springs``
     cloth, which the issue measured (module doc)."""
-    change = {}
-    for name in ("per_node", "springs"):
-        c = convergence([run(name, n, "cpu") for n in CPU_SIZES], "rebound_m")
-        line = line_of(name, c)
-        print(line)
-        record_property(name, line)
-        change[name] = abs(c.differences[-1])
+    c = rebounds(("per_node", "springs"), CPU_SIZES, record_property)
+    change = {name: abs(c[name].differences[-1]) for name in c}
     assert change["per_node"] > 5 * change["springs"], change
 
 
@@ -164,16 +172,10 @@ def test_a_bending_stiffness_makes_the_rebound_converge(record_property) -> None
     turns at n = 97 (the difference from 49 to 97 larger than from 25 to 49). The springs'
     resistance to bending is geometric and fades as L^4 at a given curvature; the bending
     stiffness resists alike at every n, and takes over from them between n = 25 and 97."""
-    sizes = (*CPU_SIZES, 97)
-    diffs = {}
-    for name in ("default", "springs"):
-        c = convergence([run(name, n, "cpu") for n in sizes], "rebound_m")
-        line = line_of(name, c)
-        print(line)
-        record_property(name, line)
-        diffs[name] = [abs(d) for d in c.differences]
-    assert convergence([run("default", n, "cpu") for n in sizes], "rebound_m").shrinking()
-    assert diffs["springs"][-1] > diffs["springs"][-2], diffs
+    c = rebounds(("default", "springs"), (*CPU_SIZES, 97), record_property)
+    assert c["default"].shrinking(), line_of("default", c["default"])
+    springs = [abs(d) for d in c["springs"].differences]
+    assert springs[-1] > springs[-2], springs
 
 
 @pytest.mark.gpu
