@@ -75,7 +75,7 @@ class FrameLoop {
   void acquire();
   void release() { mutex_.unlock(); }
 
-  // Under mutex(): a room on `slot` (the batch slot is open), frame 0, nothing armed.
+  // Under acquire(): a room on `slot` (the batch slot is open), frame 0, nothing armed.
   void add_room(int slot, bool awake);
   void remove_room(int slot);
   // Any thread, no lock: the block's inputs.
