@@ -70,7 +70,7 @@ class FrameLoop {
   double cpu_seconds() const;
 
   // Held by the loop for a whole pass: hold it to change the batch (add, remove, set_ball).
-  // Take it with acquire(), never mutex().lock(): a loop that is behind runs pass after
+  // Taken with acquire() (no raw mutex is handed out): a loop that is behind runs pass after
   // pass without sleeping, and only a waiter it knows of is let in between two passes.
   void acquire();
   void release() { mutex_.unlock(); }
