@@ -27,11 +27,13 @@ from websockets.asyncio.server import Server, serve
 from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
 from .directory import IO_TIMEOUT_S, MIN_READ_GAP_S, PUBLISH_S, Directory, HostEntry, OnDemand
+from .gateways import GatewayControl
 from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .room import Room, RoomSettings
+from .shared import lanes
 from .sim import SimPool
 from .storage.datadir import Storage, StorageOff
 from .storage.index import PRUNE_BATCH, ReplayIndex, Retention, access_key, owner_key
@@ -83,6 +85,7 @@ class GameServer:
         self.advertise = advertise
         self.host_id = host_id or secrets.token_hex(6)
         self._gateways: Server | None = None
+        self._control: GatewayControl | None = None  # the gateways' control socket
         self.limits = limits or DEFAULT
         if hello_timeout is not None:
             self.limits = self.limits.replace(hello_timeout=hello_timeout)
@@ -131,7 +134,8 @@ class GameServer:
         self._saves: set[asyncio.Task[Any]] = set()
         self._bot_factory = bot_factory
         self.main_room: Room | None = None
-        self.stats = {"messages_in": 0, "messages_out": 0, "bad_messages": 0, "rounds_saved": 0,
+        self.stats = {"messages_in": 0, "messages_out": 0, "lane_messages_in": 0,
+                      "lane_messages_out": 0, "bad_messages": 0, "rounds_saved": 0,
                       "rounds_not_saved": 0, "refused_connections": 0, "rooms_stopped": 0}
         self._cpu0 = time.process_time()
         self._wall0 = time.perf_counter()
@@ -146,6 +150,9 @@ class GameServer:
             self._server = await self._listen(self.port)
             if self.engine_socket is not None:
                 self._gateways = await self._listen_gateways(self.engine_socket)
+                self._control = GatewayControl(lanes.ctl_path(self.engine_socket),
+                                               self._blocks, self.stats)
+                await self._control.start()
         except BaseException:
             if self._server is not None:
                 self._server.close()
@@ -209,6 +216,10 @@ class GameServer:
         srv = await self._listen(None, path=str(path), unix=True)
         os.chmod(path, 0o600)
         return srv
+
+    def _blocks(self) -> list[tuple[int, int, int]]:
+        """The native frame loops' blocks, as the gateways map them (id, memfd, bytes)."""
+        return [w.block_share for w in self.sims.workers if hasattr(w, "block_share")]
 
     async def _listen(self, port: int | None, **extra: Any) -> Server:
         where = {} if port is None else {"host": self.host, "port": port}
@@ -344,6 +355,8 @@ class GameServer:
         for srv in (self._gateways, self._server):
             if srv is not None:
                 srv.close(close_connections=True)
+        if self._control is not None:
+            await self._control.stop()
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

@@ -29,6 +29,7 @@ from websockets.exceptions import ConnectionClosed
 from ..game.net.fastpath import try_send_binary
 from ..game.wire import protocol as P
 from .limits import DEFAULT, Limits
+from .shared.bucket import TokenBucket
 
 if TYPE_CHECKING:
     from .room import Room
@@ -36,22 +37,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("clothball.server")
 
 CLOSE_WAIT_S = 2.0  # a dropped client's closing handshake gets this long
-
-
-class TokenBucket:
-    def __init__(self, rate: float, burst: float) -> None:
-        self.rate, self.burst = rate, burst
-        self.tokens = burst
-        self.t = time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
-        self.t = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
 
 
 def client_address(peer: str, forwarded_for: str | None,
@@ -101,6 +86,9 @@ class Conn:
         self.name = "guest"
         self.want_mesh = True
         self.corner_interval = 0.0  # s between CORNER messages (client's corner_rate)
+        # Its gateway serves seated players' lanes; one is open (server.shared.lanes).
+        self.lanes = bool(getattr(ws, "lanes", False))
+        self.lane = False
         self.hello_done = False
         self.closed = False
         self._control: collections.deque[str] = collections.deque()

@@ -20,6 +20,7 @@ import logging
 import math
 import os
 import queue
+import secrets
 import struct
 import threading
 from typing import Any
@@ -167,6 +168,9 @@ class NativeWorker:
         self.mesh_every, self.track_every = sample.mesh_every, sample.track_every
         self._loop = _native.FrameLoop(self.batch.native_engine, loop_config(self, sample))
         block = np.frombuffer(self._loop.block(), dtype=np.uint8)
+        # The block as a gateway maps it (server.shared.lanes: id, memfd, bytes).
+        self.block_id = secrets.randbits(48)  # not reused by a restarted engine
+        self.block_share = (self.block_id, self._loop.block_fd(), block.size)
         head = LAYOUT["header_bytes"]
         rooms = self.batch.capacity
         self.rooms_view = block[head:head + rooms * LAYOUT["room_bytes"]].view(ROOM_DTYPE)
@@ -262,9 +266,8 @@ class NativeWorker:
         room.slot = slot
         self._by_slot[slot] = room
         room.stats = NativeStats(self, room)
-        for seat, hip in enumerate(room._hip_slots):
-            if hip is not None:
-                self.set_hip(room, seat, hip)
+        for seat, hip in enumerate(room._hip_slots):  # and each seat's occupant
+            self.set_hip(room, seat, hip)
 
     def remove(self, room: RoomSim) -> None:
         slot = room.slot

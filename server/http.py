@@ -52,11 +52,12 @@ from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
 from ..game.wire.protocol import ProtocolError, check_text
-from .conn import Conn, TokenBucket, client_address
+from .conn import Conn, client_address
 from .limits import Limits
 from .lobby import Lobby
 from .metrics import CONTENT_TYPE as METRICS_TYPE
 from .metrics import exposition, registry_for
+from .shared.bucket import TokenBucket
 from .storage.index import IndexUnavailable, ReplayIndex
 
 log = logging.getLogger("clothball.server")

@@ -26,6 +26,10 @@ PREFIX = "clothball_"
 COUNTERS = {
     "messages_in": ("messages_in", "websocket messages received"),
     "messages_out": ("messages_out", "websocket messages sent"),
+    "lane_messages_in": ("lane_messages_in",
+                         "of messages_in, the HIPs the gateways wrote into the block"),
+    "lane_messages_out": ("lane_messages_out",
+                          "of messages_out, the CORNERs the gateways sent from the block"),
     "bad_messages": ("bad_messages", "websocket messages refused as malformed"),
     "rounds_saved": ("rounds_saved", "rounds recorded and indexed"),
     "rounds_not_saved": ("rounds_not_saved", "rounds that could not be recorded"),

@@ -23,6 +23,8 @@ from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from ..game.wire.replay import REPLAY_VERSION, new_round_id
+from .limits import Limits
+from .shared.lanes import Lane, lane_message
 from .sim import FrameResult, RoomSim, SimPool
 from .storage.recorder import Recording
 
@@ -48,6 +50,12 @@ class Peer(Protocol):
 
     def send_json(self, msg: dict[str, Any]) -> None: ...
     corner_due: float  # server time its next CORNER may be sent
+    corner_interval: float  # s between its CORNER messages
+    # Its gateway serves seated players' lanes (server.shared.lanes), and one is open:
+    # the gateway sends its CORNERs, from the block.
+    lanes: bool
+    lane: bool
+    limits: Limits
 
     def offer_corner(self, data: bytes, server_time: float) -> None: ...
     def offer_mesh(self, data: bytes) -> None: ...
@@ -204,7 +212,8 @@ class Room:
         """The native frame loop wakes this room at its fastest player's CORNER rate
         (``corner_rate``), else at ``IDLE_CORNER_INTERVAL`` (the room's frame for its
         events; exits and failures wake it at once)."""
-        rates = [s.conn.corner_interval for s in self.seats if s.conn is not None]
+        rates = [s.conn.corner_interval for s in self.seats
+                 if s.conn is not None and not s.conn.lane]
         self.sim.corner_interval = min(rates) if rates else IDLE_CORNER_INTERVAL
 
     async def close(self) -> None:
@@ -365,10 +374,22 @@ class Room:
         seat.conn = conn
         conn.room, conn.seat, conn.role = self, seat.index, "player"
         self.last_active = self.loop.time()
+        place = self.sim.lane_place(seat.index) if conn.lanes else None
+        if place is not None:  # its gateway takes its HIPs and sends its CORNERs
+            block, slot, occupant = place
+            conn.lane = True
+            conn.send_json(lane_message(Lane(
+                self.id, block, slot, seat.index, occupant, self._reach_lo[seat.index],
+                self._reach_hi[seat.index], conn.corner_interval, conn.limits.binary_rate,
+                conn.limits.binary_burst)))
 
     def _detach(self, seat: Seat) -> None:
-        if seat.conn is not None:
-            seat.conn.room, seat.conn.seat, seat.conn.role = None, None, "lobby"
+        conn = seat.conn
+        if conn is not None:
+            conn.room, conn.seat, conn.role = None, None, "lobby"
+            if conn.lane:
+                conn.lane = False
+                conn.send_json(lane_message(None))
         seat.conn = None
         self.sim.set_hip(seat.index, None)
 
@@ -621,10 +642,12 @@ class Room:
             self.frame, self.server_time = result.frame, result.server_time
             for s in self.seats:
                 corner = result.corners[s.index]
-                if s.conn is not None and corner is not None:
+                if s.conn is not None and corner is not None and not s.conn.lane:
                     s.conn.offer_corner(corner, result.server_time)
-            # The native loop wakes the room again when its first player's next CORNER is due.
-            dues = [s.conn.corner_due for s in self.seats if s.conn is not None]
+            # The native loop wakes the room again when its first player's next CORNER is due
+            # (one whose gateway does not send them).
+            dues = [s.conn.corner_due for s in self.seats
+                    if s.conn is not None and not s.conn.lane]
             self.sim.corner_due = min(dues) if dues else -math.inf
         if result.mesh is not None:
             self._fan_out_mesh(result.mesh, self.conns(), 0)

@@ -27,6 +27,7 @@ sleeps (``set_awake(False)``): its slot keeps its state and is not stepped.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import logging
 import math
@@ -49,6 +50,8 @@ from ..game.wire import protocol as P
 from .frameloop import NativeWorker, frame_loop_wanted
 from .frames import FrameResult, Samples
 from .storage.recorder import Recording
+
+_OCCUPANTS = itertools.count(1)  # RoomSim._occupant's numbers
 
 log = logging.getLogger("clothball.server")
 
@@ -105,11 +108,13 @@ class RoomSim:
         self._deliver = deliver
         self._hip_slots: list[tuple[Any, int, float, int] | None] = [None] * 4
         self._applied: list[tuple[int, float]] = [(0, math.nan)] * 4
-        # Per seat, how many times its hand was cleared (an occupant left): a CORNER made
-        # from an earlier occupant's HIP is not given to the next one (docs/protocol.md:
-        # `seq` is the last HIP the server applied for this seat).
-        self._occupant = [0] * 4
-        self._applied_occupant = [0] * 4
+        # Per seat, its occupant: a number new each time its hand is cleared (an occupant
+        # left), unique in the process, so that a CORNER made from an earlier occupant's
+        # HIP is not given to the next one (docs/protocol.md: `seq` is the last HIP the
+        # server applied for this seat), and a HIP a gateway writes late for an occupant
+        # that left, or for a room that left its slot, is ignored (native/loop/block.hpp).
+        self._occupant = [next(_OCCUPANTS) for _ in range(4)]
+        self._applied_occupant = list(self._occupant)
         self._awake = True
         self._stopped = threading.Event()
         self.stats: Any = SimStats()  # a NativeStats on the native loop (same fields)
@@ -191,12 +196,20 @@ class RoomSim:
         the corner rests at its anchor, and the seat's occupant changed: its HIP echo
         starts again from seq 0)."""
         if position is None:
-            self._occupant[seat] += 1
+            self._occupant[seat] = next(_OCCUPANTS)
             self._hip_slots[seat] = None
         else:
             self._hip_slots[seat] = (position, seq, client_time, self._occupant[seat])
         if self._native:
             self.worker.set_hip(self, seat, self._hip_slots[seat])
+
+    def lane_place(self, seat: int) -> tuple[int, int, int] | None:
+        """Where a gateway writes this seat's hand and reads its CORNER (block id, slot,
+        the seat's occupant: ``server.shared.lanes``); None where the room is not in a
+        native frame loop's block."""
+        if not self._native or self.slot is None:
+            return None
+        return self.worker.block_id, self.slot, self._occupant[seat]
 
     def hip_echo(self, seat: int) -> tuple[int, float]:
         """The (seq, client time) of the seat's HIP the newest frame applied (0, NaN: none

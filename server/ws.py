@@ -61,6 +61,7 @@ class Connection(BinaryHook, ServerConnection):
     # it is the connection's remote address, so limits and logs name the client.
     _line: bytearray | None = None
     _peer: tuple[str, int] | None = None
+    lanes = False  # the gateway serves this client's lane (server.shared.lanes)
 
     def connection_made(self, transport: Any) -> None:
         super().connection_made(transport)
@@ -79,6 +80,7 @@ class Connection(BinaryHook, ServerConnection):
             return
         try:
             self._peer = proxyline.decode(bytes(line))
+            self.lanes = proxyline.lanes(bytes(line))
         except proxyline.BadLine as e:
             log.warning("gateway connection refused: %s", e)
             self.transport.abort()

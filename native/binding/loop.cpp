@@ -59,6 +59,51 @@ py::dict layout() {
   return d;
 }
 
+// Another process's view of a loop's block (a gateway's: the memfd mapped with mmap): the
+// seats' hands in, the CORNER messages out, each under its lock (block.hpp).
+class BlockView {
+ public:
+  explicit BlockView(py::buffer buf)
+      : info_(std::make_unique<py::buffer_info>(buf.request(true))) {
+    const py::buffer_info& info = *info_;
+    if (info.ndim != 1 || info.itemsize != 1)
+      throw py::value_error("a frame loop block: expected a writable byte buffer");
+    const auto size = std::size_t(info.size);
+    if (size < sizeof(lp::Header))
+      throw py::value_error("a frame loop block: shorter than its header");
+    base_ = static_cast<unsigned char*>(info.ptr);
+    const auto* h = reinterpret_cast<const lp::Header*>(base_);
+    if (h->magic != lp::kBlockMagic || h->version != lp::kBlockVersion ||
+        h->room_bytes != sizeof(lp::RoomRecord) || h->total_bytes > size)
+      throw py::value_error("not a frame loop block of this build (magic, version or size)");
+    rooms_ = int(h->rooms);
+    records_ = reinterpret_cast<lp::RoomRecord*>(base_ + h->rooms_offset);
+  }
+  int rooms() const { return rooms_; }
+  bool write_hip(int slot, int seat, std::uint64_t occupant, double x, double y, double z,
+                 std::uint64_t seq, double time) {
+    const double p[3] = {x, y, z};
+    return lp::write_hand(at(slot, seat), seat, occupant, p, seq, time);
+  }
+  py::tuple read_corner(int slot, int seat) {
+    std::uint8_t msg[lp::kCornerBytes];
+    const std::int64_t frame = lp::read_corner(at(slot, seat), seat, msg);
+    return py::make_tuple(frame, py::bytes(reinterpret_cast<const char*>(msg), lp::kCornerBytes));
+  }
+
+ private:
+  lp::RoomRecord& at(int slot, int seat) {
+    if (slot < 0 || slot >= rooms_) throw py::index_error("slot out of range");
+    if (seat < 0 || seat >= lp::kSeats) throw py::index_error("seat out of range");
+    return records_[slot];
+  }
+  // Held while the view lives: the mapping cannot be closed under it (BufferError).
+  std::unique_ptr<py::buffer_info> info_;
+  unsigned char* base_ = nullptr;
+  lp::RoomRecord* records_ = nullptr;
+  int rooms_ = 0;
+};
+
 class Loop {
  public:
   Loop(BatchEngine& engine, lp::LoopConfig cfg) : engine_(engine) {
@@ -217,6 +262,13 @@ void bind_loop(py::module_& m) {
       .def("block_fd", &Loop::block_fd)
       .def("cpu_seconds", &Loop::cpu_seconds);
   m.def("frame_block_layout", &layout);
+  py::class_<BlockView>(m, "BlockView")
+      .def(py::init<py::buffer>(), py::arg("block"))
+      .def_property_readonly("rooms", &BlockView::rooms)
+      .def("write_hip", &BlockView::write_hip, py::arg("slot"), py::arg("seat"),
+           py::arg("occupant"), py::arg("x"), py::arg("y"), py::arg("z"), py::arg("seq"),
+           py::arg("time"))
+      .def("read_corner", &BlockView::read_corner, py::arg("slot"), py::arg("seat"));
   // The loop's CORNER encoder (corner_msg.hpp), for the test against the Python one.
   m.def("encode_corners",
         [](std::int64_t frame, double server_time, Array pos, Array vel, Array force,

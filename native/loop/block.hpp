@@ -18,7 +18,7 @@
 namespace cb::loop {
 
 constexpr std::uint64_t kBlockMagic = 0x314B4C42544F4C43ULL;  // "CLOTBLK1", little-endian
-constexpr std::uint32_t kBlockVersion = 2;  // 2: corner_msg
+constexpr std::uint32_t kBlockVersion = 3;  // 2: corner_msg; 3: seat_occupant, lane access
 constexpr int kSeats = 4;
 constexpr int kTrackRing = 64;           // TRACK samples a room keeps (0.64 s at 100 Hz)
 constexpr int kLatenessRing = 100000;    // the engine's newest lateness samples (s)
@@ -54,7 +54,11 @@ struct alignas(64) RoomRecord {
   std::uint32_t hip_has[kSeats];       // 1: the seat has a hand, 0: its corner rests at anchor
   std::uint64_t hip_seq[kSeats];       // that HIP's seq
   double hip_time[kSeats];             // and client time
-  std::uint64_t hip_occupant[kSeats];  // the seat's occupant count the hand belongs to
+  std::uint64_t hip_occupant[kSeats];  // the occupant the hand belongs to
+  // The seat's occupant now (written by the engine only; numbers are unique in an engine):
+  // the loop applies a hand only where hip_occupant is it, so a hand written late by a
+  // gateway for an occupant that has left (or for a room that left the slot) is ignored.
+  std::uint64_t seat_occupant[kSeats];
   double hip_pos[kSeats][3];           // m
   std::uint32_t used;                  // 1: a room is on this slot
   std::uint32_t awake;                 // 1: stepped (0: sleeps, keeps its state)
@@ -119,6 +123,68 @@ inline void store(T& x, T v) {
 }
 inline void fence() { __atomic_thread_fence(__ATOMIC_SEQ_CST); }
 
+// A seat's hand lock: a sequence lock (odd while written) taken with a compare-and-swap,
+// since two processes may write one seat (the engine when the seat changes hands, a gateway
+// with its player's HIPs). A process killed while holding it must not stop the others: an
+// odd value that stays for kLockSpins reads is taken as its writer's death and released
+// (a writer merely descheduled that long loses one hand to a torn read at worst).
+constexpr int kLockSpins = 1 << 20;
+inline std::uint32_t lock_hand(RoomRecord& r, int seat) {
+  std::uint32_t stuck = 0;
+  int spins = 0;
+  for (;;) {
+    std::uint32_t v = load(r.hip_lock[seat]);
+    if (v & 1u) {
+      if (v != stuck) {
+        stuck = v;
+        spins = 0;
+      } else if (++spins >= kLockSpins) {
+        __atomic_compare_exchange_n(&r.hip_lock[seat], &v, v + 1, false, __ATOMIC_ACQ_REL,
+                                    __ATOMIC_RELAXED);
+        spins = 0;
+      }
+      continue;
+    }
+    if (__atomic_compare_exchange_n(&r.hip_lock[seat], &v, v + 1, false, __ATOMIC_ACQUIRE,
+                                    __ATOMIC_RELAXED))
+      return v;
+  }
+}
+inline void unlock_hand(RoomRecord& r, int seat, std::uint32_t v) {
+  store(r.hip_lock[seat], v + 2);
+}
+
+// A hand for `seat` (pos: 3 doubles), written only while `occupant` holds the seat (a
+// gateway's HIP; the engine changes seat_occupant when the seat changes hands). False:
+// the occupant no longer holds it, nothing written.
+inline bool write_hand(RoomRecord& r, int seat, std::uint64_t occupant, const double* pos,
+                       std::uint64_t seq, double time) {
+  const std::uint32_t v = lock_hand(r, seat);
+  const bool held = r.seat_occupant[seat] == occupant;
+  if (held) {
+    for (int d = 0; d < 3; ++d) r.hip_pos[seat][d] = pos[d];
+    r.hip_seq[seat] = seq;
+    r.hip_time[seat] = time;
+    r.hip_occupant[seat] = occupant;
+    r.hip_has[seat] = 1;
+  }
+  unlock_hand(r, seat, v);
+  return held;
+}
+
+// The seat's CORNER message of the newest frame and that frame (a consistent pair, read
+// under out_lock): what a gateway sends its player.
+inline std::int64_t read_corner(const RoomRecord& r, int seat, std::uint8_t* out) {
+  for (;;) {
+    const std::uint32_t v0 = load(r.out_lock);
+    if (v0 & 1u) continue;
+    const std::int64_t frame = r.frame;
+    for (int b = 0; b < kCornerBytes; ++b) out[b] = r.corner_msg[seat][b];
+    fence();
+    if (load(r.out_lock) == v0) return frame;
+  }
+}
+
 // One field of a record for the Python side's structured view: name, byte offset, NumPy
 // type code, element count (1: a scalar, else a flat array; shape in the doc).
 struct Field {
@@ -137,6 +203,7 @@ inline const Field* room_fields(int* count) {
       CB_FIELD(RoomRecord, hip_seq, "u8", 4, 4, 0),
       CB_FIELD(RoomRecord, hip_time, "f8", 4, 4, 0),
       CB_FIELD(RoomRecord, hip_occupant, "u8", 4, 4, 0),
+      CB_FIELD(RoomRecord, seat_occupant, "u8", 4, 4, 0),
       CB_FIELD(RoomRecord, hip_pos, "f8", 12, 4, 3),
       CB_FIELD(RoomRecord, used, "u4", 1, 0, 0),
       CB_FIELD(RoomRecord, awake, "u4", 1, 0, 0),

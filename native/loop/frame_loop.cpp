@@ -176,26 +176,23 @@ void FrameLoop::set_awake(int slot, bool awake) {
 void FrameLoop::set_hip(int slot, int seat, const double* pos, std::uint64_t seq, double time,
                         std::uint64_t occupant) {
   RoomRecord& r = rooms_[slot];
-  // One writer per seat (the room's event loop): a sequence lock, odd while writing.
-  const std::uint32_t v = load(r.hip_lock[seat]);
-  store(r.hip_lock[seat], v + 1);
-  fence();
+  const std::uint32_t v = lock_hand(r, seat);
   for (int d = 0; d < 3; ++d) r.hip_pos[seat][d] = pos[d];
   r.hip_seq[seat] = seq;
   r.hip_time[seat] = time;
   r.hip_occupant[seat] = occupant;
+  r.seat_occupant[seat] = occupant;
   r.hip_has[seat] = 1;
-  store(r.hip_lock[seat], v + 2);
+  unlock_hand(r, seat, v);
 }
 
 void FrameLoop::clear_hip(int slot, int seat, std::uint64_t occupant) {
   RoomRecord& r = rooms_[slot];
-  const std::uint32_t v = load(r.hip_lock[seat]);
-  store(r.hip_lock[seat], v + 1);
-  fence();
+  const std::uint32_t v = lock_hand(r, seat);
   r.hip_has[seat] = 0;
   r.hip_occupant[seat] = occupant;
-  store(r.hip_lock[seat], v + 2);
+  r.seat_occupant[seat] = occupant;
+  unlock_hand(r, seat, v);
 }
 
 void FrameLoop::set_armed(int slot, bool armed) {
@@ -357,16 +354,20 @@ void FrameLoop::run() {
       RoomRecord& r = rooms_[s];
       double* h = hips_.data() + 12 * size_t(s);
       for (int seat = 0; seat < kSeats; ++seat) {
-        for (;;) {
+        for (int spins = 0;; ++spins) {
           const std::uint32_t v0 = load(r.hip_lock[seat]);
-          if (v0 & 1u) continue;
-          const bool has = r.hip_has[seat] != 0;
+          // A lock held this long: its writer died (lock_hand); this pass, no hand.
+          const bool dead = (v0 & 1u) && spins >= kLockSpins;
+          if ((v0 & 1u) && !dead) continue;
+          // (a hand written for an occupant that has left the seat: none)
+          const bool has = !dead && r.hip_has[seat] != 0 &&
+                           r.hip_occupant[seat] == r.seat_occupant[seat];
           for (int d = 0; d < 3; ++d) h[3 * seat + d] = has ? r.hip_pos[seat][d] : cfg_.anchors[3 * seat + d];
           const std::uint64_t seq = has ? r.hip_seq[seat] : 0;
           const double t = has ? r.hip_time[seat] : kNaN;
-          const std::uint64_t occ = r.hip_occupant[seat];
+          const std::uint64_t occ = has ? r.hip_occupant[seat] : r.seat_occupant[seat];
           fence();
-          if (load(r.hip_lock[seat]) != v0) continue;
+          if (!dead && load(r.hip_lock[seat]) != v0) continue;
           r.applied_seq[seat] = seq;  // published below, under out_lock
           r.applied_time[seat] = t;
           r.applied_occupant[seat] = occ;

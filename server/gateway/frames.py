@@ -10,17 +10,25 @@ order the engine writes them, ``game.wire.protocol.encode_json``): a ``joined`` 
 client in its ``room``, a ``left`` or an ``error`` ``room_stopped`` takes it out. The
 room's frame and server time come from the header of its binary messages (CORNER, MESH:
 ``seq`` is the frame mod 2^32, then the time) and from its events. Only a message's first
-bytes are looked at, never parsed whole."""
+bytes are looked at, never parsed whole.
+
+The engine's lane messages (``server.shared.lanes``: small text messages that open and
+close a seated player's lane in this gateway) are taken out of the stream: a small text
+frame is held until it is whole, then passed on, or handed to ``on_lane`` and dropped."""
 
 from __future__ import annotations
 
 import json
 import re
 import struct
+from collections.abc import Callable
+
+from ..shared.lanes import LANE_PREFIX
 
 HEAD_MAX = 1 << 16  # an HTTP answer's head longer than this is not followed further
 OP_TEXT, OP_BINARY, OP_CLOSE = 0x1, 0x2, 0x8
 PEEK = 256  # bytes of a text message's start kept: the fields read are among the first
+HOLD = 2048  # a whole text frame up to this long is held until complete (a lane message?)
 BINARY_HEAD = struct.Struct("<BBHId")  # docs/protocol.md's 16-byte header: type .. time
 _JOINED = re.compile(rb'\{"type":"joined","room":("(?:[^"\\]|\\.)*")')
 _EVENT = re.compile(rb'\{"type":"event","event":"[a-z_]+","room":"(?:[^"\\]|\\.)*",'
@@ -31,7 +39,8 @@ _OUT = (b'{"type":"left"', b'{"type":"error","code":"room_stopped"')
 class ServerFrames:
     """Follows one server-to-client stream, fed each chunk as it goes out."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_lane: Callable[[bytes], None] | None = None) -> None:
+        self.on_lane = on_lane  # given each lane message's payload (else they pass on)
         self._head = bytearray()
         self.websocket = False  # the server answered 101: frames follow
         self.given_up = False  # not a websocket stream (an HTTP answer): not followed
@@ -46,18 +55,26 @@ class ServerFrames:
         # The room's frame and server time, as last seen (-1: none seen yet in this room).
         self.frame, self.time = -1, 0.0
 
-    def feed(self, data: bytes) -> None:
+    def feed(self, data: bytes) -> bytes:
+        """Follow ``data``; what of it goes on to the client (all of it but lane messages,
+        and the start of a small text frame not yet whole, which a later call gives)."""
         if self.given_up or self.closed:
-            return
+            return data
         if not self.websocket:
             self._head += data
             end = self._head.find(b"\r\n\r\n")
             if end < 0:
                 self.given_up = len(self._head) > HEAD_MAX
-                return
+                return data
             self.websocket = self._head.startswith((b"HTTP/1.1 101", b"HTTP/1.0 101"))
             self.given_up = not self.websocket
-            data, self._head = bytes(self._head[end + 4:]), bytearray()
+            rest, self._head = bytes(self._head[end + 4:]), bytearray()
+            head = data[:len(data) - len(rest)]
+            return head + self._frames(rest) if self.websocket else data
+        return self._frames(data)
+
+    def _frames(self, data: bytes) -> bytes:
+        out = bytearray()
         buf, i = self._partial + data, 0
         while True:
             if self._skip:
@@ -65,6 +82,7 @@ class ServerFrames:
                 if self._peek is not None:
                     self._peek += buf[i:i + min(take, self._peek_left)]
                     self._peek_left -= min(take, self._peek_left)
+                out += buf[i:i + take]
                 self._skip -= take
                 i += take
                 if self._peek is not None and (not self._peek_left or not self._skip):
@@ -83,10 +101,23 @@ class ServerFrames:
             if n >= 126:
                 n = int.from_bytes(buf[i + 2:i + (4 if n == 126 else 10)], "big")
             op = b0 & 0x0F
+            if op == OP_TEXT and b0 & 0x80 and not self._fragmented and 0 < n <= HOLD:
+                if len(buf) - i < hl + n:
+                    break  # held (in _partial) until whole
+                payload = bytes(buf[i + hl:i + hl + n])
+                if self.on_lane is not None and payload.startswith(LANE_PREFIX):
+                    self.on_lane(payload)
+                else:
+                    self._peek_binary = False
+                    self._seen(payload[:PEEK])
+                    out += buf[i:i + hl + n]
+                i += hl + n
+                continue
             if op == OP_CLOSE:
                 self.closed = True
             elif op < 0x8:  # a data frame (continuation, text, binary): FIN ends a message
                 self._fragmented = not b0 & 0x80
+            out += buf[i:i + hl]
             i += hl
             self._skip = n
             if (op == OP_TEXT and n) or (op == OP_BINARY and n >= BINARY_HEAD.size):
@@ -94,6 +125,7 @@ class ServerFrames:
                 self._peek = bytearray()
                 self._peek_left = BINARY_HEAD.size if self._peek_binary else min(n, PEEK)
         self._partial = bytes(buf[i:])
+        return bytes(out)
 
     def _seen(self, start: bytes) -> None:
         """A message's first bytes: where the client is."""

@@ -29,7 +29,9 @@ from pathlib import Path
 from typing import Any
 
 from ..shared import proxyline
+from ..shared.lanes import ctl_path, parse_lane
 from .frames import ServerFrames, close_frame, text_frame
+from .lanes import WRITE_SKIP, ClientFrames, Lane, Lanes, lanes_wanted
 
 CHUNK = 1 << 16  # bytes read at a time, each way
 WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
@@ -46,6 +48,8 @@ class Gateway:
     def __init__(self, host: str, port: int, engine: Path) -> None:
         self.host, self.port, self.engine = host, port, engine
         self.server: asyncio.Server | None = None
+        # Seated players' HIPs and CORNERs served here (server.gateway.lanes), unless off.
+        self.lanes = Lanes(ctl_path(engine)) if lanes_wanted() else None
         self._open: set[asyncio.BaseTransport] = set()  # both sides of every relay
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -53,6 +57,8 @@ class Gateway:
         loop = asyncio.get_running_loop()
         self.server = await loop.create_server(
             lambda: _Client(self), self.host, self.port, reuse_port=True, backlog=1024)
+        if self.lanes is not None:
+            self.lanes.start()
 
     async def stop(self) -> None:
         """Stop accepting and cut every relayed connection (both sides)."""
@@ -61,6 +67,8 @@ class Gateway:
         for transport in list(self._open):
             transport.abort()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self.lanes is not None:
+            await self.lanes.stop()
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.get_running_loop().create_task(coro)
@@ -96,6 +104,9 @@ class _Client(asyncio.Protocol):
         self.early: bytearray | None = bytearray()  # read before the engine answered
         self.head = asyncio.Event()  # a request's head is in ``early`` (or the client ended)
         self.eof = False
+        self.frames: ClientFrames | None = None  # its websocket frames, once upgraded
+        self.lane: Lane | None = None  # its open lane (server.shared.lanes)
+        self.pending: bytes | None = None  # a CORNER waiting for a message boundary
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -123,7 +134,8 @@ class _Client(asyncio.Protocol):
         self.engine = engine
         early, self.early = self.early or b"", None
         engine.t.write(proxyline.encode(self.t.get_extra_info("peername"),
-                                        self.t.get_extra_info("sockname")) + early)
+                                        self.t.get_extra_info("sockname"),
+                                        lanes=self.gw.lanes is not None) + early)
         if self.eof and engine.t.can_write_eof():
             engine.t.write_eof()
         self.t.resume_reading()
@@ -131,7 +143,12 @@ class _Client(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         if self.engine is not None:
             assert self.engine.t is not None
-            self.engine.t.write(data)
+            if self.frames is None and self.gw.lanes is not None and self.engine.frames.websocket:
+                self.frames = ClientFrames(self._take)  # the handshake is done: frames follow
+            if self.frames is not None:
+                data = self.frames.feed(data)
+            if data:
+                self.engine.t.write(data)
         elif self.early is not None:
             self.early += data
             if b"\r\n\r\n" in self.early:
@@ -139,6 +156,38 @@ class _Client(asyncio.Protocol):
             if len(self.early) >= CHUNK:  # no engine yet: read no more until it answers
                 assert self.t is not None
                 self.t.pause_reading()
+
+    # --- its lane ---------------------------------------------------------------------------
+    def _take(self, payload: bytes) -> bool:
+        return self.lane is not None and self.lane.take(payload)
+
+    def on_lane(self, payload: bytes) -> None:
+        """The engine opened (or closed) this client's lane."""
+        if self.lane is not None:
+            self.lane.close()
+            self.lane = None
+        lane = parse_lane(payload)
+        if lane is not None and self.gw.lanes is not None and self.engine is not None:
+            frames = self.engine.frames
+            self.lane = Lane(lane, self.gw.lanes, self.write_corner, lambda: frames.room)
+
+    def write_corner(self, msg: bytes) -> None:
+        """A CORNER to the client, between two of the engine's messages (else held until
+        the engine's stream is between two), unless the client is behind on reading."""
+        t = self.t
+        if t is None or t.is_closing() or t.get_write_buffer_size() > WRITE_SKIP:
+            return
+        if self.engine is not None and self.engine.frames.between_messages():
+            t.write(msg)
+            assert self.gw.lanes is not None
+            self.gw.lanes.counts["messages_out"] += 1
+        else:
+            self.pending = msg
+
+    def flush_pending(self) -> None:
+        msg, self.pending = self.pending, None
+        if msg is not None:
+            self.write_corner(msg)
 
     def eof_received(self) -> bool:
         self.eof = True
@@ -158,6 +207,9 @@ class _Client(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.head.set()
+        if self.lane is not None:
+            self.lane.close()
+            self.lane = None
         if self.t is not None:
             self.gw._open.discard(self.t)
         if self.engine is not None and self.engine.t is not None:
@@ -197,7 +249,7 @@ class _Engine(asyncio.Protocol):
     def __init__(self, client: _Client) -> None:
         self.client = client
         self.t: asyncio.Transport | None = None
-        self.frames = ServerFrames()
+        self.frames = ServerFrames(on_lane=client.on_lane)
         self.ended = False  # the engine's stream ended
         self.done = False  # and what follows it was written to the client
 
@@ -208,10 +260,13 @@ class _Engine(asyncio.Protocol):
         self.client.gw._open.add(transport)
 
     def data_received(self, data: bytes) -> None:
-        self.frames.feed(data)
+        data = self.frames.feed(data)  # lane messages taken out
         ct = self.client.t
         if ct is not None and not ct.is_closing():
-            ct.write(data)
+            if data:
+                ct.write(data)
+            if self.client.pending is not None and self.frames.between_messages():
+                self.client.flush_pending()
 
     def eof_received(self) -> bool:
         self._end()

@@ -254,3 +254,64 @@ def test_a_loop_that_cannot_keep_up_still_lets_rooms_in_and_out_and_stops() -> N
                          timeout=60, env={**os.environ, "OMP_NUM_THREADS": "1",
                                            frameloop.FRAME_LOOP_ENV: "native"})
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stdout + out.stderr
+
+
+def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() -> None:
+    """Another process's view of the block (``_native.BlockView`` over the memfd mapped
+    anew, as a gateway maps it: server.shared.lanes): a hand written for the seat's
+    occupant is applied and echoed, and its CORNER read there is the one the loop
+    published; a hand for an occupant that has left is refused, and one that lands anyway
+    (written as the seat changed hands) is ignored by the loop."""
+    import mmap
+
+    async def main() -> None:
+        got: list = []
+        pool = SimPool()
+        sim = RoomSim(TINY, "cpu", pool=pool, deliver=got.append)
+        try:
+            sim.start()
+            block_id, slot, occupant = sim.lane_place(2)
+            _, fd, size = sim.worker.block_share
+            assert block_id == sim.worker.block_id
+            with open(f"/proc/self/fd/{fd}", "r+b") as f:
+                view = _native.BlockView(mmap.mmap(f.fileno(), size))
+            assert view.rooms >= 1
+            hand = sim.anchors[2] + np.array([0.02, 0.04, 0.0])
+            assert view.write_hip(slot, 2, occupant, *hand, 41, 3.5)
+            await until(lambda: view.read_corner(slot, 2)[0] > 100, 10, "frames")
+
+            def corner() -> P.Corner:
+                return P.decode_corner(view.read_corner(slot, 2)[1])
+
+            await until(lambda: corner().hip_seq == 41, 5, "the hand applied")
+            c = corner()
+            assert c.hip_time == 3.5 and c.seat == 2
+            assert np.allclose(c.force, -sim.stiffness * (hand - c.position), atol=1e-3)
+            frame, raw = view.read_corner(slot, 2)
+            assert raw[:1] == bytes([P.CORNER]) and P.decode_corner(raw).frame == frame
+            # The seat changes hands: the old occupant's hand is refused, the corner rests.
+            sim.set_hip(2, None)
+            assert not view.write_hip(slot, 2, occupant, *hand, 42, 4.0)
+            rec = sim.worker.rooms_view
+            # ... and one written as the seat changed hands (the old occupant's, has set)
+            # is not applied.
+            rec["hip_occupant"][slot, 2] = occupant
+            rec["hip_has"][slot, 2] = 1
+            f0 = view.read_corner(slot, 2)[0]
+            await until(lambda: view.read_corner(slot, 2)[0] > f0 + 5, 5, "frames")
+            c = corner()
+            assert c.hip_seq == 0 and math.isnan(c.hip_time)
+            # the new occupant's is
+            _, _, occupant2 = sim.lane_place(2)
+            assert occupant2 != occupant
+            assert view.write_hip(slot, 2, occupant2, *hand, 1, 9.0)
+            await until(lambda: corner().hip_seq == 1, 5, "the new occupant's hand")
+            with pytest.raises(IndexError):
+                view.write_hip(view.rooms, 0, occupant2, 0.0, 0.0, 0.0, 1, 0.0)
+            with pytest.raises(ValueError, match="not a frame loop block"):
+                _native.BlockView(bytearray(4096))
+        finally:
+            sim.stop()
+            pool.close()
+
+    run(main())

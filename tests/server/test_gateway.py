@@ -67,6 +67,69 @@ def test_between_messages_exactly_at_message_boundaries(seed: int, n: int) -> No
         assert frames.between_messages() == (at in ends), at
 
 
+def lane_payload(seat: int | None) -> bytes:
+    from clothball.server.shared.lanes import Lane, lane_message
+    lane = None if seat is None else Lane("main", 1, 0, seat, 7, (0, 0, 0), (1, 1, 1),
+                                          0.008, 500.0, 50.0)
+    return P.encode_json(lane_message(lane)).encode()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32), st.integers(1, 12))
+def test_lane_messages_are_taken_out_and_every_other_byte_passes(seed: int, n: int) -> None:
+    """The engine's lane messages (server.shared.lanes), put between the messages of a
+    stream, reach ``on_lane`` whole and in order and never the client; the rest of the
+    stream passes byte for byte, however it is cut."""
+    rng = random.Random(seed)
+    data, ends = stream(rng, n)
+    lanes = [lane_payload(rng.choice((None, 0, 3))) for _ in range(3)]
+    at = sorted(rng.sample(sorted(ends), min(3, len(ends))))
+    with_lanes, prev = bytearray(), 0
+    for cut, lane in zip(at, lanes, strict=False):
+        with_lanes += data[prev:cut] + Frame(Opcode.TEXT, lane).serialize(mask=False,
+                                                                            extensions=[])
+        prev = cut
+    with_lanes += data[prev:]
+    seen: list[bytes] = []
+    frames, out, i = ServerFrames(on_lane=seen.append), bytearray(), 0
+    while i < len(with_lanes):
+        step = rng.choice((1, 2, 3, 7, 64, 1000, 70000))
+        out += frames.feed(with_lanes[i:i + step])
+        i += step
+    assert bytes(out) == data
+    assert seen == lanes[:len(at)]
+
+
+def test_a_clients_hips_are_offered_whole_and_the_rest_passes() -> None:
+    """A client's stream (masked frames, as websockets' client writes them): each whole
+    HIP-sized binary frame is offered unmasked; one taken is dropped, one refused passes
+    as it came, and every other frame passes byte for byte, however the stream is cut."""
+    from clothball.server.gateway.lanes import ClientFrames
+    rng = random.Random(5)
+    hips = [P.encode_hip((0.1 * k, 1.0, -0.2), k, 0.5 * k) for k in range(1, 41)]
+    frames = []  # a HIP, then a text message, each time
+    for h in hips:
+        frames.append(Frame(Opcode.BINARY, h).serialize(mask=True, extensions=[]))
+        frames.append(Frame(Opcode.TEXT, b'{"type":"ping"}' * rng.randrange(1, 20)).serialize(
+            mask=True, extensions=[]))
+    data = b"".join(frames)
+    # every fifth HIP refused: it passes as it came, as do the text messages
+    passed = b"".join(f for k, f in enumerate(frames) if k % 2 == 1 or (k // 2) % 5 == 4)
+    for cut in (1, 2, 3, 7, 29, 64, 1000):
+        offered: list[bytes] = []
+
+        def take(payload: bytes, offered: list[bytes] = offered) -> bool:
+            offered.append(payload)
+            return (len(offered) - 1) % 5 != 4
+
+        cf, out, i = ClientFrames(take), bytearray(), 0
+        while i < len(data):
+            out += cf.feed(data[i:i + cut])
+            i += cut
+        assert offered == hips, cut
+        assert bytes(out) == passed, cut
+
+
 def test_after_the_close_frame_and_for_plain_http_never() -> None:
     f = ServerFrames()
     f.feed(HEAD + Frame(Opcode.CLOSE, Close(1000, "bye").serialize()).serialize(
@@ -173,6 +236,12 @@ def test_proxy_lines_as_the_protocol_writes_them() -> None:
         b"PROXY TCP6 ::1 ::1 5000 8765\r\n"
     assert proxyline.decode(b"PROXY UNKNOWN\r\n") is None
     assert proxyline.encode(None, None) == b"PROXY UNKNOWN\r\n"
+    # A gateway that serves lanes says so with one more word; the address is the same.
+    line = proxyline.encode(("192.168.0.1", 56324), ("192.168.0.11", 443), lanes=True)
+    assert line == b"PROXY TCP4 192.168.0.1 192.168.0.11 56324 443 LANES\r\n"
+    assert proxyline.decode(line) == ("192.168.0.1", 56324) and proxyline.lanes(line)
+    assert not proxyline.lanes(b"PROXY TCP4 192.168.0.1 192.168.0.11 56324 443\r\n")
+    assert proxyline.decode(proxyline.encode(None, None, lanes=True)) is None
     for bad in (b"GET / HTTP/1.1\r\n", b"PROXY TCP4 1.2.3.4\r\n",
                 b"PROXY TCP4 x 1.2.3.4 1 2\r\n", b"PROXY TCP4 1.2.3.4 1.2.3.4 1 2",
                 b"PROXY " + b"9" * 200 + b"\r\n"):

@@ -58,7 +58,8 @@ def expected(st: dict[str, Any]) -> Samples:
         one("headroom_load", head["load"]),
     ]
     rows += [one(f"{k}_total", st[k]) for k in (
-        "messages_in", "messages_out", "bad_messages", "rounds_saved", "rounds_not_saved",
+        "messages_in", "messages_out", "lane_messages_in", "lane_messages_out",
+        "bad_messages", "rounds_saved", "rounds_not_saved",
         "refused_connections", "rooms_stopped")]
     rows += [one("room_cost_cores", c, scene=s) for s, c in head["room_cost"].items()]
     for rid, r in st["rooms"].items():

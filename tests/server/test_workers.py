@@ -172,6 +172,60 @@ def test_every_room_on_one_port_with_no_redirect_and_host_wide_accounting(tmp_pa
         run(main(h))
 
 
+def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -> None:
+    """A player seated through a gateway has a lane (server.shared.lanes): the gateway
+    writes its HIPs into the seat's hand in the frame loop's block and sends its CORNERs
+    from there, and the host's figures count them; the client sees the protocol as
+    documented (no lane message), and once it leaves, its corner rests and a HIP is
+    refused by the engine as before."""
+    async def main(h: Host) -> None:
+        p = await NetClient.connect(h.url, name="ann", role="player", room="main", seat=2,
+                                    corner_rate=120)
+        hand = np.array(p.reach.centre) + [0.03, -0.02, 0.01]
+        before = await asyncio.to_thread(h.json, "/api/stats")
+        corners0, t0 = p.counts["corner"], time.monotonic()
+        sent = 0
+        while time.monotonic() - t0 < 1.0:
+            await p.send_hip(hand)
+            sent += 1
+            await asyncio.sleep(1 / 120)
+        got = p.counts["corner"] - corners0
+        # A CORNER a frame loop frame at most, at the asked rate (~120 in the second).
+        assert 60 <= got <= 150, got
+        c = p.corner
+        assert c is not None and c.seat == 2 and c.hip_seq > 0
+        # The hand the frame applied is this client's: the force on the device is the
+        # coupling's -K (hand - corner) (float32 on the wire)
+        assert np.allclose(c.force, -c.stiffness * (hand - c.position), rtol=1e-4,
+                           atol=1e-3), (c.force, c.position, hand)
+        assert not [m for m in p.messages if str(m.get("type", "")).startswith("_")]
+        # The gateway reports what it served, in the host's totals (once a second).
+        def lanes_counted() -> bool:
+            s = h.json("/api/stats")
+            return (s["lane_messages_in"] - before["lane_messages_in"] >= sent - 5
+                    and s["lane_messages_out"] - before["lane_messages_out"] >= got - 5
+                    and s["messages_in"] - before["messages_in"] >= sent - 5)
+        await asyncio.to_thread(wait, lanes_counted, "the gateway's counts in /api/stats")
+        # Out of reach: the engine refuses it, as without a lane.
+        await p.send_hip(np.array(p.reach.centre) + [0.0, 5.0, 0.0])
+        err = await p.wait_for(lambda m: m.get("type") == "error", 10)
+        assert err["code"] == "out_of_range", err
+        # Left: no more CORNERs, and a HIP is the engine's to refuse.
+        await p.request("leave")
+        await asyncio.sleep(0.2)
+        n = p.counts["corner"]
+        await p.send_hip(hand)
+        err = await p.wait_for(lambda m: m.get("type") == "error" and m["code"] != "out_of_range",
+                               10)
+        assert err["code"] == "not_allowed", err
+        await asyncio.sleep(0.3)
+        assert p.counts["corner"] == n
+        await p.close()
+
+    with host(tmp_path, 2, "--bots", "3") as h:
+        run(main(h))
+
+
 def test_sigkill_of_the_host_ends_the_engine_and_the_gateways(tmp_path) -> None:
     with host(tmp_path, 3) as h:
         kids = h.children()

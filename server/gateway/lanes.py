@@ -1,0 +1,254 @@
+"""A gateway's side of seated players' lanes (``server.shared.lanes``): it writes a seated
+player's HIPs into the seat's hand in the engine's frame loop block and sends the player
+its CORNER from the block at the client's ``corner_rate``, so that the engine's event loop
+sees neither (the messages of a room: 4 players' HIPs at 120 Hz in, their CORNERs at 120 Hz
+out, against 30 Hz MESH to each spectator and a few control messages).
+
+* ``ClientFrames`` follows a client's websocket frames (masked, RFC 6455) and takes out the
+  HIPs its lane takes; every other byte goes on to the engine unchanged.
+* ``Lanes`` is the gateway's link to the engine's control socket: the blocks (memfds passed
+  over it, mapped here) and the counts reported to the engine for the host's figures.
+* ``Lane`` state of one client: its HIPs (the binary rate of ``server.limits``, the reach
+  box, the occupant: anything the gateway does not take, it passes to the engine, which
+  answers as documented) and its CORNER timer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import os
+import socket
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from ... import _native  # type: ignore[attr-defined]
+from ...game.wire import protocol as P
+from ..shared import lanes
+from ..shared.bucket import TokenBucket
+
+log = logging.getLogger("clothball.gateway")
+
+LANES_ENV = "CLOTHBALL_GATEWAY_LANES"  # "0": the gateway relays every message (A/B runs)
+OP_BINARY = 0x2
+FRAME_S = 0.001  # the frame loop's frame: a lane's fastest CORNER interval
+WRITE_SKIP = 1 << 16  # a client with this much unsent: its CORNER is skipped (a newer comes)
+REPORT_S = 1.0  # counts reported to the engine this often
+RETRY_S = 0.5  # between two requests for the blocks
+CORNER_HEAD = bytes([0x80 | OP_BINARY, P.CORNER_SIZE])  # a server's frame of one CORNER
+assert P.CORNER_SIZE < 126
+
+
+def lanes_wanted() -> bool:
+    return os.environ.get(LANES_ENV, "1").strip() != "0"
+
+
+class ClientFrames:
+    """Follows one client-to-server stream from the first frame after the handshake:
+    ``feed`` returns what goes on to the engine; a whole, unfragmented binary frame of a
+    HIP's size is offered to ``take`` (its unmasked payload) first, and dropped if taken."""
+
+    def __init__(self, take: Callable[[bytes], bool]) -> None:
+        self.take = take
+        self._partial = b""  # a frame header, or a HIP-sized frame, not yet whole
+        self._skip = 0  # payload bytes of a passing frame still to come
+        self._fragmented = False
+
+    def feed(self, data: bytes) -> bytes:
+        out = bytearray()
+        buf, i = self._partial + data if self._partial else data, 0
+        end = len(buf)
+        while i < end:
+            if self._skip:
+                take = min(self._skip, end - i)
+                out += buf[i:i + take]
+                self._skip -= take
+                i += take
+                continue
+            if end - i < 2:
+                break
+            b0, b1 = buf[i], buf[i + 1]
+            n, hl = b1 & 0x7F, 2
+            hl += 2 if n == 126 else 8 if n == 127 else 0
+            masked = b1 & 0x80
+            hl += 4 if masked else 0
+            if end - i < hl:
+                break
+            if n >= 126:
+                n = int.from_bytes(buf[i + 2:i + (4 if n == 126 else 10)], "big")
+            op = b0 & 0x0F
+            if b0 == 0x80 | OP_BINARY and masked and n == P.HIP_SIZE and not self._fragmented:
+                if end - i < hl + n:
+                    break  # held until whole
+                mask = int.from_bytes(buf[i + hl - 4:i + hl] * 7, "little")
+                payload = (int.from_bytes(buf[i + hl:i + hl + n], "little") ^ mask).to_bytes(
+                    n, "little")
+                if not self.take(payload):
+                    out += buf[i:i + hl + n]
+                i += hl + n
+                continue
+            if op < 0x8:  # a data frame: FIN ends its message
+                self._fragmented = not b0 & 0x80
+            out += buf[i:i + hl]
+            i += hl
+            self._skip = n
+        self._partial = bytes(buf[i:])
+        return bytes(out)
+
+
+class Lanes:
+    """The gateway's link to the engine's control socket at ``path``."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.blocks: dict[int, Any] = {}  # id -> _native.BlockView
+        self.counts = {"messages_in": 0, "messages_out": 0}
+        self._sock: socket.socket | None = None
+        self._lock = asyncio.Lock()
+        self._fetching: asyncio.Task[None] | None = None
+        self._fetched_at = -math.inf
+        self._reported: dict[str, int] = {}
+        self._task: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._report_forever())
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        self._drop()
+
+    def block(self, block_id: int) -> Any | None:
+        """The block ``block_id``, else None, and it is asked for (not more than once per
+        ``RETRY_S``): a later call has it. Block ids are random, so a restarted engine's
+        blocks are never taken for its predecessor's."""
+        view = self.blocks.get(block_id)
+        loop = asyncio.get_running_loop()
+        if view is None and (self._fetching is None or self._fetching.done()) \
+                and loop.time() - self._fetched_at > RETRY_S:
+            self._fetched_at = loop.time()
+            self._fetching = loop.create_task(self._fetch())
+        return view
+
+    def _drop(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+        self.blocks = {}  # an engine's blocks die with it (its lanes' clients are closed)
+
+    def _connect(self) -> socket.socket:
+        if self._sock is None:
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.settimeout(5.0)
+            try:
+                s.connect(str(self.path))
+            except OSError:
+                s.close()
+                raise
+            self._sock = s
+        return self._sock
+
+    async def _fetch(self) -> None:
+        async with self._lock:
+            for attempt in range(2):  # a connection to an engine that has gone: a new one
+                try:
+                    maps = await asyncio.to_thread(
+                        lambda: lanes.receive_blocks(self._connect()))
+                    self.blocks = {i: _native.BlockView(m) for i, m in maps.items()}
+                    return
+                except (OSError, ValueError) as e:
+                    self._drop()
+                    if attempt:
+                        log.warning("the engine's blocks could not be had (%s): its "
+                                    "players' messages go through the engine", e)
+
+    async def _report_forever(self) -> None:
+        while True:
+            await asyncio.sleep(REPORT_S)
+            if self.counts == self._reported:
+                continue
+            counts = dict(self.counts)
+            async with self._lock:
+                try:
+                    line = lanes.counts_line(counts)
+                    await asyncio.to_thread(lambda: self._connect().sendall(line))  # noqa: B023
+                    self._reported = counts
+                except OSError:
+                    self._drop()  # the engine is away; a new one is asked when a lane opens
+                    self._reported = {}
+
+
+class Lane:
+    """One client's open lane: ``write`` sends bytes to the client at a message boundary
+    of the engine's stream (``server.gateway.relay``), ``room`` says which room the engine
+    last told the client it is in."""
+
+    def __init__(self, lane: lanes.Lane, links: Lanes, write: Callable[[bytes], None],
+                 room: Callable[[], str | None]) -> None:
+        self.lane, self.links = lane, links
+        self.view = links.block(lane.block)  # None until the block is had (then looked up)
+        self.write, self.room = write, room
+        self.bucket = TokenBucket(lane.binary_rate, lane.binary_burst)
+        self.fast = True  # HIPs taken here (off for good once the client passes its rate)
+        self.sent_frame = -1
+        self._loop = asyncio.get_running_loop()
+        self._due = self._loop.time()
+        self._timer: asyncio.TimerHandle | None = self._loop.call_soon(self._corner)
+
+    def close(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _view(self) -> Any | None:
+        if self.view is None:
+            self.view = self.links.block(self.lane.block)
+        return self.view
+
+    def take(self, payload: bytes) -> bool:
+        """A HIP from the client: written into the seat's hand, else False (the engine
+        has it: a HIP that is not well formed, out of reach, past the rate, or of an
+        occupant that has left the seat)."""
+        if not self.fast or self._view() is None:
+            return False
+        if not self.bucket.take():
+            self.fast = False  # the engine's own limit and errors from here on
+            return False
+        try:
+            hip = P.decode_hip(payload)
+        except P.ProtocolError:
+            return False
+        x, y, z = hip.position
+        lo, hi = self.lane.lo, self.lane.hi
+        if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
+            return False
+        ln = self.lane
+        if not self.view.write_hip(ln.slot, ln.seat, ln.occupant, x, y, z,
+                                   hip.seq & 0xFFFFFFFFFFFFFFFF, hip.time):
+            return False
+        self.links.counts["messages_in"] += 1
+        return True
+
+    def _corner(self) -> None:
+        """The seat's newest CORNER to the client, when a newer frame than the last sent
+        is there; then the next one, an interval after this one was due (as the engine
+        times its own: ``server.conn.Conn.offer_corner``)."""
+        ln = self.lane
+        now = self._loop.time()
+        if self.room() == ln.room and self._view() is not None:
+            frame, msg = self.view.read_corner(ln.slot, ln.seat)
+            if frame < self.sent_frame:  # the slot holds another room now: this lane ended
+                self._timer = None
+                return
+            if frame > self.sent_frame:
+                self.sent_frame = frame
+                self.write(CORNER_HEAD + msg)
+        interval = max(ln.corner_interval, FRAME_S)
+        due = self._due + interval
+        self._due = due if due > now else now + interval
+        self._timer = self._loop.call_at(self._due, self._corner)

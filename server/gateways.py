@@ -1,0 +1,108 @@
+"""The engine's control socket for its gateways (``server.shared.lanes``): a gateway asks it
+for the frame loops' blocks (their memfds, passed over the socket) so that it can serve
+seated players' lanes, and reports on it the messages it handled itself, which the
+engine adds to the host's figures (``/api/stats``, ``/metrics``)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from .shared import lanes
+
+log = logging.getLogger("clothball.server")
+
+COUNTED = ("messages_in", "messages_out")  # what a gateway reports
+
+
+class GatewayControl:
+    """Serves ``path`` (in the engine socket's private directory): ``blocks()`` gives the
+    blocks to pass, (id, memfd, bytes) each; ``stats`` is the host's figures, to which each
+    gateway's reported counts are added as they grow."""
+
+    def __init__(self, path: Path, blocks: Callable[[], list[tuple[int, int, int]]],
+                 stats: dict[str, int]) -> None:
+        self.path, self.blocks, self.stats = path, blocks, stats
+        self._sock: socket.socket | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    async def start(self) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.setblocking(False)
+        sock.bind(str(self.path))
+        os.chmod(self.path, 0o600)
+        sock.listen(64)
+        self._sock = sock
+        self._spawn(self._accept(sock))
+
+    async def stop(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        with contextlib.suppress(OSError):
+            self.path.unlink()
+
+    def _spawn(self, coro: Any) -> None:
+        t = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(t)
+        t.add_done_callback(self._tasks.discard)
+
+    async def _accept(self, sock: socket.socket) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                conn, _ = await loop.sock_accept(sock)
+            except OSError:
+                return  # closed
+            conn.setblocking(False)
+            self._spawn(self._serve(conn))
+
+    async def _serve(self, conn: socket.socket) -> None:
+        """One gateway's connection: its requests and reports, a line each."""
+        loop = asyncio.get_running_loop()
+        seen = dict.fromkeys(COUNTED, 0)
+        buf = b""
+        try:
+            while True:
+                data = await loop.sock_recv(conn, 4096)
+                if not data:
+                    return
+                buf += data
+                if len(buf) > lanes.LINE_MAX:
+                    log.warning("a gateway's control line is too long: connection closed")
+                    return
+                while b"\n" in buf:
+                    line, buf = buf.split(b"\n", 1)
+                    self._line(conn, line, seen)
+        except OSError:
+            return
+        finally:
+            conn.close()
+
+    def _line(self, conn: socket.socket, line: bytes, seen: dict[str, int]) -> None:
+        if line + b"\n" == lanes.BLOCKS:
+            # A few dozen bytes and a few descriptors on a local socket: sent at once.
+            lanes.send_blocks(conn, self.blocks())
+            return
+        try:
+            counts = json.loads(line)["counts"]
+            for k in COUNTED:
+                v = int(counts.get(k, 0))
+                if v > seen[k]:  # in the host's totals, and as the gateways' part of them
+                    self.stats[k] += v - seen[k]
+                    self.stats["lane_" + k] += v - seen[k]
+                    seen[k] = v
+        except (ValueError, KeyError, TypeError, AttributeError):
+            log.warning("a gateway sent a control line that is not one: %.60r", line)
