@@ -1,21 +1,50 @@
 #!/usr/bin/env bash
-# The GPU run of one `clothball host` (issue 33): build with CUDA, then `bench --load` on
-# CUDA, default scene, real client rates, --workers 1 (one process) against --workers W
-# (an engine and W-1 gateways on one port), the same machine in the same run; then the same
-# at 1 kHz corners. Usage (on a GPU machine, websockets etc. carried in .whl/):
-#   OUT=results bash tools/gpu_host.sh        # W (default 16), STEP, MAX, STEP1K, MAX1K, RUN_S
+# The GPU run of one `clothball host` (issue 33): build with CUDA, optionally the server
+# suites on the CUDA engine, then `bench --load` on CUDA, default scene, real client rates:
+# --workers 1 (one process) against --workers W (an engine and W-1 gateways on one port),
+# with the gateways' lanes on and off (CLOTHBALL_GATEWAY_LANES=0: every message relayed to
+# the engine), the same machine in the same run; at 120 Hz corners, then at 1 kHz.
+# Usage (on a GPU machine, websockets etc. carried in .whl/):
+#   OUT=results bash tools/gpu_host.sh
+# Environment: W (default 16), STEP, MAX (120 Hz), STEP1K, MAX1K (1 kHz), RUN_S (each run's
+# limit), RUNS (default "w1 wW wW_off"), RATES (default "120 1000"), TESTS (server test
+# files run first on the CUDA engine, e.g. "tests/server/test_workers.py"), SKIP_BUILD=1
+# (a warm machine that has the build).
 OUT=${OUT:-gpu-results}
-source "$(dirname "$0")/gpu_build.sh"
+if [ "${SKIP_BUILD:-0}" = 1 ]; then
+  mkdir -p "$OUT"
+  export PYTHONUNBUFFERED=1
+  [ -d /tmp/site ] && export PYTHONPATH=/tmp/site
+else
+  source "$(dirname "$0")/gpu_build.sh"
+fi
+root=$PWD
+if [ -n "${TESTS:-}" ]; then
+  cd /tmp  # import the installed package, not the source tree
+  # shellcheck disable=SC2046  # the paths are words
+  OMP_NUM_THREADS=2 CLOTHBALL_TEST_BACKEND=cuda CLOTHBALL_REQUIRE_GPU=1 timeout "${TESTS_S:-240}" \
+    python3 -m pytest -q -p no:cacheprovider -p no:benchmark -n "${TEST_WORKERS:-12}" \
+    -c "$root/setup.cfg" --rootdir "$root" $(for t in $TESTS; do echo "$root/$t"; done) \
+    >"$OUT/server_cuda.txt" 2>&1
+  echo "server suites on CUDA: rc=$? $(tail -1 "$OUT/server_cuda.txt")"
+  cd "$root"
+fi
 load() {  # $1: label; the rest: bench flags
   local label=$1; shift
   timeout "${RUN_S:-110}" python3 -m clothball.game.cli bench --load --server-backend cuda \
     --scene default --load-seconds 5 --steps-past 1 --json "$OUT/load_$label.json" "$@" \
-    2>>"$OUT/bench.err" | tee "$OUT/load_$label.txt" | tail -3
+    2>>"$OUT/bench.err" | tee "$OUT/load_$label.txt" | tail -2
 }
-for w in 1 "${W:-16}"; do
-  load "w$w" --workers "$w" --rooms-step "${STEP:-16}" --load-max-rooms "${MAX:-160}"
-done
-for w in 1 "${W:-16}"; do
-  load "1khz_w$w" --workers "$w" --corner-rate 1000 --rooms-step "${STEP1K:-8}" \
-    --load-max-rooms "${MAX1K:-48}"
+W=${W:-16}
+for rate in ${RATES:-120 1000}; do
+  if [ "$rate" = 120 ]; then flags=(--rooms-step "${STEP:-16}" --load-max-rooms "${MAX:-160}")
+  else flags=(--corner-rate "$rate" --rooms-step "${STEP1K:-8}" --load-max-rooms "${MAX1K:-48}")
+  fi
+  for run in ${RUNS:-w1 wW wW_off}; do
+    case $run in
+      w1) load "${rate}hz_w1" --workers 1 "${flags[@]}" ;;
+      wW) load "${rate}hz_w$W" --workers "$W" "${flags[@]}" ;;
+      wW_off) CLOTHBALL_GATEWAY_LANES=0 load "${rate}hz_w${W}_nolanes" --workers "$W" "${flags[@]}" ;;
+    esac
+  done
 done

@@ -318,7 +318,8 @@ class _Engine(asyncio.Protocol):
                      "message": f"room {frames.room} stopped: {ROOM_GONE}"}))
             ct.write(close_frame(1011, ENGINE_GONE))
         if not ct.is_closing() and ct.can_write_eof():
-            ct.write_eof()
+            with contextlib.suppress(OSError):  # the client has gone meanwhile
+                ct.write_eof()
 
 
 __all__ = ["Gateway"]
