@@ -84,7 +84,7 @@ def run(name: str, n: int, backend: str) -> GridRun:
 # differences 24.1, 0.1, 3.0, 2.6 ms, all one way (the 0.1 a near-cancellation: at n = 49
 # the ball sinks faster after the first push below, and the second pushes harder), order
 # 0.2 from n = 49 on, where its height converges at order 1 (-10.8, -9.7, -5.8, -2.8 mm). Not
-# an ill-conditioned minimum (the ball's acceleration there is 2-3 g, its vertex well
+# an ill-conditioned minimum (the ball's acceleration there is 2-4 g, its vertex well
 # fitted): the lightly damped cloth stops the ball in two pushes, and how much of its speed
 # the first takes moves with n. At n = 13 (a spacing about the ball's radius) the first
 # stops it and it hops on the few nodes; from n = 25 on it leaves the ball sinking at 0.46,
