@@ -126,7 +126,7 @@ RELAX_MAX_S = 20.0
 RELAX_SPEED = 1e-7  # m/s: at rest when no node moves faster
 
 
-def _static(scene: Scene, backend: str, threads: int | None) -> tuple[np.ndarray, float, float]:
+def rest_state(scene: Scene, backend: str, threads: int | None) -> tuple[np.ndarray, float, float]:
     """(equilibrium positions, centre sag, |force on hand 0|) of the hanging cloth, no
     ball: the engine in float64 from the flat start, damped at ``RELAX_RATE`` (damping does
     not move an equilibrium) until no node is faster than ``RELAX_SPEED``. Newton's method
@@ -169,7 +169,7 @@ def measure(
     frame_dt = float(scene["sim"]["frame_dt"])
     frames = max(1, round(duration_s / frame_dt))
     try:
-        x, q["sag_m"], q["corner_force_rest_n"] = _static(scene, backend, threads)
+        x, q["sag_m"], q["corner_force_rest_n"] = rest_state(scene, backend, threads)
         if "ball" in scene.effects:
             _drop(scene, substeps, backend, precision, frames, threads, x, run)
         q["natural_hz"] = _natural_hz(scene, substeps, backend, precision, frames, threads, x)
