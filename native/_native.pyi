@@ -96,6 +96,9 @@ class FrameLoopConfig:
     anchors: list[float]
     def __init__(self) -> None: ...
 
+def board_write(board: Any, offset: int, frame: int, data: bytes) -> None: ...
+def board_read(board: Any, offset: int, slot_bytes: int, after: int) -> tuple[int, bytes | None]: ...
+
 class BlockView:
     """Another process's view of a frame loop's block (a mapped memfd): hands in, CORNER
     messages out, each under its lock (native/loop/block.hpp)."""

@@ -218,8 +218,10 @@ class GameServer:
         return srv
 
     def _blocks(self) -> list[tuple[int, int, int]]:
-        """The native frame loops' blocks, as the gateways map them (id, memfd, bytes)."""
-        return [w.block_share for w in self.sims.workers if hasattr(w, "block_share")]
+        """The native frame loops' blocks and mesh boards, as the gateways map them (id,
+        memfd, bytes)."""
+        return [share for w in self.sims.workers if hasattr(w, "block_share")
+                for share in ((*w.block_share, "block"), (*w.board_share, "board"))]
 
     async def _listen(self, port: int | None, **extra: Any) -> Server:
         where = {} if port is None else {"host": self.host, "port": port}

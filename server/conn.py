@@ -88,7 +88,7 @@ class Conn:
         self.corner_interval = 0.0  # s between CORNER messages (client's corner_rate)
         # Its gateway serves seated players' lanes; one is open (server.shared.lanes).
         self.lanes = bool(getattr(ws, "lanes", False))
-        self.lane = False
+        self.lane = self.lane_mesh = False
         self.hello_done = False
         self.closed = False
         self._control: collections.deque[str] = collections.deque()

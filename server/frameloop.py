@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import mmap
 import os
 import queue
 import secrets
@@ -31,6 +32,7 @@ from .. import _native  # type: ignore[attr-defined]
 from ..game.sim.stability import substep_speed_limits
 from ..game.wire import protocol as P
 from .frames import FrameResult, Samples
+from .shared.lanes import board_slot_bytes
 
 # server.sim makes the workers and imports this module: its types (SimPool, SimWorker,
 # RoomSim) are named here only as strings, without an import (no cycle).
@@ -173,6 +175,15 @@ class NativeWorker:
         self.block_share = (self.block_id, self._loop.block_fd(), block.size)
         head = LAYOUT["header_bytes"]
         rooms = self.batch.capacity
+        # Each slot's newest MESH message, for the gateways to send (native/loop/board.hpp;
+        # a MESH is at most its header and the raw quantised nodes: P.encode_mesh).
+        n = scene.n
+        self.board_slot = board_slot_bytes(P.HEADER.size + P.MESH_BODY.size + 6 * n * n)
+        self._board_fd = os.memfd_create("clothball-meshes", os.MFD_CLOEXEC)
+        os.ftruncate(self._board_fd, rooms * self.board_slot)
+        self.board = mmap.mmap(self._board_fd, rooms * self.board_slot)
+        self.board_id = secrets.randbits(48)
+        self.board_share = (self.board_id, self._board_fd, rooms * self.board_slot)
         self.rooms_view = block[head:head + rooms * LAYOUT["room_bytes"]].view(ROOM_DTYPE)
         eng = head + rooms * LAYOUT["room_bytes"]
         self.engine_view = block[eng:eng + LAYOUT["engine_bytes"]].view(ENGINE_DTYPE)  # (1,)
@@ -247,6 +258,9 @@ class NativeWorker:
             for room in rooms:
                 room.drop_recordings()
         self._loop.stop()
+        if self._service is None or not self._service.is_alive():
+            self.board.close()  # (a gateway's mapping of it stays valid: a memfd)
+            os.close(self._board_fd)
 
     def post(self, room: RoomSim, name: str, arg: Any) -> None:
         """A command for the service thread (recordings), in order."""
@@ -415,6 +429,7 @@ class NativeWorker:
                 continue
             mesh = P.encode_mesh(frame, server_time, positions, ball[:3], room.ball_radius,
                                  hips, compress=self.pool.compress_mesh)
+            _native.board_write(self.board, slot * self.board_slot, frame, mesh)
             room.stats.meshes += 1
             for rec in room._recordings.values():
                 rec.append(1, mesh)

@@ -24,10 +24,10 @@ COUNTED = ("messages_in", "messages_out")  # what a gateway reports
 
 class GatewayControl:
     """Serves ``path`` (in the engine socket's private directory): ``blocks()`` gives the
-    blocks to pass, (id, memfd, bytes) each; ``stats`` is the host's figures, to which each
-    gateway's reported counts are added as they grow."""
+    blocks and mesh boards to pass, (id, memfd, bytes, kind) each; ``stats`` is the
+    host's figures, to which each gateway's reported counts are added as they grow."""
 
-    def __init__(self, path: Path, blocks: Callable[[], list[tuple[int, int, int]]],
+    def __init__(self, path: Path, blocks: Callable[[], list[tuple[int, int, int, str]]],
                  stats: dict[str, int]) -> None:
         self.path, self.blocks, self.stats = path, blocks, stats
         self._sock: socket.socket | None = None

@@ -51,10 +51,12 @@ class Peer(Protocol):
     def send_json(self, msg: dict[str, Any]) -> None: ...
     corner_due: float  # server time its next CORNER may be sent
     corner_interval: float  # s between its CORNER messages
-    # Its gateway serves seated players' lanes (server.shared.lanes), and one is open:
-    # the gateway sends its CORNERs, from the block.
+    # Its gateway serves lanes (server.shared.lanes); one is open: the gateway sends its
+    # CORNERs (lane), its MESH (lane_mesh), from the engine's shared memory.
     lanes: bool
     lane: bool
+    lane_mesh: bool
+    want_mesh: bool
     limits: Limits
 
     def offer_corner(self, data: bytes, server_time: float) -> None: ...
@@ -374,22 +376,35 @@ class Room:
         seat.conn = conn
         conn.room, conn.seat, conn.role = self, seat.index, "player"
         self.last_active = self.loop.time()
-        place = self.sim.lane_place(seat.index) if conn.lanes else None
-        if place is not None:  # its gateway takes its HIPs and sends its CORNERs
-            block, slot, occupant = place
-            conn.lane = True
-            conn.send_json(lane_message(Lane(
-                self.id, block, slot, seat.index, occupant, self._reach_lo[seat.index],
-                self._reach_hi[seat.index], conn.corner_interval, conn.limits.binary_rate,
-                conn.limits.binary_burst)))
+        self._open_lane(conn, seat.index)
+
+    def _open_lane(self, conn: Peer, seat: int | None) -> None:
+        """A client whose gateway serves lanes (server.shared.lanes): a seated player's
+        HIPs and CORNERs, and the MESH it wants, go through its gateway from now on."""
+        place = self.sim.lane_place(seat) if conn.lanes else None
+        mesh = place is not None and conn.want_mesh
+        if place is None or (seat is None and not mesh):
+            self._close_lane(conn)
+            return
+        conn.lane, conn.lane_mesh = seat is not None, mesh
+        i = 0 if seat is None else seat
+        conn.send_json(lane_message(Lane(
+            self.id, place["block"], place["slot"], seat, place["occupant"],
+            self._reach_lo[i], self._reach_hi[i], conn.corner_interval,
+            conn.limits.binary_rate, conn.limits.binary_burst,
+            place["board"] if mesh else None, place["board_slot"])))
+
+    @staticmethod
+    def _close_lane(conn: Peer) -> None:
+        if conn.lane or conn.lane_mesh:
+            conn.lane = conn.lane_mesh = False
+            conn.send_json(lane_message(None))
 
     def _detach(self, seat: Seat) -> None:
         conn = seat.conn
         if conn is not None:
             conn.room, conn.seat, conn.role = None, None, "lobby"
-            if conn.lane:
-                conn.lane = False
-                conn.send_json(lane_message(None))
+            self._close_lane(conn)
         seat.conn = None
         self.sim.set_hip(seat.index, None)
 
@@ -417,6 +432,7 @@ class Room:
         self.spectators.add(conn)
         conn.room, conn.seat, conn.role = self, None, "spectator"
         self.last_active = self.loop.time()
+        self._open_lane(conn, None)
         self.broadcast_state()
         return {"type": "joined", "room": self.id, "role": "spectator",
                 "geometry": self.geometry(), "state": self.info()}
@@ -426,6 +442,7 @@ class Room:
         if conn in self.spectators:
             self.spectators.discard(conn)
             conn.room, conn.role = None, "lobby"
+            self._close_lane(conn)
             self.broadcast_state()
             return
         if conn.seat is not None and self.seats[conn.seat].conn is conn:
@@ -437,6 +454,7 @@ class Room:
         """The connection dropped: a player's seat is held for the grace period."""
         if conn in self.spectators:
             self.spectators.discard(conn)
+            self._close_lane(conn)
             self.broadcast_state()
             return
         if conn.seat is None or self.seats[conn.seat].conn is not conn:
@@ -670,11 +688,13 @@ class Room:
         for s in self.seats:
             if s.conn is not None:
                 s.conn.room, s.conn.seat, s.conn.role = None, None, "lobby"
+                self._close_lane(s.conn)
                 if s.kind == "bot":
                     s.conn.kicked("room stopped")
                 s.conn = None
         for c in self.spectators:
             c.room, c.role = None, "lobby"
+            self._close_lane(c)
         self.spectators.clear()
         self._closed = True
         self.host.room_stopped(self, reason)
@@ -685,7 +705,8 @@ class Room:
         in one pass held the HIPs arriving just after it up by about 2 ms (median)."""
         end = start + MESH_FANOUT_CHUNK
         for c in conns[start:end]:
-            c.offer_mesh(mesh)
+            if not c.lane_mesh:  # (else its gateway sends it, from the mesh board)
+                c.offer_mesh(mesh)
         if end < len(conns) and not self._closed:
             self.loop.call_soon(self._fan_out_mesh, mesh, conns, end)
 

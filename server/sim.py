@@ -203,13 +203,16 @@ class RoomSim:
         if self._native:
             self.worker.set_hip(self, seat, self._hip_slots[seat])
 
-    def lane_place(self, seat: int) -> tuple[int, int, int] | None:
-        """Where a gateway writes this seat's hand and reads its CORNER (block id, slot,
-        the seat's occupant: ``server.shared.lanes``); None where the room is not in a
-        native frame loop's block."""
+    def lane_place(self, seat: int | None) -> dict[str, Any] | None:
+        """Where a gateway serves a client of this room (``server.shared.lanes``): the
+        block and slot, the seat's occupant (0 for none), the mesh board and its slot
+        size; None where the room is not in a native frame loop's block."""
         if not self._native or self.slot is None:
             return None
-        return self.worker.block_id, self.slot, self._occupant[seat]
+        w = self.worker
+        return {"block": w.block_id, "slot": self.slot,
+                "occupant": 0 if seat is None else self._occupant[seat],
+                "board": w.board_id, "board_slot": w.board_slot}
 
     def hip_echo(self, seat: int) -> tuple[int, float]:
         """The (seq, client time) of the seat's HIP the newest frame applied (0, NaN: none

@@ -12,6 +12,7 @@
 #include "binding/arrays.hpp"
 #include "binding/batch_engine.hpp"
 #include "loop/block.hpp"
+#include "loop/board.hpp"
 #include "loop/corner_msg.hpp"
 #include "loop/exit.hpp"
 #include "loop/frame_loop.hpp"
@@ -103,6 +104,15 @@ class BlockView {
   lp::RoomRecord* records_ = nullptr;
   int rooms_ = 0;
 };
+
+// A board's slots (board.hpp) in a writable byte buffer: `offset` is the slot's.
+unsigned char* board_slot(const py::buffer_info& info, std::size_t offset, std::size_t n) {
+  if (info.ndim != 1 || info.itemsize != 1)
+    throw py::value_error("a board: expected a byte buffer");
+  if (offset % 64 != 0 || offset + lp::kBoardHead + n > std::size_t(info.size))
+    throw py::index_error("a board slot past the board's end (or not 64-byte aligned)");
+  return static_cast<unsigned char*>(info.ptr) + offset;
+}
 
 class Loop {
  public:
@@ -262,6 +272,29 @@ void bind_loop(py::module_& m) {
       .def("block_fd", &Loop::block_fd)
       .def("cpu_seconds", &Loop::cpu_seconds);
   m.def("frame_block_layout", &layout);
+  m.def("board_write", [](py::buffer board, std::size_t offset, std::int64_t frame,
+                          py::bytes data) {
+    const std::string_view d = data;
+    const py::buffer_info info = board.request(true);
+    unsigned char* slot = board_slot(info, offset, d.size());
+    py::gil_scoped_release release;
+    lp::board_write(slot, frame, d.data(), std::uint32_t(d.size()));
+  }, py::arg("board"), py::arg("offset"), py::arg("frame"), py::arg("data"));
+  m.def("board_read", [](py::buffer board, std::size_t offset, std::size_t slot_bytes,
+                         std::int64_t after) -> py::tuple {
+    const py::buffer_info info = board.request(true);
+    const unsigned char* slot = board_slot(info, offset, slot_bytes - lp::kBoardHead);
+    // Nothing newer (most looks): answered without a copy.
+    const std::int64_t newest = lp::load(reinterpret_cast<const lp::BoardSlot*>(slot)->frame);
+    if (newest <= after) return py::make_tuple(newest, py::none());
+    std::string out(slot_bytes - lp::kBoardHead, '\0');
+    std::int64_t frame = -1;
+    const std::int64_t n = lp::board_read(slot, after, reinterpret_cast<unsigned char*>(out.data()),
+                                          out.size(), frame);
+    if (n <= 0) return py::make_tuple(frame, py::none());
+    out.resize(std::size_t(n));
+    return py::make_tuple(frame, py::bytes(out));
+  }, py::arg("board"), py::arg("offset"), py::arg("slot_bytes"), py::arg("after"));
   py::class_<BlockView>(m, "BlockView")
       .def(py::init<py::buffer>(), py::arg("block"))
       .def_property_readonly("rooms", &BlockView::rooms)

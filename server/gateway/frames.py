@@ -143,6 +143,13 @@ class ServerFrames:
         elif m := _EVENT.match(start):
             self.frame, self.time = int(m.group(1)), float(m.group(2))
 
+    def sent_binary(self, payload: bytes) -> None:
+        """A binary message the gateway itself wrote to the client (a lane's CORNER or
+        MESH): its room's frame and time, as from the engine's."""
+        if len(payload) >= BINARY_HEAD.size:
+            self._peek_binary = True
+            self._seen(payload[:BINARY_HEAD.size])
+
     def between_messages(self) -> bool:
         """A close frame may be written now: a websocket stream, open, between messages."""
         return (self.websocket and not self.closed and not self._skip

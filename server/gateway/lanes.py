@@ -38,6 +38,9 @@ FRAME_S = 0.001  # the frame loop's frame: a lane's fastest CORNER interval
 WRITE_SKIP = 1 << 16  # a client with this much unsent: its CORNER is skipped (a newer comes)
 REPORT_S = 1.0  # counts reported to the engine this often
 RETRY_S = 0.5  # between two requests for the blocks
+RETRY_FRAME_S = 0.00025  # a CORNER due before its frame is looked for again this soon,
+RETRIES = 4  # this many times (a frame's time)
+MESH_LOOK_S = 0.004  # the watched rooms' boards are looked at this often (MESH: 30 Hz)
 CORNER_HEAD = bytes([0x80 | OP_BINARY, P.CORNER_SIZE])  # a server's frame of one CORNER
 assert P.CORNER_SIZE < 126
 
@@ -104,8 +107,12 @@ class Lanes:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.blocks: dict[int, Any] = {}  # id -> _native.BlockView
+        self.blocks: dict[int, Any] = {}  # id -> _native.BlockView, or a mesh board's mmap
         self.counts = {"messages_in": 0, "messages_out": 0}
+        # The rooms whose MESH this gateway sends, by (board, offset): their lanes, and the
+        # frame of the newest sent; looked at every MESH_LOOK_S while there are any.
+        self.watched: dict[tuple[int, int], tuple[set[Lane], list[int]]] = {}
+        self._mesh_timer: asyncio.TimerHandle | None = None
         self._sock: socket.socket | None = None
         self._lock = asyncio.Lock()
         self._fetching: asyncio.Task[None] | None = None
@@ -135,6 +142,42 @@ class Lanes:
             self._fetching = loop.create_task(self._fetch())
         return view
 
+    def watch(self, lane: Lane) -> None:
+        key = (lane.lane.board, lane.lane.slot * lane.lane.board_slot)
+        self.watched.setdefault(key, (set(), [-1]))[0].add(lane)
+        if self._mesh_timer is None:
+            self._mesh_timer = asyncio.get_running_loop().call_soon(self._meshes)
+
+    def unwatch(self, lane: Lane) -> None:
+        key = (lane.lane.board, lane.lane.slot * lane.lane.board_slot)
+        entry = self.watched.get(key)
+        if entry is not None:
+            entry[0].discard(lane)
+            if not entry[0]:
+                del self.watched[key]
+
+    def _meshes(self) -> None:
+        """Each watched room's newest MESH (from its board, written once by the engine)
+        to its lanes' clients, when newer than the last sent."""
+        self._mesh_timer = None
+        if not self.watched:
+            return
+        for (board_id, offset), (watchers, sent) in list(self.watched.items()):
+            board = self.block(board_id)
+            if board is None:
+                continue
+            slot_bytes = next(iter(watchers)).lane.board_slot
+            frame, data = _native.board_read(board, offset, slot_bytes, sent[0])
+            if frame < sent[0]:
+                sent[0] = -1  # the slot was cleared for another room: from its first on
+            if data is None:
+                continue
+            sent[0] = frame
+            head = frame_head(len(data))
+            for lane in watchers:
+                lane.send_mesh(head, data)
+        self._mesh_timer = asyncio.get_running_loop().call_later(MESH_LOOK_S, self._meshes)
+
     def _drop(self) -> None:
         if self._sock is not None:
             self._sock.close()
@@ -159,7 +202,9 @@ class Lanes:
                 try:
                     maps = await asyncio.to_thread(
                         lambda: lanes.receive_blocks(self._connect()))
-                    self.blocks = {i: _native.BlockView(m) for i, m in maps.items()}
+                    # a frame loop's block as a view of its records; a mesh board as bytes
+                    self.blocks = {i: _native.BlockView(m) if kind == "block" else m
+                                   for i, (kind, m) in maps.items()}
                     return
                 except (OSError, ValueError) as e:
                     self._drop()
@@ -183,27 +228,49 @@ class Lanes:
                     self._reported = {}
 
 
-class Lane:
-    """One client's open lane: ``write`` sends bytes to the client at a message boundary
-    of the engine's stream (``server.gateway.relay``), ``room`` says which room the engine
-    last told the client it is in."""
+def frame_head(n: int) -> bytes:
+    """A server's (unmasked) binary frame's header for ``n`` bytes (RFC 6455)."""
+    if n < 126:
+        return bytes([0x80 | OP_BINARY, n])
+    if n < 1 << 16:
+        return bytes([0x80 | OP_BINARY, 126]) + n.to_bytes(2, "big")
+    return bytes([0x80 | OP_BINARY, 127]) + n.to_bytes(8, "big")
 
-    def __init__(self, lane: lanes.Lane, links: Lanes, write: Callable[[bytes], None],
+
+class Lane:
+    """One client's open lane: ``write(kind, head, payload)`` sends a message ("corner" or
+    "mesh", its frame header and payload) to the client at a message boundary of the engine's stream
+    (``server.gateway.relay``), ``room`` says which room the engine last told the client it
+    is in."""
+
+    def __init__(self, lane: lanes.Lane, links: Lanes,
+                 write: Callable[[str, bytes, bytes], None],
                  room: Callable[[], str | None]) -> None:
         self.lane, self.links = lane, links
-        self.view = links.block(lane.block)  # None until the block is had (then looked up)
         self.write, self.room = write, room
+        self.view = links.block(lane.block)  # None until the block is had (then looked up)
         self.bucket = TokenBucket(lane.binary_rate, lane.binary_burst)
         self.fast = True  # HIPs taken here (off for good once the client passes its rate)
         self.sent_frame = -1
+        self._retries = 0
         self._loop = asyncio.get_running_loop()
         self._due = self._loop.time()
-        self._timer: asyncio.TimerHandle | None = self._loop.call_soon(self._corner)
+        self._timer: asyncio.TimerHandle | None = None
+        if lane.seat is not None:  # a seated player: its hand and CORNER
+            self._timer = self._loop.call_soon(self._corner)
+        if lane.board is not None:
+            links.watch(self)
 
     def close(self) -> None:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
+        if self.lane.board is not None:
+            self.links.unwatch(self)
+
+    def send_mesh(self, head: bytes, data: bytes) -> None:
+        if self.room() == self.lane.room:
+            self.write("mesh", head, data)
 
     def _view(self) -> Any | None:
         if self.view is None:
@@ -213,8 +280,9 @@ class Lane:
     def take(self, payload: bytes) -> bool:
         """A HIP from the client: written into the seat's hand, else False (the engine
         has it: a HIP that is not well formed, out of reach, past the rate, or of an
-        occupant that has left the seat)."""
-        if not self.fast or self._view() is None:
+        occupant that has left the seat, or from a client that is not seated)."""
+        ln = self.lane
+        if ln.seat is None or not self.fast or self._view() is None:
             return False
         if not self.bucket.take():
             self.fast = False  # the engine's own limit and errors from here on
@@ -224,10 +292,9 @@ class Lane:
         except P.ProtocolError:
             return False
         x, y, z = hip.position
-        lo, hi = self.lane.lo, self.lane.hi
+        lo, hi = ln.lo, ln.hi
         if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
             return False
-        ln = self.lane
         if not self.view.write_hip(ln.slot, ln.seat, ln.occupant, x, y, z,
                                    hip.seq & 0xFFFFFFFFFFFFFFFF, hip.time):
             return False
@@ -239,6 +306,7 @@ class Lane:
         is there; then the next one, an interval after this one was due (as the engine
         times its own: ``server.conn.Conn.offer_corner``)."""
         ln = self.lane
+        assert ln.seat is not None
         now = self._loop.time()
         if self.room() == ln.room and self._view() is not None:
             frame, msg = self.view.read_corner(ln.slot, ln.seat)
@@ -247,7 +315,17 @@ class Lane:
                 return
             if frame > self.sent_frame:
                 self.sent_frame = frame
-                self.write(CORNER_HEAD + msg)
+                self.write("corner", CORNER_HEAD, msg)
+                self._retries = 0
+            elif self._retries < RETRIES:
+                # Due just before the loop published the next frame (this timer and the
+                # frames are not in step): look again a little later, not an interval later
+                # (at corner_rate 1000 that lost one CORNER in eight).
+                self._retries += 1
+                self._timer = self._loop.call_at(now + RETRY_FRAME_S, self._corner)
+                return
+            else:
+                self._retries = 0  # no new frame (the room sleeps): on at the rate
         interval = max(ln.corner_interval, FRAME_S)
         due = self._due + interval
         self._due = due if due > now else now + interval

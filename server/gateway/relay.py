@@ -106,7 +106,8 @@ class _Client(asyncio.Protocol):
         self.eof = False
         self.frames: ClientFrames | None = None  # its websocket frames, once upgraded
         self.lane: Lane | None = None  # its open lane (server.shared.lanes)
-        self.pending: bytes | None = None  # a CORNER waiting for a message boundary
+        # lane messages waiting for a message boundary (header, payload), the newest of each
+        self.pending: dict[str, tuple[bytes, bytes]] = {}
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -169,25 +170,29 @@ class _Client(asyncio.Protocol):
         lane = parse_lane(payload)
         if lane is not None and self.gw.lanes is not None and self.engine is not None:
             frames = self.engine.frames
-            self.lane = Lane(lane, self.gw.lanes, self.write_corner, lambda: frames.room)
+            self.lane = Lane(lane, self.gw.lanes, self.write_lane, lambda: frames.room)
 
-    def write_corner(self, msg: bytes) -> None:
-        """A CORNER to the client, between two of the engine's messages (else held until
-        the engine's stream is between two), unless the client is behind on reading."""
+    def write_lane(self, kind: str, head: bytes, payload: bytes) -> None:
+        """A message of the client's lane (a CORNER, a MESH) to the client, between two of
+        the engine's messages (else the newest of each kind is held until the engine's
+        stream is between two), unless the client is behind on reading. The engine's
+        stream follower learns its room's frame from it, as from the engine's own."""
         t = self.t
         if t is None or t.is_closing() or t.get_write_buffer_size() > WRITE_SKIP:
             return
-        if self.engine is not None and self.engine.frames.between_messages():
-            t.write(msg)
+        engine = self.engine
+        if engine is not None and engine.frames.between_messages():
+            t.write(head + payload)
+            engine.frames.sent_binary(payload)
             assert self.gw.lanes is not None
             self.gw.lanes.counts["messages_out"] += 1
         else:
-            self.pending = msg
+            self.pending[kind] = (head, payload)
 
     def flush_pending(self) -> None:
-        msg, self.pending = self.pending, None
-        if msg is not None:
-            self.write_corner(msg)
+        held, self.pending = self.pending, {}
+        for kind, (head, payload) in held.items():
+            self.write_lane(kind, head, payload)
 
     def eof_received(self) -> bool:
         self.eof = True
@@ -265,7 +270,7 @@ class _Engine(asyncio.Protocol):
         if ct is not None and not ct.is_closing():
             if data:
                 ct.write(data)
-            if self.client.pending is not None and self.frames.between_messages():
+            if self.client.pending and self.frames.between_messages():
                 self.client.flush_pending()
 
     def eof_received(self) -> bool:

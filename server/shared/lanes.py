@@ -1,21 +1,25 @@
-"""A seated player's lane: what the engine and a gateway share so that the gateway serves
-that player's HIPs and CORNERs itself, through the frame loop's block, and relays only the
-rest (control messages, MESH, HTTP) between the client and the engine.
+"""A client's lane: what the engine and a gateway share so that the gateway serves a seated
+player's HIPs and CORNERs, and any client's MESH, itself, from the engine's shared memory
+(the frame loop's block, its mesh board), and relays only the rest (control messages,
+HTTP) between the client and the engine.
 
 * The **lane message**: when a client that came through a gateway takes a seat in a room
-  stepped by the native frame loop, the engine sends, in the client's own stream, a text
-  message ``{"type": "_lane", ...}`` (``lane_message``); when the seat is left, one with
-  ``"seat": null``. The gateway takes both out of the stream (the client never sees them).
-  With a lane, the gateway writes the player's well-formed HIPs into the seat's hand in the
-  block (under the seat's occupant: a late one for an occupant that has left is ignored by
-  the loop) and sends the seat's CORNER from the block at the client's ``corner_rate``; the
-  engine sends that client no CORNER. Anything else the client sends (a HIP that is not
-  well formed or out of reach, past the binary rate, any control message) goes to the
-  engine as before, which answers it as documented.
+  stepped by the native frame loop, or watches one, the engine sends, in the client's own
+  stream, a text message ``{"type": "_lane", ...}`` (``lane_message``); when it leaves the
+  seat or the room, one with no room. The gateway takes both out of the stream (the client
+  never sees them). With a seated lane, the gateway writes the player's well-formed HIPs
+  into the seat's hand in the block (under the seat's occupant: a late one for an
+  occupant that has left is ignored by the loop) and sends the seat's CORNER from the
+  block at the client's ``corner_rate``; with a mesh board, it sends the room's MESH from
+  the board (the engine writes each room's newest there once); the engine sends that
+  client neither. Anything else the client sends (a HIP that is not well formed or out of
+  reach, past the binary rate, any control message) goes to the engine as before, which
+  answers it as documented.
 * The **control socket** beside the engine's (``ctl_path``): a gateway asks it for the
-  blocks (``BLOCKS``: one JSON line naming each block's id and size, the memfds passed with
-  it, SCM_RIGHTS) and reports its counts on it (one JSON line a second: messages in and out
-  that the engine did not see), so that the host's figures stay whole.
+  blocks and mesh boards (``BLOCKS``: one JSON line naming each one's id, size and kind,
+  the memfds passed with it, SCM_RIGHTS) and reports its counts on it (one JSON line a
+  second: messages in and out that the engine did not see), so that the host's figures
+  stay whole.
 """
 
 from __future__ import annotations
@@ -35,6 +39,14 @@ MAX_BLOCKS = 64
 LINE_MAX = 1 << 16
 
 
+BOARD_HEAD = 64  # a mesh board slot's header (native/loop/board.hpp): lock, length, frame
+
+
+def board_slot_bytes(mesh_bytes: int) -> int:
+    """A mesh board's slot for MESH messages of at most ``mesh_bytes`` (64-byte aligned)."""
+    return BOARD_HEAD + -(-mesh_bytes // 64) * 64
+
+
 def ctl_path(engine_socket: Path) -> Path:
     """The engine's control socket, beside its socket for client connections."""
     return engine_socket.with_name(engine_socket.name + ".ctl")
@@ -42,51 +54,61 @@ def ctl_path(engine_socket: Path) -> Path:
 
 @dataclass(frozen=True)
 class Lane:
-    """A seat served by the gateway: where its hand and CORNER are in which block, the
-    seat's occupant, its reach box and the client's CORNER interval and binary rate."""
+    """A client served by the gateway from the engine's shared memory: a seated player's
+    hand and CORNER (``seat``: where they are in which block, the seat's occupant, its
+    reach box, the client's CORNER interval and binary rate), and any client's MESH
+    (``board``: the mesh board and the room's slot in it; None: the engine sends them)."""
 
     room: str
     block: int
     slot: int
-    seat: int
+    seat: int | None  # None: not seated (a spectator): MESH only
     occupant: int
-    lo: tuple[float, float, float]
-    hi: tuple[float, float, float]
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
     corner_interval: float  # s (0: every frame)
     binary_rate: float  # messages a second (the engine's Limits.binary_rate)
     binary_burst: float
+    board: int | None  # the mesh board's id (None: no MESH from the gateway)
+    board_slot: int  # bytes of a board slot; the room's is at slot * board_slot
 
 
 def lane_message(lane: Lane | None) -> dict[str, Any]:
     """The engine's message opening a lane (None: closing it)."""
     if lane is None:
-        return {"type": LANE_TYPE, "seat": None}
-    return {"type": LANE_TYPE, "seat": lane.seat, "room": lane.room, "block": lane.block,
-            "slot": lane.slot, "occupant": lane.occupant, "lo": list(lane.lo),
+        return {"type": LANE_TYPE}
+    return {"type": LANE_TYPE, "room": lane.room, "block": lane.block, "slot": lane.slot,
+            "seat": lane.seat, "occupant": lane.occupant, "lo": list(lane.lo),
             "hi": list(lane.hi), "corner_interval": lane.corner_interval,
-            "binary_rate": lane.binary_rate, "binary_burst": lane.binary_burst}
+            "binary_rate": lane.binary_rate, "binary_burst": lane.binary_burst,
+            "board": lane.board, "board_slot": lane.board_slot}
 
 
 def parse_lane(payload: bytes) -> Lane | None:
     """A lane message's payload as the gateway reads it (None: the lane is closed)."""
     m = json.loads(payload)
-    if m.get("seat") is None:
+    if "room" not in m:
         return None
-    return Lane(str(m["room"]), int(m["block"]), int(m["slot"]), int(m["seat"]),
-                int(m["occupant"]), tuple(map(float, m["lo"])), tuple(map(float, m["hi"])),
+    seat, board = m["seat"], m["board"]
+    return Lane(str(m["room"]), int(m["block"]), int(m["slot"]),
+                None if seat is None else int(seat), int(m["occupant"]),
+                tuple(map(float, m["lo"])), tuple(map(float, m["hi"])),
                 float(m["corner_interval"]), float(m["binary_rate"]),
-                float(m["binary_burst"]))
+                float(m["binary_burst"]), None if board is None else int(board),
+                int(m["board_slot"]))
 
 
-def send_blocks(sock: socket.socket, blocks: list[tuple[int, int, int]]) -> None:
-    """The engine's answer to ``BLOCKS``: ``blocks`` as (id, memfd, bytes)."""
-    line = json.dumps({"blocks": [{"id": i, "bytes": n} for i, _, n in blocks]}).encode()
-    socket.send_fds(sock, [line + b"\n"], [fd for _, fd, _ in blocks])
+def send_blocks(sock: socket.socket, shares: list[tuple[int, int, int, str]]) -> None:
+    """The engine's answer to ``BLOCKS``: ``shares`` as (id, memfd, bytes, kind), kind
+    ``block`` (a frame loop's) or ``board`` (its mesh board)."""
+    line = json.dumps({"blocks": [{"id": i, "bytes": n, "kind": k}
+                                  for i, _, n, k in shares]}).encode()
+    socket.send_fds(sock, [line + b"\n"], [fd for _, fd, _, _ in shares])
 
 
-def receive_blocks(sock: socket.socket) -> dict[int, mmap.mmap]:
-    """The gateway's side of ``BLOCKS`` (a blocking socket): each block mapped read/write,
-    by id."""
+def receive_blocks(sock: socket.socket) -> dict[int, tuple[str, mmap.mmap]]:
+    """The gateway's side of ``BLOCKS`` (a blocking socket): each share mapped read/write,
+    by id, with its kind."""
     sock.sendall(BLOCKS)
     data, fds, _, _ = socket.recv_fds(sock, LINE_MAX, MAX_BLOCKS)
     try:
@@ -95,8 +117,8 @@ def receive_blocks(sock: socket.socket) -> dict[int, mmap.mmap]:
         named = json.loads(data)["blocks"]
         if len(named) != len(fds):
             raise ConnectionError(f"the engine named {len(named)} blocks and passed {len(fds)}")
-        return {int(b["id"]): mmap.mmap(fd, int(b["bytes"])) for b, fd in zip(named, fds,
-                                                                               strict=True)}
+        return {int(b["id"]): (str(b["kind"]), mmap.mmap(fd, int(b["bytes"])))
+                for b, fd in zip(named, fds, strict=True)}
     finally:
         for fd in fds:
             os.close(fd)

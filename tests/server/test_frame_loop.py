@@ -270,9 +270,10 @@ def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() 
         sim = RoomSim(TINY, "cpu", pool=pool, deliver=got.append)
         try:
             sim.start()
-            block_id, slot, occupant = sim.lane_place(2)
+            place = sim.lane_place(2)
+            slot, occupant = place["slot"], place["occupant"]
             _, fd, size = sim.worker.block_share
-            assert block_id == sim.worker.block_id
+            assert place["block"] == sim.worker.block_id
             with open(f"/proc/self/fd/{fd}", "r+b") as f:
                 view = _native.BlockView(mmap.mmap(f.fileno(), size))
             assert view.rooms >= 1
@@ -302,7 +303,7 @@ def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() 
             c = corner()
             assert c.hip_seq == 0 and math.isnan(c.hip_time)
             # the new occupant's is
-            _, _, occupant2 = sim.lane_place(2)
+            occupant2 = sim.lane_place(2)["occupant"]
             assert occupant2 != occupant
             assert view.write_hip(slot, 2, occupant2, *hand, 1, 9.0)
             await until(lambda: corner().hip_seq == 1, 5, "the new occupant's hand")

@@ -175,7 +175,8 @@ def test_every_room_on_one_port_with_no_redirect_and_host_wide_accounting(tmp_pa
 def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -> None:
     """A player seated through a gateway has a lane (server.shared.lanes): the gateway
     writes its HIPs into the seat's hand in the frame loop's block and sends its CORNERs
-    from there, and the host's figures count them; the client sees the protocol as
+    from there, and its MESH and a spectator's from the mesh board; the host's figures
+    count them; the client sees the protocol as
     documented (no lane message), and once it leaves, its corner rests and a HIP is
     refused by the engine as before."""
     async def main(h: Host) -> None:
@@ -199,6 +200,19 @@ def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -
         assert np.allclose(c.force, -c.stiffness * (hand - c.position), rtol=1e-4,
                            atol=1e-3), (c.force, c.position, hand)
         assert not [m for m in p.messages if str(m.get("type", "")).startswith("_")]
+        # Its MESH, and a spectator's, come from the room's mesh board through the
+        # gateway: ~30 a second, newest frame first, decodable; one that asked for no
+        # MESH gets none.
+        w = await NetClient.connect(h.url, name="wat", role="spectator", room="main")
+        quiet = await NetClient.connect(h.url, name="q", role="spectator", room="main",
+                                        mesh=False)
+        m0 = w.counts["mesh"]
+        await asyncio.sleep(1.0)
+        assert 15 <= w.counts["mesh"] - m0 <= 45, w.counts
+        assert w.mesh is not None and w.mesh.positions.shape == (16, 16, 3)
+        assert p.counts["mesh"] > 15 and quiet.counts["mesh"] == 0
+        await quiet.close()
+        await w.close()
         # The gateway reports what it served, in the host's totals (once a second).
         def lanes_counted() -> bool:
             s = h.json("/api/stats")
