@@ -220,8 +220,13 @@ class GameServer:
     def _blocks(self) -> list[tuple[int, int, int]]:
         """The native frame loops' blocks and mesh boards, as the gateways map them (id,
         memfd, bytes)."""
-        return [share for w in self.sims.workers if hasattr(w, "block_share")
-                for share in ((*w.block_share, "block"), (*w.board_share, "board"))]
+        shares = []
+        for w in self.sims.workers:
+            if hasattr(w, "block_share"):
+                shares.append((*w.block_share, "block"))
+                if w.board_share is not None:
+                    shares.append((*w.board_share, "board"))
+        return shares
 
     async def _listen(self, port: int | None, **extra: Any) -> Server:
         where = {} if port is None else {"host": self.host, "port": port}

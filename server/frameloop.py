@@ -24,6 +24,7 @@ import queue
 import secrets
 import struct
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,7 @@ RoomSim = SimPool = SimWorker = Any
 log = logging.getLogger("clothball.server")
 
 FRAME_LOOP_ENV = "CLOTHBALL_FRAME_LOOP"  # "native" (default) or "python" (sim.SimWorker)
+MESH_THREADS = max(1, min(4, (os.cpu_count() or 1) // 4))  # a worker's MESH encoders
 LAYOUT: dict[str, Any] = _native.frame_block_layout()
 EVENT = LAYOUT["events"]
 
@@ -179,11 +181,26 @@ class NativeWorker:
         # a MESH is at most its header and the raw quantised nodes: P.encode_mesh).
         n = scene.n
         self.board_slot = board_slot_bytes(P.HEADER.size + P.MESH_BODY.size + 6 * n * n)
-        self._board_fd = os.memfd_create("clothball-meshes", os.MFD_CLOEXEC)
-        os.ftruncate(self._board_fd, rooms * self.board_slot)
-        self.board = mmap.mmap(self._board_fd, rooms * self.board_slot)
-        self.board_id = secrets.randbits(48)
-        self.board_share = (self.board_id, self._board_fd, rooms * self.board_slot)
+        self.board: mmap.mmap | None = None
+        self.board_id: int | None = None
+        self.board_share: tuple[int, int, int] | None = None
+        self._board_fd = -1
+        try:
+            self._board_fd = os.memfd_create("clothball-meshes", os.MFD_CLOEXEC)
+            os.ftruncate(self._board_fd, rooms * self.board_slot)
+            self.board = mmap.mmap(self._board_fd, rooms * self.board_slot)
+            self.board_id = secrets.randbits(48)
+            self.board_share = (self.board_id, self._board_fd, rooms * self.board_slot)
+        except OSError as e:  # e.g. a file size limit: the engine sends every MESH itself
+            log.warning("no mesh board (%s): the gateways send no MESH", e)
+            if self._board_fd >= 0:
+                os.close(self._board_fd)
+                self._board_fd = -1
+        # MESH encoding (numpy, zlib: both let go of the GIL for much of it) on a few
+        # threads: one thread encoding every room's MESH 30 times a second was the limit
+        # of a 16-core host at ~64 rooms (H100 run 4).
+        self._encoders = MESH_THREADS
+        self._encoder: ThreadPoolExecutor | None = None
         self.rooms_view = block[head:head + rooms * LAYOUT["room_bytes"]].view(ROOM_DTYPE)
         eng = head + rooms * LAYOUT["room_bytes"]
         self.engine_view = block[eng:eng + LAYOUT["engine_bytes"]].view(ENGINE_DTYPE)  # (1,)
@@ -259,8 +276,11 @@ class NativeWorker:
                 room.drop_recordings()
         self._loop.stop()
         if self._service is None or not self._service.is_alive():
-            self.board.close()  # (a gateway's mapping of it stays valid: a memfd)
-            os.close(self._board_fd)
+            if self._encoder is not None:
+                self._encoder.shutdown()
+            if self.board is not None:
+                self.board.close()  # (a gateway's mapping of it stays valid: a memfd)
+                os.close(self._board_fd)
 
     def post(self, room: RoomSim, name: str, arg: Any) -> None:
         """A command for the service thread (recordings), in order."""
@@ -423,13 +443,26 @@ class NativeWorker:
             self._tracks_seen[slot] = total
 
     def _encode_meshes(self) -> None:
-        for slot, frame, server_time, ball, hips, positions in self._loop.take_meshes():
-            room = self._by_slot.get(slot)
-            if room is None:
-                continue
-            mesh = P.encode_mesh(frame, server_time, positions, ball[:3], room.ball_radius,
+        due = [(self._by_slot.get(m[0]), m) for m in self._loop.take_meshes()]
+        due = [(room, m) for room, m in due if room is not None]
+        if not due:
+            return
+
+        def encode(item: tuple[RoomSim, tuple[Any, ...]]) -> bytes:
+            room, (_, frame, server_time, ball, hips, positions) = item
+            return P.encode_mesh(frame, server_time, positions, ball[:3], room.ball_radius,
                                  hips, compress=self.pool.compress_mesh)
-            _native.board_write(self.board, slot * self.board_slot, frame, mesh)
+
+        if len(due) > 1 and self._encoders > 1:
+            if self._encoder is None:
+                self._encoder = ThreadPoolExecutor(self._encoders, "clothball-mesh-encode")
+            meshes = list(self._encoder.map(encode, due))
+        else:
+            meshes = [encode(item) for item in due]
+        for (room, m), mesh in zip(due, meshes, strict=True):
+            slot, frame = m[0], m[1]
+            if self.board is not None:
+                _native.board_write(self.board, slot * self.board_slot, frame, mesh)
             room.stats.meshes += 1
             for rec in room._recordings.values():
                 rec.append(1, mesh)

@@ -382,7 +382,7 @@ class Room:
         """A client whose gateway serves lanes (server.shared.lanes): a seated player's
         HIPs and CORNERs, and the MESH it wants, go through its gateway from now on."""
         place = self.sim.lane_place(seat) if conn.lanes else None
-        mesh = place is not None and conn.want_mesh
+        mesh = place is not None and conn.want_mesh and place["board"] is not None
         if place is None or (seat is None and not mesh):
             self._close_lane(conn)
             return

@@ -212,7 +212,7 @@ class RoomSim:
         w = self.worker
         return {"block": w.block_id, "slot": self.slot,
                 "occupant": 0 if seat is None else self._occupant[seat],
-                "board": w.board_id, "board_slot": w.board_slot}
+                "board": w.board_id, "board_slot": w.board_slot}  # board None: no MESH
 
     def hip_echo(self, seat: int) -> tuple[int, float]:
         """The (seq, client time) of the seat's HIP the newest frame applied (0, NaN: none
