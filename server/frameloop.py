@@ -410,8 +410,12 @@ class NativeWorker:
             room = self._by_slot.get(slot)
             if room is None:
                 continue
-            mesh = P.encode_mesh(frame, server_time, positions, ball[:3], room.ball_radius,
-                                 hips, compress=self.pool.compress_mesh)
+            # Quantised and delta-coded in C++ (the same bits as protocol.quantise and
+            # mesh_deltas; NumPy's took most of a mesh's encoding time on this thread).
+            q, deltas, lo, hi = _native.quantise_mesh(positions)
+            mesh = P.encode_quantised_mesh(frame, server_time, q, lo, hi, ball[:3],
+                                           room.ball_radius, hips,
+                                           compress=self.pool.compress_mesh, deltas=deltas)
             room.stats.meshes += 1
             for rec in room._recordings.values():
                 rec.append(1, mesh)
