@@ -159,8 +159,9 @@ def try_send_binary(ws: Any, data: bytes) -> bool:
     if (protocol.side is SERVER and not protocol.extensions and not protocol.writes
             and not protocol.expect_continuation_frame and not protocol.debug):
         # Nothing of the protocol's is waiting to be written (it is written as it is made),
-        # so this frame goes in order: 20 % of a CORNER's cost, 700 a second a room.
-        transport.write(binary_frame_header(len(data)) + data)
+        # so this frame goes in order.
+        n = len(data)
+        transport.write((_SHORT[n] if n < 126 else binary_frame_header(n)) + data)
         return True
     protocol.send_binary(data)
     ws.send_data()
