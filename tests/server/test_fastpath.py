@@ -236,3 +236,45 @@ def test_frames_parsed_in_the_fast_path_are_websockets_own_and_the_rest_goes_to_
     rsv1 = bytearray(_masked(Opcode.BINARY, b"rsv"))
     rsv1[0] |= 0x40  # no extension negotiated: a reserved bit
     assert run(refused(bytes(rsv1)), 30) == 1002
+
+
+def test_a_client_takes_the_servers_unmasked_frames_in_the_fast_path() -> None:
+    """The other side: a hooked client connection (a player's CORNERs) parses the server's
+    unmasked binary frames itself, the same payloads in order, websockets' parser seeing
+    none; a masked frame from a server is websockets' to refuse (1002)."""
+    from websockets.frames import Frame, Opcode
+
+    async def main() -> tuple[list[bytes], list[bytes], int | None]:
+        got: list[bytes] = []
+        parsed: list[bytes] = []
+
+        async def handler(ws: ServerConnection) -> None:
+            await ws.wait_closed()
+
+        async with serve(handler, "127.0.0.1", 0, compression=None) as srv:
+            port = next(iter(srv.sockets)).getsockname()[1]
+            async with connect(f"ws://127.0.0.1:{port}", create_connection=_Client,
+                               compression=None) as ws:
+                ws.on_binary = got.append
+                feed = ws.protocol.receive_data
+
+                def counting(data: bytes) -> None:
+                    parsed.append(bytes(data))
+                    feed(data)
+
+                ws.protocol.receive_data = counting
+                frames = [bytes([i]) * (i * 30) for i in range(6)]
+                ws.data_received(b"".join(Frame(Opcode.BINARY, f).serialize(mask=False)
+                                          for f in frames))
+                fast = list(parsed)
+                ws.data_received(Frame(Opcode.BINARY, b"masked").serialize(mask=True))
+                try:
+                    await asyncio.wait_for(ws.recv(), 5)
+                except websockets.ConnectionClosed:
+                    pass
+                code = ws.protocol.close_sent.code if ws.protocol.close_sent else None
+        assert got == frames
+        return got, fast, code
+
+    _, fast, code = run(main(), 30)
+    assert fast == [] and code == 1002
