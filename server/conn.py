@@ -130,7 +130,7 @@ class Conn:
     def offer_corner(self, data: bytes, server_time: float) -> None:
         if self.closed or server_time < self.corner_due:
             return
-        if self._stuck():
+        if self._sending_since is not None and self._stuck():  # (no call while not sending)
             return
         # The next is due an interval after this one was due, not after it was sent: timed
         # from each send, a rate that is no whole number of 1 ms frames lost up to a frame a
@@ -146,7 +146,8 @@ class Conn:
         self._wake.set()
 
     def offer_mesh(self, data: bytes) -> None:
-        if self.closed or not self.want_mesh or self._stuck():
+        if self.closed or not self.want_mesh or (self._sending_since is not None
+                                                 and self._stuck()):
             return
         if self._send_now(data):
             return

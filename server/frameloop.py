@@ -450,8 +450,13 @@ class NativeWorker:
 
         def encode(item: tuple[RoomSim, tuple[Any, ...]]) -> bytes:
             room, (_, frame, server_time, ball, hips, positions) = item
-            return P.encode_mesh(frame, server_time, positions, ball[:3], room.ball_radius,
-                                 hips, compress=self.pool.compress_mesh)
+            # Quantised and delta-coded in C++, off the GIL (the same bits as
+            # protocol.quantise and mesh_deltas; NumPy's took most of a mesh's encoding
+            # time), then zlib'd (also off the GIL).
+            q, deltas, lo, hi = _native.quantise_mesh(positions)
+            return P.encode_quantised_mesh(frame, server_time, q, lo, hi, ball[:3],
+                                           room.ball_radius, hips,
+                                           compress=self.pool.compress_mesh, deltas=deltas)
 
         if len(due) > 1 and self._encoders > 1:
             if self._encoder is None:

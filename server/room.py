@@ -658,15 +658,18 @@ class Room:
             return
         if result.corners:
             self.frame, self.server_time = result.frame, result.server_time
-            for s in self.seats:
-                corner = result.corners[s.index]
-                if s.conn is not None and corner is not None and not s.conn.lane:
-                    s.conn.offer_corner(corner, result.server_time)
             # The native loop wakes the room again when its first player's next CORNER is due
             # (one whose gateway does not send them).
-            dues = [s.conn.corner_due for s in self.seats
-                    if s.conn is not None and not s.conn.lane]
-            self.sim.corner_due = min(dues) if dues else -math.inf
+            corners, due = result.corners, None
+            for s in self.seats:
+                conn = s.conn
+                if conn is not None and not conn.lane:
+                    corner = corners[s.index]
+                    if corner is not None:
+                        conn.offer_corner(corner, result.server_time)
+                    if due is None or conn.corner_due < due:
+                        due = conn.corner_due
+            self.sim.corner_due = -math.inf if due is None else due
         if result.mesh is not None:
             self._fan_out_mesh(result.mesh, self.conns(), 0)
         if result.sim_error is not None:

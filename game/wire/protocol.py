@@ -427,13 +427,29 @@ def encode_mesh(frame: int, server_time: float, positions: np.ndarray, ball_posi
     p = np.asarray(positions)
     if p.ndim != 3 or p.shape[0] != p.shape[1] or p.shape[2] != 3:
         raise ValueError(f"positions: expected (n, n, 3), got {p.shape}")
-    n = p.shape[0]
     q, lo, hi = quantise(p)
+    return encode_quantised_mesh(frame, server_time, q, lo, hi, ball_position, ball_radius,
+                                 hips, compress)
+
+
+def mesh_deltas(q: np.ndarray) -> np.ndarray:
+    """Quantised nodes (n, n, 3) with each row delta-coded along it: its first node as it
+    is, each next one minus the one before (uint16 wraps: decoded by a cumulative sum)."""
+    d = q.copy()
+    d[:, 1:, :] = q[:, 1:, :] - q[:, :-1, :]
+    return d
+
+
+def encode_quantised_mesh(frame: int, server_time: float, q: np.ndarray, lo: Any, hi: Any,
+                          ball_position: Any, ball_radius: float, hips: Any,
+                          compress: bool = True, deltas: np.ndarray | None = None) -> bytes:
+    """``encode_mesh`` from nodes already quantised (``quantise``'s q, lo, hi; ``deltas``:
+    ``mesh_deltas(q)`` where already made, e.g. by the server's native quantiser)."""
+    n = q.shape[0]
     payload = q.tobytes()
     flags = 0
     if compress:
-        d = q.copy()
-        d[:, 1:, :] = q[:, 1:, :] - q[:, :-1, :]  # uint16 wraps: decoded by a cumulative sum
+        d = mesh_deltas(q) if deltas is None else deltas
         z = zlib.compress(d.tobytes(), 1)
         if len(z) <= 0.9 * len(payload):
             payload, flags = z, FLAG_ZLIB | FLAG_DELTA

@@ -16,6 +16,7 @@
 #include "loop/corner_msg.hpp"
 #include "loop/exit.hpp"
 #include "loop/frame_loop.hpp"
+#include "loop/mesh_quant.hpp"
 
 namespace py = pybind11;
 using cbind::Array;
@@ -302,6 +303,27 @@ void bind_loop(py::module_& m) {
            py::arg("occupant"), py::arg("x"), py::arg("y"), py::arg("z"), py::arg("seq"),
            py::arg("time"))
       .def("read_corner", &BlockView::read_corner, py::arg("slot"), py::arg("seat"));
+  // A MESH's quantised nodes and their row deltas (mesh_quant.hpp), off the GIL: what
+  // game.wire.protocol.quantise and encode_mesh compute, for the mesh encoder thread.
+  m.def(
+      "quantise_mesh",
+      [](py::array_t<double, py::array::c_style | py::array::forcecast> positions) {
+        if (positions.ndim() != 3 || positions.shape(0) != positions.shape(1) ||
+            positions.shape(2) != 3 || positions.shape(0) < 1)
+          throw py::value_error("positions: expected (n, n, 3)");
+        const py::ssize_t n = positions.shape(0);
+        py::array_t<std::uint16_t> q({n, n, py::ssize_t(3)}), delta({n, n, py::ssize_t(3)});
+        py::array_t<double> lo(3), hi(3);
+        const double* p = positions.data();
+        std::uint16_t *qd = q.mutable_data(), *dd = delta.mutable_data();
+        double *l = lo.mutable_data(), *h = hi.mutable_data();
+        {
+          py::gil_scoped_release release;
+          lp::quantise_mesh(p, int(n), qd, dd, l, h);
+        }
+        return py::make_tuple(q, delta, lo, hi);
+      },
+      py::arg("positions"));
   // The loop's CORNER encoder (corner_msg.hpp), for the test against the Python one.
   m.def("encode_corners",
         [](std::int64_t frame, double server_time, Array pos, Array vel, Array force,

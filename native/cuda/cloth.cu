@@ -509,6 +509,8 @@ class CudaBatch final : public BatchStepper {
     if (fused_bytes_ > 0)
       CB_CUDA(cudaFuncSetAttribute(kernels_.frame, cudaFuncAttributeMaxDynamicSharedMemorySize,
                                    int(fused_bytes_)));
+    if (blocking_wait())  // first: a bad value throws before anything is allocated
+      CB_CUDA(cudaEventCreateWithFlags(&done_, cudaEventBlockingSync | cudaEventDisableTiming));
     CB_CUDA(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
     CB_CUDA(cudaMalloc(&table_, sizeof(SlotDev<R>) * cap));
     CB_CUDA(cudaHostAlloc(&fin_host_, sizeof(FrameInputs<R>) * cap, cudaHostAllocMapped));
@@ -527,6 +529,7 @@ class CudaBatch final : public BatchStepper {
     cudaFree(table_);
     cudaFreeHost(fin_host_);
     cudaFreeHost(readback_host_);
+    if (done_ != nullptr) cudaEventDestroy(done_);
     cudaStreamDestroy(stream_);
   }
 
@@ -557,7 +560,7 @@ class CudaBatch final : public BatchStepper {
       CB_CUDA(cudaGraphLaunch(g, stream_));
       if (substeps % 2) flip_ = 1 - flip_;
     }
-    CB_CUDA(cudaStreamSynchronize(stream_));
+    wait();
     for (size_t k = 0; k < built_.size(); ++k)
       cloths_[size_t(built_[k])]->cur_ = built_cur_[k] ^ flip_;
   }
@@ -590,7 +593,7 @@ class CudaBatch final : public BatchStepper {
     CB_CUDA(cudaGetLastError());
     CB_CUDA(cudaMemcpyAsync(gather_host_, gather_dev_, sizeof(R) * count,
                             cudaMemcpyDeviceToHost, stream_));
-    CB_CUDA(cudaStreamSynchronize(stream_));
+    wait();
     for (size_t i = 0; i < count; ++i) out[i] = double(gather_host_[i]);
     return true;
   }
@@ -670,6 +673,28 @@ class CudaBatch final : public BatchStepper {
     graphs_.clear();
   }
 
+  // How the stepping thread waits for the GPU (a frame, a mesh gather): by default the
+  // runtime's stream synchronisation, which with one context on a many-core host spins a
+  // core until the work is done (the native frame loop's thread, a frame a millisecond);
+  // CLOTHBALL_CUDA_WAIT=block waits on a blocking-sync event instead: the thread sleeps
+  // until the GPU's interrupt, its CPU freed at the cost of that wake-up's latency.
+  static bool blocking_wait() {
+    const char* env = std::getenv("CLOTHBALL_CUDA_WAIT");
+    if (env == nullptr || *env == '\0' || std::strcmp(env, "spin") == 0) return false;
+    if (std::strcmp(env, "block") == 0) return true;
+    throw std::invalid_argument(
+        std::string("CLOTHBALL_CUDA_WAIT must be 'spin' or 'block', got '") + env + "'");
+  }
+
+  void wait() {
+    if (done_ == nullptr) {
+      CB_CUDA(cudaStreamSynchronize(stream_));
+      return;
+    }
+    CB_CUDA(cudaEventRecord(done_, stream_));
+    CB_CUDA(cudaEventSynchronize(done_));
+  }
+
   // Slots whose two state buffers take half the L2 (the rest holds what else the substep
   // reads); CLOTHBALL_CUDA_BATCH_GROUP=k takes k (0: every slot in each launch), to measure.
   // A slot's blocks in a substep launch of `m` slots: a node a thread (the lone cloth's
@@ -720,6 +745,7 @@ class CudaBatch final : public BatchStepper {
   const size_t fused_bytes_;  // > 0: the frame in one launch (batch_frame), else a launch a substep
   std::vector<CudaCloth<R>*> cloths_;  // by slot; null: not attached
   cudaStream_t stream_ = nullptr;
+  cudaEvent_t done_ = nullptr;  // CLOTHBALL_CUDA_WAIT=block: a frame's end (wait())
   SlotDev<R>* table_ = nullptr;        // the stepped slots (built_), on the device
   FrameInputs<R>* fin_host_ = nullptr;  // a row a slot, mapped
   FrameInputs<R>* fin_mapped_ = nullptr;

@@ -211,9 +211,10 @@ int FrameLoop::take_events(std::vector<int>& slots, std::vector<std::uint32_t>& 
   // one set before it is in the rooms read below. (Clearing the flag before draining could
   // swallow a write whose events this read has taken and leave the flag set: no wake-up
   // ever again.)
+  // One read takes the whole count (no EFD_SEMAPHORE) and leaves it at 0; no write can
+  // come before the flag is cleared below, so a second read would find nothing.
   std::uint64_t drained;
-  while (read(efd_, &drained, sizeof(drained)) > 0) {
-  }
+  [[maybe_unused]] ssize_t got = read(efd_, &drained, sizeof(drained));
   store(signalled_, std::uint32_t(0));
   fence();
   slots.clear();
