@@ -17,6 +17,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
 import pytest
 from clothball.game.sim.scene import Scene
 from clothball.server.app import GameServer
@@ -87,6 +88,19 @@ async def until(pred: Callable[[], bool], timeout: float = 10.0, what: str = "")
         if loop.time() > end:
             raise AssertionError(f"timed out waiting for {what or pred}")
         await asyncio.sleep(0.01)
+
+
+def hand_of(room: Any, seat: int) -> tuple[int, Any]:
+    """The hand a room's newest frame applied for a seat, (HIP seq, position), (0, None)
+    for none, whoever wrote it: the engine, or the gateway that serves the player's lane
+    (docs/architecture.md), which the engine's own HIP slots never see."""
+    sim = room.sim
+    if sim._native and sim.slot is not None:
+        r = sim.worker.rooms_view
+        seq = int(r["applied_seq"][sim.slot, seat])
+        return seq, (r["hips"][sim.slot, seat].copy() if seq else None)
+    hip = sim._hip_slots[seat]
+    return (0, None) if hip is None else (int(hip[1]), np.asarray(hip[0]))
 
 
 def local_server(data: Path, *, bots: int = 0, **settings: Any) -> ServerThread:

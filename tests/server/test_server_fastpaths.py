@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from websockets.asyncio.client import connect
 
 from tests.conftest import examples
-from tests.server.conftest import run, server, until
+from tests.server.conftest import hand_of, run, server, until
 
 _f64 = st.floats(allow_nan=True, allow_infinity=True, width=64)
 _vec = st.tuples(_f64, _f64, _f64)
@@ -116,8 +116,7 @@ def test_binary_messages_keep_their_order_with_text_ones(tmp_path) -> None:
                             return got[-1]
 
             assert first["type"] == "joined", first
-            await until(lambda: room.sim._hip_slots[0] is not None, 5, "the first HIP")
-            assert room.sim._hip_slots[0][1] == 1
+            await until(lambda: hand_of(room, 0)[0] == 1, 5, "the first HIP")
             assert not [m for m in got if m["type"] == "error"]
             for i in range(20):  # the handler is in its read loop now: the fast path
                 ws.protocol.send_text(P.encode_json({"type": "ping", "id": 100 + i}).encode())
@@ -129,10 +128,11 @@ def test_binary_messages_keep_their_order_with_text_ones(tmp_path) -> None:
                 assert err["code"] == "out_of_range"
                 ws.protocol.send_binary(P.encode_hip(inside, 1000 + i, 0.5))
                 ws.send_data()
-            await until(lambda: room.sim._hip_slots[0][1] == 1019, 5, "the last HIP")
+            await until(lambda: hand_of(room, 0)[0] == 1019, 5, "the last HIP")
             seen = [m["type"] for m in got if m["type"] in ("pong", "error")]
             assert seen == ["pong", "error"] * 20
-            assert srv.stats["messages_in"] >= 1 + 60
+            # (HIPs a gateway took are counted when it reports, once a second)
+            await until(lambda: srv.stats["messages_in"] >= 1 + 60, 5, "the messages counted")
             await ws.close()
 
     run(main())
@@ -156,7 +156,9 @@ def test_corners_reach_the_player_in_frame_order(tmp_path) -> None:
             assert p.counts["bad"] == 0
             assert all(b > a for a, b in zip(frames, frames[1:], strict=False))
             conn = next(c for c in srv.clients if c.seat == 1)
-            assert conn.sent >= len(frames)
+            # from the engine's frame hand-over; or, where the player came through a gateway
+            # that serves its lane, from the gateway: the engine sent only its few replies
+            assert conn.sent >= len(frames) if not conn.lane else conn.sent < 20, conn.sent
             await p.close()
 
     run(main())
