@@ -443,9 +443,8 @@ class NativeWorker:
             self._tracks_seen[slot] = total
 
     def _encode_meshes(self) -> None:
-        due = [(self._by_slot.get(m[0]), m) for m in self._loop.take_meshes()]
-        due = [(room, m) for room, m in due if room is not None]
-        if not due:
+        taken = self._loop.take_meshes()
+        if not taken:
             return
 
         def encode(item: tuple[RoomSim, tuple[Any, ...]]) -> bytes:
@@ -458,13 +457,16 @@ class NativeWorker:
                                            room.ball_radius, hips,
                                            compress=self.pool.compress_mesh, deltas=deltas)
 
-        if len(due) > 1 and self._encoders > 1:
+        due = ((self._by_slot.get(m[0]), m) for m in taken)
+        due = ((room, m) for room, m in due if room is not None)
+        if len(taken) > 1 and self._encoders > 1:
             if self._encoder is None:
                 self._encoder = ThreadPoolExecutor(self._encoders, "clothball-mesh-encode")
-            meshes = list(self._encoder.map(encode, due))
-        else:
-            meshes = [encode(item) for item in due]
-        for (room, m), mesh in zip(due, meshes, strict=True):
+            items = list(due)
+            done = zip(items, self._encoder.map(encode, items), strict=True)
+        else:  # one at a time: a mesh's buffers are let go before the next one's
+            done = ((item, encode(item)) for item in due)
+        for (room, m), mesh in done:
             slot, frame = m[0], m[1]
             if self.board is not None:
                 _native.board_write(self.board, slot * self.board_slot, frame, mesh)
