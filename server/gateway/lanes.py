@@ -256,7 +256,7 @@ class Lane:
         self._loop = asyncio.get_running_loop()
         self._due = self._loop.time()
         self._timer: asyncio.TimerHandle | None = None
-        if lane.seat is not None:  # a seated player: its hand and CORNER
+        if lane.corners:  # a seated player whose CORNERs are the gateway's to send
             self._timer = self._loop.call_soon(self._corner)
         if lane.board is not None:
             links.watch(self)

@@ -63,6 +63,7 @@ class Lane:
     block: int
     slot: int
     seat: int | None  # None: not seated (a spectator): MESH only
+    corners: bool  # the seat's CORNERs sent by the gateway (else by the engine)
     occupant: int
     lo: tuple[float, ...]
     hi: tuple[float, ...]
@@ -78,7 +79,8 @@ def lane_message(lane: Lane | None) -> dict[str, Any]:
     if lane is None:
         return {"type": LANE_TYPE}
     return {"type": LANE_TYPE, "room": lane.room, "block": lane.block, "slot": lane.slot,
-            "seat": lane.seat, "occupant": lane.occupant, "lo": list(lane.lo),
+            "seat": lane.seat, "corners": lane.corners,
+            "occupant": lane.occupant, "lo": list(lane.lo),
             "hi": list(lane.hi), "corner_interval": lane.corner_interval,
             "binary_rate": lane.binary_rate, "binary_burst": lane.binary_burst,
             "board": lane.board, "board_slot": lane.board_slot}
@@ -91,7 +93,7 @@ def parse_lane(payload: bytes) -> Lane | None:
         return None
     seat, board = m["seat"], m["board"]
     return Lane(str(m["room"]), int(m["block"]), int(m["slot"]),
-                None if seat is None else int(seat), int(m["occupant"]),
+                None if seat is None else int(seat), bool(m["corners"]), int(m["occupant"]),
                 tuple(map(float, m["lo"])), tuple(map(float, m["hi"])),
                 float(m["corner_interval"]), float(m["binary_rate"]),
                 float(m["binary_burst"]), None if board is None else int(board),
