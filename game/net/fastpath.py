@@ -12,8 +12,8 @@ between frames, those frames are parsed here and handed over, websockets' parser
 events skipped (its own per frame work was half a HIP's cost in the server); anything
 else, and every byte after it, goes to websockets. ``try_send_binary``: a binary message
 written at once; on a server's connection (frames unmasked, no extension) its frame is
-built here, the bytes websockets' ``Frame.serialize`` makes, without its checks and
-objects.
+written here (the header from ``game.wire.wsframe``), the bytes websockets'
+``Frame.serialize`` makes, without its checks and objects.
 
 The server takes 4 000 HIPs a second in its bench and a player 1 000 CORNERs: handed over
 as they arrive, each costs no wake-up of the reader task. Only when no message is queued
@@ -23,13 +23,14 @@ unset, go the usual way."""
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Callable
 from typing import Any
 
 from websockets.frames import Frame, Opcode, apply_mask
 from websockets.protocol import OPEN, SERVER
 from websockets.streams import StreamReader
+
+from ..wire.wsframe import SHORT_BINARY, binary_frame_header
 
 _AT_EOF = StreamReader.at_eof.__code__
 
@@ -130,22 +131,6 @@ def _queued(assembler: Any) -> int:
     return len(frames) if frames is not None else 1
 
 
-# A server's binary frame header (RFC 6455 5.2: FIN, opcode 2, unmasked, the length in 7,
-# 7 + 16 or 7 + 64 bits), as Frame.serialize writes it.
-_SHORT = [bytes((0x82, n)) for n in range(126)]
-_MEDIUM = struct.Struct("!BBH")
-_LONG = struct.Struct("!BBQ")
-
-
-def binary_frame_header(length: int) -> bytes:
-    """The header of an unmasked, final binary frame of ``length`` payload bytes."""
-    if length < 126:
-        return _SHORT[length]
-    if length < 65536:
-        return _MEDIUM.pack(0x82, 126, length)
-    return _LONG.pack(0x82, 127, length)
-
-
 def try_send_binary(ws: Any, data: bytes) -> bool:
     """Write one binary message on connection ``ws`` at once when the socket takes it
     without waiting (open, nothing buffered): the same frame that ``await ws.send(data)``
@@ -161,7 +146,7 @@ def try_send_binary(ws: Any, data: bytes) -> bool:
         # Nothing of the protocol's is waiting to be written (it is written as it is made),
         # so this frame goes in order.
         n = len(data)
-        transport.write((_SHORT[n] if n < 126 else binary_frame_header(n)) + data)
+        transport.write((SHORT_BINARY[n] if n < 126 else binary_frame_header(n)) + data)
         return True
     protocol.send_binary(data)
     ws.send_data()

@@ -23,10 +23,10 @@ import re
 import struct
 from collections.abc import Callable
 
+from ...game.wire.wsframe import OP_BINARY, OP_CLOSE, OP_TEXT, frame_header, header_at
 from ..shared.lanes import LANE_PREFIX
 
 HEAD_MAX = 1 << 16  # an HTTP answer's head longer than this is not followed further
-OP_TEXT, OP_BINARY, OP_CLOSE = 0x1, 0x2, 0x8
 PEEK = 256  # bytes of a text message's start kept: the fields read are among the first
 HOLD = 2048  # a whole text frame up to this long is held until complete (a lane message?)
 BINARY_HEAD = struct.Struct("<BBHId")  # docs/protocol.md's 16-byte header: type .. time
@@ -86,20 +86,14 @@ class ServerFrames:
                 self._skip -= take
                 i += take
                 if self._peek is not None and (not self._peek_left or not self._skip):
-                    self._seen(bytes(self._peek))
+                    self._seen(bytes(self._peek), self._peek_binary)
                     self._peek = None
                 if self._skip:
                     break
-            if len(buf) - i < 2:
+            head = header_at(buf, i)
+            if head is None:
                 break
-            b0, b1 = buf[i], buf[i + 1]
-            n, hl = b1 & 0x7F, 2
-            hl += 2 if n == 126 else 8 if n == 127 else 0
-            hl += 4 if b1 & 0x80 else 0
-            if len(buf) - i < hl:
-                break
-            if n >= 126:
-                n = int.from_bytes(buf[i + 2:i + (4 if n == 126 else 10)], "big")
+            b0, _, n, hl = head
             op = b0 & 0x0F
             if op == OP_TEXT and b0 & 0x80 and not self._fragmented and 0 < n <= HOLD:
                 if len(buf) - i < hl + n:
@@ -108,8 +102,7 @@ class ServerFrames:
                 if self.on_lane is not None and payload.startswith(LANE_PREFIX):
                     self.on_lane(payload)
                 else:
-                    self._peek_binary = False
-                    self._seen(payload[:PEEK])
+                    self._seen(payload[:PEEK], binary=False)
                     out += buf[i:i + hl + n]
                 i += hl + n
                 continue
@@ -127,9 +120,9 @@ class ServerFrames:
         self._partial = bytes(buf[i:])
         return bytes(out)
 
-    def _seen(self, start: bytes) -> None:
+    def _seen(self, start: bytes, binary: bool) -> None:
         """A message's first bytes: where the client is."""
-        if self._peek_binary:
+        if binary:
             _, _, _, seq, time = BINARY_HEAD.unpack(start)
             ahead = (seq - self.frame) % (1 << 32)  # seq is the frame mod 2^32
             if self.frame < 0 or ahead < 1 << 31:  # (not an older frame's message)
@@ -147,8 +140,7 @@ class ServerFrames:
         """A binary message the gateway itself wrote to the client (a lane's CORNER or
         MESH): its room's frame and time, as from the engine's."""
         if len(payload) >= BINARY_HEAD.size:
-            self._peek_binary = True
-            self._seen(payload[:BINARY_HEAD.size])
+            self._seen(payload[:BINARY_HEAD.size], binary=True)
 
     def between_messages(self) -> bool:
         """A close frame may be written now: a websocket stream, open, between messages."""
@@ -160,14 +152,10 @@ def text_frame(msg: dict[str, object]) -> bytes:
     """A server's (unmasked) text frame holding ``msg`` as compact JSON, as the engine
     writes it."""
     payload = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
-    n = len(payload)
-    head = (bytes([0x80 | OP_TEXT, n]) if n < 126
-            else bytes([0x80 | OP_TEXT, 126]) + n.to_bytes(2, "big") if n < 1 << 16
-            else bytes([0x80 | OP_TEXT, 127]) + n.to_bytes(8, "big"))
-    return head + payload
+    return frame_header(OP_TEXT, len(payload)) + payload
 
 
 def close_frame(code: int, reason: str) -> bytes:
     """A server's (unmasked) close frame."""
     payload = code.to_bytes(2, "big") + reason.encode()[:123]
-    return bytes([0x80 | OP_CLOSE, len(payload)]) + payload
+    return frame_header(OP_CLOSE, len(payload)) + payload

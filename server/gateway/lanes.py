@@ -27,13 +27,13 @@ from typing import Any
 
 from ... import _native  # type: ignore[attr-defined]
 from ...game.wire import protocol as P
+from ...game.wire.wsframe import FIN, OP_BINARY, binary_frame_header, header_at
 from ..shared import lanes
 from ..shared.bucket import TokenBucket
 
 log = logging.getLogger("clothball.gateway")
 
 LANES_ENV = "CLOTHBALL_GATEWAY_LANES"  # "0": the gateway relays every message (A/B runs)
-OP_BINARY = 0x2
 FRAME_S = 0.001  # the frame loop's frame: a lane's fastest CORNER interval
 WRITE_SKIP = 1 << 16  # a client with this much unsent: its CORNER is skipped (a newer comes)
 REPORT_S = 1.0  # counts reported to the engine this often
@@ -41,8 +41,7 @@ RETRY_S = 0.5  # between two requests for the blocks
 RETRY_FRAME_S = 0.00025  # a CORNER due before its frame is looked for again this soon,
 RETRIES = 4  # this many times (a frame's time)
 MESH_LOOK_S = 0.004  # the watched rooms' boards are looked at this often (MESH: 30 Hz)
-CORNER_HEAD = bytes([0x80 | OP_BINARY, P.CORNER_SIZE])  # a server's frame of one CORNER
-assert P.CORNER_SIZE < 126
+CORNER_HEAD = binary_frame_header(P.CORNER_SIZE)  # a server's frame of one CORNER
 
 
 def lanes_wanted() -> bool:
@@ -71,19 +70,12 @@ class ClientFrames:
                 self._skip -= take
                 i += take
                 continue
-            if end - i < 2:
+            head = header_at(buf, i)
+            if head is None:
                 break
-            b0, b1 = buf[i], buf[i + 1]
-            n, hl = b1 & 0x7F, 2
-            hl += 2 if n == 126 else 8 if n == 127 else 0
-            masked = b1 & 0x80
-            hl += 4 if masked else 0
-            if end - i < hl:
-                break
-            if n >= 126:
-                n = int.from_bytes(buf[i + 2:i + (4 if n == 126 else 10)], "big")
+            b0, masked, n, hl = head
             op = b0 & 0x0F
-            if b0 == 0x80 | OP_BINARY and masked and n == P.HIP_SIZE and not self._fragmented:
+            if b0 == FIN | OP_BINARY and masked and n == P.HIP_SIZE and not self._fragmented:
                 if end - i < hl + n:
                     break  # held until whole
                 mask = int.from_bytes(buf[i + hl - 4:i + hl] * 7, "little")
@@ -143,18 +135,16 @@ class Lanes:
         return view
 
     def watch(self, lane: Lane) -> None:
-        key = (lane.lane.board, lane.lane.slot * lane.lane.board_slot)
-        self.watched.setdefault(key, (set(), [-1]))[0].add(lane)
+        self.watched.setdefault(lane.mesh_key, (set(), [-1]))[0].add(lane)
         if self._mesh_timer is None:
             self._mesh_timer = asyncio.get_running_loop().call_soon(self._meshes)
 
     def unwatch(self, lane: Lane) -> None:
-        key = (lane.lane.board, lane.lane.slot * lane.lane.board_slot)
-        entry = self.watched.get(key)
+        entry = self.watched.get(lane.mesh_key)
         if entry is not None:
             entry[0].discard(lane)
             if not entry[0]:
-                del self.watched[key]
+                del self.watched[lane.mesh_key]
 
     def _meshes(self) -> None:
         """Each watched room's newest MESH (from its board, written once by the engine)
@@ -173,7 +163,7 @@ class Lanes:
             if data is None:
                 continue
             sent[0] = frame
-            head = frame_head(len(data))
+            head = binary_frame_header(len(data))
             for lane in watchers:
                 lane.send_mesh(head, data)
         self._mesh_timer = asyncio.get_running_loop().call_later(MESH_LOOK_S, self._meshes)
@@ -228,15 +218,6 @@ class Lanes:
                     self._reported = {}
 
 
-def frame_head(n: int) -> bytes:
-    """A server's (unmasked) binary frame's header for ``n`` bytes (RFC 6455)."""
-    if n < 126:
-        return bytes([0x80 | OP_BINARY, n])
-    if n < 1 << 16:
-        return bytes([0x80 | OP_BINARY, 126]) + n.to_bytes(2, "big")
-    return bytes([0x80 | OP_BINARY, 127]) + n.to_bytes(8, "big")
-
-
 class Lane:
     """One client's open lane: ``write(kind, head, payload)`` sends a message ("corner" or
     "mesh", its frame header and payload) to the client at a message boundary of the engine's stream
@@ -260,6 +241,11 @@ class Lane:
             self._timer = self._loop.call_soon(self._corner)
         if lane.board is not None:
             links.watch(self)
+
+    @property
+    def mesh_key(self) -> tuple[int | None, int]:
+        """Where its room's MESH is: the board, and the room's slot's offset in it."""
+        return self.lane.board, self.lane.slot * self.lane.board_slot
 
     def close(self) -> None:
         if self._timer is not None:
