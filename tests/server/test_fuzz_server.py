@@ -10,6 +10,7 @@ longer hunt (``CLOTHBALL_FUZZ_EXAMPLES=5000 pytest tests/test_fuzz_server.py``).
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import time
@@ -320,6 +321,13 @@ def test_memory_stays_bounded_under_garbage_connections(live: LiveServer) -> Non
     # The rooms' lateness samples take their fixed ring (sim.LATENESS_SAMPLES) whatever the
     # clients do: not what is measured here.
     not_samples = [tracemalloc.Filter(False, "*/server/sim.py")]
+    # Nor the deflate workspace zlib takes for the length of one MESH's compression on the
+    # rooms' thread (~300 KB, 9 blocks, freed as the call returns): a snapshot taken during
+    # one counted it, and the CI dry runs at 007a1e3 and d79e3fe failed on it. Only that
+    # line of the encoder is left out; the MESH messages it makes are counted as before.
+    src, first = inspect.getsourcelines(P.encode_quantised_mesh)
+    deflate = first + next(k for k, line in enumerate(src) if "zlib.compress(" in line)
+    not_samples.append(tracemalloc.Filter(False, inspect.getsourcefile(P), deflate))
 
     def held() -> int:
         # Cyclic garbage not yet collected (the clients' own connections, mostly) is not
