@@ -151,7 +151,8 @@ class GameServer:
             if self.engine_socket is not None:
                 self._gateways = await self._listen_gateways(self.engine_socket)
                 self._control = GatewayControl(lanes.ctl_path(self.engine_socket),
-                                               self._blocks, self.stats)
+                                               self._blocks, self.stats,
+                                               self.sims.set_wake)
                 await self._control.start()
         except BaseException:
             if self._server is not None:

@@ -282,6 +282,12 @@ class NativeWorker:
                 self.board.close()  # (a gateway's mapping of it stays valid: a memfd)
                 os.close(self._board_fd)
 
+    def add_wake(self, fd: int) -> None:
+        self._loop.add_wake(fd)
+
+    def remove_wake(self, fd: int) -> None:
+        self._loop.remove_wake(fd)
+
     def post(self, room: RoomSim, name: str, arg: Any) -> None:
         """A command for the service thread (recordings), in order."""
         self._inbox.put((room, name, arg))

@@ -28,8 +28,9 @@ class GatewayControl:
     host's figures, to which each gateway's reported counts are added as they grow."""
 
     def __init__(self, path: Path, blocks: Callable[[], list[tuple[int, int, int, str]]],
-                 stats: dict[str, int]) -> None:
+                 stats: dict[str, int], set_wake: Callable[[int, bool], None]) -> None:
         self.path, self.blocks, self.stats = path, blocks, stats
+        self.set_wake = set_wake  # an eventfd written by every frame loop a pass, or no more
         self._sock: socket.socket | None = None
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -73,6 +74,7 @@ class GatewayControl:
         """One gateway's connection: its requests and reports, a line each."""
         loop = asyncio.get_running_loop()
         seen = dict.fromkeys(COUNTED, 0)
+        wake = [-1]  # this gateway's frame wake-up, once asked for
         buf = b""
         try:
             while True:
@@ -85,16 +87,30 @@ class GatewayControl:
                     return
                 while b"\n" in buf:
                     line, buf = buf.split(b"\n", 1)
-                    self._line(conn, line, seen)
+                    self._line(conn, line, seen, wake)
         except OSError:
             return
         finally:
+            if wake[0] >= 0:
+                self.set_wake(wake[0], False)  # (no frame loop writes it from here on)
+                os.close(wake[0])
             conn.close()
 
-    def _line(self, conn: socket.socket, line: bytes, seen: dict[str, int]) -> None:
-        if line + b"\n" == lanes.BLOCKS:
-            # A few dozen bytes and a few descriptors on a local socket: sent at once.
+    def _line(self, conn: socket.socket, line: bytes, seen: dict[str, int],
+              wake: list[int]) -> None:
+        # A few dozen bytes and a few descriptors on a local socket: answers are sent at once.
+        word = line + b"\n"
+        if word == lanes.BLOCKS:
             lanes.send_blocks(conn, self.blocks())
+            return
+        if word == lanes.WAKE:
+            if wake[0] < 0:
+                wake[0] = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+            lanes.send_wake(conn, wake[0])
+            return
+        if word in (lanes.ARM, lanes.DISARM):
+            if wake[0] >= 0:
+                self.set_wake(wake[0], word == lanes.ARM)
             return
         try:
             counts = json.loads(line)["counts"]

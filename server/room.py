@@ -37,7 +37,6 @@ SHOWN_AWAKE_S = 30.0
 MESH_FANOUT_CHUNK = 8  # connections offered a new MESH per pass of the event loop
 # s between deliveries of a room no player sits in (the native loop; spectators get MESH)
 IDLE_CORNER_INTERVAL = 0.01
-LANE_CORNER_MAX_HZ = 500.0  # a client's corner_rate up to which its gateway sends CORNERs
 
 
 class Peer(Protocol):
@@ -387,12 +386,9 @@ class Room:
         if place is None or (seat is None and not mesh):
             self._close_lane(conn)
             return
-        # CORNERs above LANE_CORNER_MAX_HZ stay the engine's, woken by the frame loop each
-        # frame: a gateway's asyncio timers wait whole milliseconds (epoll), which lost one
-        # CORNER in eight at corner_rate 1000 (H100 runs 3 and 6). Its HIPs go through the
-        # gateway either way.
-        corners = seat is not None and \
-            conn.corner_interval >= 1.0 / LANE_CORNER_MAX_HZ - 1e-4  # (ws.py's interval)
+        # A seated player's CORNERs, at any corner_rate: above what its timers keep, the
+        # gateway sends them on the frame loops' wake-up (server.shared.lanes).
+        corners = seat is not None
         conn.lane, conn.lane_mesh = corners, mesh
         i = 0 if seat is None else seat
         conn.send_json(lane_message(Lane(

@@ -586,6 +586,7 @@ class SimPool:
         self.spool_dir = spool_dir or Path(tempfile.gettempdir()) / "clothball-spool"
         self._workers: dict[tuple[str, str, str], list[SimWorker]] = {}
         self._lock = threading.Lock()
+        self._wakes: set[int] = set()  # eventfds every native frame loop writes each pass
 
     def now(self) -> float:
         return self.clock() - self.epoch
@@ -613,6 +614,8 @@ class SimPool:
                 w = SimWorker(self, scene, resolved, self.capacity)
                 if native:
                     w = NativeWorker(self, w, room)
+                    for fd in self._wakes:
+                        w.add_wake(fd)
                 workers.append(w)
                 w.start()
             w.members += 1
@@ -621,6 +624,15 @@ class SimPool:
     def native_for(self, scene: Scene) -> bool:
         gusts = "wind" in scene.effects and scene["wind"]["gust_amplitude"] > 0.0
         return frame_loop_wanted() and self.clock is time.perf_counter and not gusts
+
+    def set_wake(self, fd: int, on: bool) -> None:
+        """An eventfd written by every native frame loop, now and to come, once a pass
+        (``on``), or no more (a gateway's: ``server.shared.lanes``)."""
+        with self._lock:
+            (self._wakes.add if on else self._wakes.discard)(fd)
+            for w in (w for ws in self._workers.values() for w in ws):
+                if getattr(w, "native", False):
+                    (w.add_wake if on else w.remove_wake)(fd)
 
     @property
     def workers(self) -> list[Any]:

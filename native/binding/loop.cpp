@@ -154,6 +154,11 @@ class Loop {
   void set_recording(int slot, bool on) { loop_->set_recording(check(slot), on); }
   void set_corner_due(int slot, double t) { loop_->set_corner_due(check(slot), t); }
   int event_fd() const { return loop_->event_fd(); }
+  void add_wake(int fd) { loop_->add_wake(fd); }
+  void remove_wake(int fd) {
+    py::gil_scoped_release release;  // waits for a pass's writes
+    loop_->remove_wake(fd);
+  }
   py::tuple take_events() {
     loop_->take_events(slots_, bits_);
     py::array_t<int> s(py::ssize_t(slots_.size()), slots_.data());
@@ -264,6 +269,8 @@ void bind_loop(py::module_& m) {
       .def("set_recording", &Loop::set_recording)
       .def("set_corner_due", &Loop::set_corner_due)
       .def("event_fd", &Loop::event_fd)
+      .def("add_wake", &Loop::add_wake, py::arg("fd"))
+      .def("remove_wake", &Loop::remove_wake, py::arg("fd"))
       .def("take_events", &Loop::take_events)
       .def("read_room", &Loop::read_room)
       .def("wait_service", &Loop::wait_service, py::arg("timeout"))

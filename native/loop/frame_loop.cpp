@@ -205,6 +205,16 @@ void FrameLoop::set_corner_due(int slot, double server_time) {
   store(rooms_[slot].corner_due, server_time);
 }
 
+void FrameLoop::add_wake(int fd) {
+  std::lock_guard<std::mutex> g(wake_mutex_);
+  if (std::find(wakes_.begin(), wakes_.end(), fd) == wakes_.end()) wakes_.push_back(fd);
+}
+
+void FrameLoop::remove_wake(int fd) {
+  std::lock_guard<std::mutex> g(wake_mutex_);
+  wakes_.erase(std::remove(wakes_.begin(), wakes_.end(), fd), wakes_.end());
+}
+
 int FrameLoop::take_events(std::vector<int>& slots, std::vector<std::uint32_t>& bits) {
   // The eventfd drained first, then the flag cleared, then the rooms read: an event set
   // after the flag is cleared writes the eventfd again (and is read now or on that wake-up);
@@ -450,6 +460,12 @@ void FrameLoop::run() {
     eng_->lateness[c % kLatenessRing] = late;
     store(eng_->lateness_count, c + 1);
     if (any) signal();
+    {
+      // Under the lock: a wake removed and closed is never written (nor its number reused).
+      std::lock_guard<std::mutex> g(wake_mutex_);
+      const std::uint64_t one = 1;
+      for (int fd : wakes_) (void)!write(fd, &one, sizeof(one));  // full (never): woken anyway
+    }
   }
 }
 

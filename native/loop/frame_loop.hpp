@@ -86,6 +86,11 @@ class FrameLoop {
   void set_armed(int slot, bool armed);
   void set_recording(int slot, bool on);
   void set_corner_due(int slot, double server_time);
+  // Any thread: eventfds written once a pass, after the pass's corners are published (a
+  // gateway's: it sends CORNERs at frame rate from the block, which timers that wait whole
+  // milliseconds cannot). The loop does not own them: remove one before closing it.
+  void add_wake(int fd);
+  void remove_wake(int fd);
 
   // The event loop's side: the fd it waits on, and the rooms with events (cleared here).
   int event_fd() const { return efd_; }
@@ -126,6 +131,8 @@ class FrameLoop {
   EngineRecord* eng_ = nullptr;
   int efd_ = -1;
   std::uint32_t signalled_ = 0;  // an eventfd write is pending (atomic)
+  std::mutex wake_mutex_;
+  std::vector<int> wakes_;  // add_wake's
   // the loop's own
   std::mutex mutex_;
   std::atomic<int> waiting_{0};  // threads in acquire(): the loop lets them in between passes

@@ -10,7 +10,8 @@ out, against 30 Hz MESH to each spectator and a few control messages).
   over it, mapped here) and the counts reported to the engine for the host's figures.
 * ``Lane`` state of one client: its HIPs (the binary rate of ``server.limits``, the reach
   box, the occupant: anything the gateway does not take, it passes to the engine, which
-  answers as documented) and its CORNER timer.
+  answers as documented) and its CORNER timer, or, above ``TIMER_MAX_HZ``, the frame
+  wake-up that the engine's frame loops write after each pass (``server.shared.lanes``).
 """
 
 from __future__ import annotations
@@ -111,6 +112,13 @@ class Lanes:
         self._fetched_at = -math.inf
         self._reported: dict[str, int] = {}
         self._task: asyncio.Task[None] | None = None
+        # The frame wake-up (an eventfd the engine's frame loops write after each pass,
+        # while armed) and the lanes sending a CORNER on it: those above TIMER_MAX_HZ.
+        self.framed: set[Lane] = set()
+        self._wake = -1
+        self._no_wake = False  # the engine gave none: those lanes use timers
+        self._armed = False
+        self._arming: asyncio.Task[None] | None = None
 
     def start(self) -> None:
         self._task = asyncio.get_running_loop().create_task(self._report_forever())
@@ -146,6 +154,40 @@ class Lanes:
             if not entry[0]:
                 del self.watched[lane.mesh_key]
 
+    def on_frames(self, lane: Lane, on: bool) -> bool:
+        """``lane`` sends its CORNERs on the frame wake-up from now on (or no more); False:
+        there is none to have (it keeps its timer)."""
+        if on and self._no_wake:
+            return False
+        (self.framed.add if on else self.framed.discard)(lane)
+        if bool(self.framed) != self._armed and self._wake >= 0 and \
+                (self._arming is None or self._arming.done()):
+            self._arming = asyncio.get_running_loop().create_task(self._arm())
+        return True
+
+    async def _arm(self) -> None:
+        """The engine's frame loops write the wake-up while a lane here needs it."""
+        async with self._lock:
+            while self._wake >= 0 and bool(self.framed) != self._armed:
+                want = bool(self.framed)
+                line = lanes.ARM if want else lanes.DISARM
+                try:
+                    await asyncio.to_thread(lambda: self._connect().sendall(line))  # noqa: B023
+                except OSError:
+                    self._drop()
+                    return
+                self._armed = want
+
+    def _frame(self) -> None:
+        """A frame loop's pass has ended: the framed lanes' CORNERs that are due."""
+        try:
+            os.eventfd_read(self._wake)
+        except OSError:  # (BlockingIOError: another reader's, or none yet)
+            return
+        now = asyncio.get_running_loop().time()
+        for lane in list(self.framed):
+            lane.on_frame(now)
+
     def _meshes(self) -> None:
         """Each watched room's newest MESH (from its board, written once by the engine)
         to its lanes' clients, when newer than the last sent."""
@@ -172,6 +214,10 @@ class Lanes:
         if self._sock is not None:
             self._sock.close()
             self._sock = None
+        if self._wake >= 0:
+            asyncio.get_running_loop().remove_reader(self._wake)
+            os.close(self._wake)
+            self._wake, self._armed = -1, False
         self.blocks = {}  # an engine's blocks die with it (its lanes' clients are closed)
 
     def _connect(self) -> socket.socket:
@@ -195,12 +241,28 @@ class Lanes:
                     # a frame loop's block as a view of its records; a mesh board as bytes
                     self.blocks = {i: _native.BlockView(m) if kind == "block" else m
                                    for i, (kind, m) in maps.items()}
+                    if self._wake < 0 and not self._no_wake:
+                        await self._fetch_wake()
                     return
                 except (OSError, ValueError) as e:
                     self._drop()
                     if attempt:
                         log.warning("the engine's blocks could not be had (%s): its "
                                     "players' messages go through the engine", e)
+
+    async def _fetch_wake(self) -> None:
+        try:
+            self._wake = await asyncio.to_thread(lambda: lanes.receive_wake(self._connect()))
+        except ConnectionError as e:  # an engine that has none: timers, a little late
+            log.warning("%s: CORNERs above %g Hz are timed here", e, lanes.TIMER_MAX_HZ)
+            self._no_wake = True
+            for lane in list(self.framed):
+                self.framed.discard(lane)
+                lane.use_timer()
+            return
+        asyncio.get_running_loop().add_reader(self._wake, self._frame)
+        if self.framed:
+            self._arming = asyncio.get_running_loop().create_task(self._arm())
 
     async def _report_forever(self) -> None:
         while True:
@@ -237,8 +299,12 @@ class Lane:
         self._loop = asyncio.get_running_loop()
         self._due = self._loop.time()
         self._timer: asyncio.TimerHandle | None = None
+        self._framed = False
         if lane.corners:  # a seated player whose CORNERs are the gateway's to send
-            self._timer = self._loop.call_soon(self._corner)
+            self._framed = lane.corner_interval < 1.0 / lanes.TIMER_MAX_HZ - 1e-4 and \
+                links.on_frames(self, True)
+            if not self._framed:
+                self._timer = self._loop.call_soon(self._corner)
         if lane.board is not None:
             links.watch(self)
 
@@ -251,6 +317,9 @@ class Lane:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
+        if self._framed:
+            self._framed = False
+            self.links.on_frames(self, False)
         if self.lane.board is not None:
             self.links.unwatch(self)
 
@@ -287,32 +356,63 @@ class Lane:
         self.links.counts["messages_in"] += 1
         return True
 
+    def use_timer(self) -> None:
+        """Its CORNERs on its own timer (the gateway has no frame wake-up)."""
+        if self._framed:
+            self._framed = False
+            self._timer = self._loop.call_soon(self._corner)
+
+    def _send_newest(self) -> bool | None:
+        """The seat's newest CORNER to the client if a newer frame than the last sent is
+        there (True); False: none newer; None: the lane has ended (its slot holds another
+        room now)."""
+        ln = self.lane
+        assert ln.seat is not None
+        if self.room() != ln.room or self._view() is None:
+            return False
+        frame, msg = self.view.read_corner(ln.slot, ln.seat)
+        if frame < self.sent_frame:
+            return None
+        if frame == self.sent_frame:
+            return False
+        self.sent_frame = frame
+        self.write("corner", CORNER_HEAD, msg)
+        return True
+
+    def on_frame(self, now: float) -> None:
+        """A pass has ended (the frame wake-up): its CORNER, when due (within half a
+        frame: passes come a frame apart, give or take)."""
+        if now < self._due - FRAME_S / 2:
+            return
+        sent = self._send_newest()
+        if sent is None:  # as its timer would stop
+            self._framed = False
+            self.links.on_frames(self, False)
+        elif sent:
+            due = self._due + max(self.lane.corner_interval, FRAME_S)
+            self._due = due if due > now else now + FRAME_S / 2
+
     def _corner(self) -> None:
         """The seat's newest CORNER to the client, when a newer frame than the last sent
         is there; then the next one, an interval after this one was due (as the engine
         times its own: ``server.conn.Conn.offer_corner``)."""
-        ln = self.lane
-        assert ln.seat is not None
         now = self._loop.time()
-        if self.room() == ln.room and self._view() is not None:
-            frame, msg = self.view.read_corner(ln.slot, ln.seat)
-            if frame < self.sent_frame:  # the slot holds another room now: this lane ended
-                self._timer = None
-                return
-            if frame > self.sent_frame:
-                self.sent_frame = frame
-                self.write("corner", CORNER_HEAD, msg)
-                self._retries = 0
-            elif self._retries < RETRIES:
+        sent = self._send_newest()
+        if sent is None:
+            self._timer = None
+            return
+        if sent:
+            self._retries = 0
+        elif self.room() == self.lane.room and self.view is not None:
+            if self._retries < RETRIES:
                 # Due just before the loop published the next frame (this timer and the
                 # frames are not in step): look again a little later, not an interval later
                 # (at corner_rate 1000 that lost one CORNER in eight).
                 self._retries += 1
                 self._timer = self._loop.call_at(now + RETRY_FRAME_S, self._corner)
                 return
-            else:
-                self._retries = 0  # no new frame (the room sleeps): on at the rate
-        interval = max(ln.corner_interval, FRAME_S)
+            self._retries = 0  # no new frame (the room sleeps): on at the rate
+        interval = max(self.lane.corner_interval, FRAME_S)
         due = self._due + interval
         self._due = due if due > now else now + interval
         self._timer = self._loop.call_at(self._due, self._corner)

@@ -19,7 +19,11 @@ HTTP) between the client and the engine.
   blocks and mesh boards (``BLOCKS``: one JSON line naming each one's id, size and kind,
   the memfds passed with it, SCM_RIGHTS) and reports its counts on it (one JSON line a
   second: messages in and out that the engine did not see), so that the host's figures
-  stay whole.
+  stay whole. ``WAKE`` asks for the gateway's **frame wake-up**, an eventfd (passed the same
+  way, once per connection) that every frame loop of the engine writes after each pass
+  while the gateway has it armed (``ARM``, ``DISARM``: unanswered lines): the gateway
+  sends CORNERs faster than its timers can (``corner_rate`` above ``TIMER_MAX_HZ``) as
+  each frame is published.
 """
 
 from __future__ import annotations
@@ -35,6 +39,11 @@ from typing import Any
 LANE_TYPE = "_lane"
 LANE_PREFIX = b'{"type":"_lane"'  # how the engine's compact JSON of a lane message starts
 BLOCKS = b"blocks\n"
+WAKE, ARM, DISARM = b"wake\n", b"arm\n", b"disarm\n"
+# Up to this corner_rate a gateway times a lane's CORNERs with its own timers; above it,
+# on the frame wake-up (asyncio's timers on epoll wait whole milliseconds: at 1 kHz they
+# fired late or on no new frame).
+TIMER_MAX_HZ = 500.0
 MAX_BLOCKS = 64
 LINE_MAX = 1 << 16
 
@@ -124,6 +133,22 @@ def receive_blocks(sock: socket.socket) -> dict[int, tuple[str, mmap.mmap]]:
     finally:
         for fd in fds:
             os.close(fd)
+
+
+def send_wake(sock: socket.socket, fd: int) -> None:
+    """The engine's answer to ``WAKE``: the eventfd, with one line."""
+    socket.send_fds(sock, [b'{"wake":true}\n'], [fd])
+
+
+def receive_wake(sock: socket.socket) -> int:
+    """The gateway's side of ``WAKE`` (a blocking socket): the eventfd (its own to close)."""
+    sock.sendall(WAKE)
+    data, fds, _, _ = socket.recv_fds(sock, LINE_MAX, 1)
+    if data != b'{"wake":true}\n' or len(fds) != 1:
+        for fd in fds:
+            os.close(fd)
+        raise ConnectionError(f"the engine's answer to WAKE was not one: {data[:60]!r}")
+    return fds[0]
 
 
 def counts_line(counts: dict[str, int]) -> bytes:

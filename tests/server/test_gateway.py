@@ -27,7 +27,7 @@ from websockets.frames import Close, Frame, Opcode
 
 from tests.server import workers
 from tests.server.conformance_client import HELLO
-from tests.server.conftest import run, server
+from tests.server.conftest import run, server, until
 
 HEAD = b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\r\n"
 SIZES = (0, 1, 125, 126, 127, 300, 65535, 65536, 70000)  # each header length form
@@ -290,5 +290,62 @@ def test_a_gateway_without_its_engine_answers_503_saying_so(tmp_path) -> None:
             assert "engine is restarting" in json.loads(e.read())["error"]
         finally:
             await gw.stop()
+
+    run(main())
+
+
+def test_the_control_socket_gives_a_gateway_its_frame_wake_up_and_arms_it(tmp_path) -> None:
+    """The engine's control socket (``server.gateways``) as a gateway speaks to it
+    (``server.shared.lanes``): ``WAKE`` passes an eventfd, the same one the engine hands
+    its frame loops on ``ARM`` and takes back on ``DISARM`` and when the gateway's
+    connection ends (then closing its own descriptor); a line that is none of these is
+    logged and changes nothing."""
+    import os
+    import socket
+
+    from clothball.server.gateways import GatewayControl
+    from clothball.server.shared import lanes
+
+    async def main() -> None:
+        calls: list[tuple[int, bool]] = []
+        stats = {"messages_in": 0, "messages_out": 0, "lane_messages_in": 0,
+                 "lane_messages_out": 0}
+        ctl = GatewayControl(tmp_path / "e.sock.ctl", lambda: [], stats,
+                             lambda fd, on: calls.append((fd, on)))
+        await ctl.start()
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            s.settimeout(5.0)
+            await asyncio.to_thread(s.connect, str(ctl.path))
+            mine = await asyncio.to_thread(lanes.receive_wake, s)
+            assert calls == []  # not armed by being asked for
+            s.sendall(lanes.ARM + b"not a line\n")
+            await until(lambda: calls, 5, "armed")
+            (theirs, on), = calls
+            assert on and theirs != mine
+            os.eventfd_write(theirs, 3)  # what a frame loop writes reaches the gateway
+            assert os.eventfd_read(mine) == 3
+            s.sendall(lanes.DISARM)
+            await until(lambda: len(calls) == 2, 5, "disarmed")
+            assert calls[1] == (theirs, False)
+            assert stats["messages_in"] == 0
+            s.close()
+            await until(lambda: len(calls) == 3, 5, "taken back as the gateway leaves")
+            assert calls[2] == (theirs, False)
+            # The engine's descriptor is closed: of this process's, only the gateway's
+            # refers to that eventfd (marked with a count no other has).
+            os.eventfd_write(mine, 0x5EED)
+
+            def marked(fd: str) -> bool:
+                try:
+                    with open(f"/proc/self/fdinfo/{fd}") as f:
+                        return "eventfd-count:5eed" in "".join(f.read().split()).lower()
+                except OSError:
+                    return False
+            assert [int(fd) for fd in os.listdir("/proc/self/fdinfo") if marked(fd)] == [mine]
+            os.close(mine)
+        finally:
+            s.close()
+            await ctl.stop()
 
     run(main())

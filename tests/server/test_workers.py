@@ -235,23 +235,31 @@ def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -
         await asyncio.sleep(0.3)
         assert p.counts["corner"] == n
         await p.close()
-        # At corner_rate 1000 the engine sends the CORNERs (woken each frame; a gateway's
-        # timers wait whole milliseconds), the gateway still takes the HIPs.
+        # At corner_rate 1000 the gateway sends them too, on the frame loop's wake-up after
+        # each pass (its timers wait whole milliseconds), and takes the HIPs.
         fast = await NetClient.connect(h.url, name="bo", role="player", room="main", seat=2,
                                        corner_rate=1000)
         await asyncio.sleep(1.2)  # the gateway's last report
         s0, c0 = await asyncio.to_thread(h.json, "/api/stats"), fast.counts["corner"]
+        frames: list[int] = []
+        fast.on_corner = lambda c: frames.append(c.frame)
         t0 = time.monotonic()
         while time.monotonic() - t0 < 1.0:
             await fast.send_hip(hand)
             await asyncio.sleep(1 / 120)
+        fast.on_corner = None
         got = fast.counts["corner"] - c0
-        assert got > 700, got
+        # Not held to 120 a second, each a newer frame than the last, and some of them
+        # consecutive frames: one is sent as each frame ends when the gateway keeps up (how
+        # many a second a loaded machine delivers is the load bench's question, not this).
+        gaps = np.diff(frames)
+        assert got > 150 and len(frames) == got, (got, len(frames))
+        assert gaps.min() >= 1 and (gaps == 1).any(), np.bincount(gaps)[:8]
         assert fast.corner is not None and fast.corner.hip_seq > 0
         await asyncio.sleep(1.2)
         s1 = await asyncio.to_thread(h.json, "/api/stats")
         assert s1["lane_messages_in"] - s0["lane_messages_in"] > 60  # its HIPs
-        assert s1["lane_messages_out"] - s0["lane_messages_out"] < got / 4  # its MESH only
+        assert s1["lane_messages_out"] - s0["lane_messages_out"] >= got  # its CORNERs
         await fast.close()
 
     with host(tmp_path, 2, "--bots", "3") as h:
