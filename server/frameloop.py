@@ -170,6 +170,7 @@ class NativeWorker:
         self.frame_dt = self._base.frame_dt
         self.members = 0
         self.mesh_every, self.track_every = sample.mesh_every, sample.track_every
+        self._ball_radius = sample.ball_radius  # the scene's: every room's here
         self._loop = _native.FrameLoop(self.batch.native_engine, loop_config(self, sample))
         block = np.frombuffer(self._loop.block(), dtype=np.uint8)
         # The block as a gateway maps it (server.shared.lanes: id, memfd, bytes).
@@ -449,6 +450,17 @@ class NativeWorker:
             self._tracks_seen[slot] = total
 
     def _encode_meshes(self) -> None:
+        if hasattr(self._loop, "take_encoded"):
+            # Encoded and written into the board in C++, without the GIL
+            # (native/loop/mesh_msg.hpp): 4 threads encoding in Python contended for the
+            # GIL with the event loop and one another (H100, 128 rooms: MESH at 17 of 30 Hz).
+            for slot, _, mesh in self._loop.take_encoded(
+                    self.board, self.board_slot, self._ball_radius,
+                    self.pool.compress_mesh):
+                room = self._by_slot.get(slot)
+                if room is not None:
+                    self._delivered(room, mesh)
+            return
         taken = self._loop.take_meshes()
         if not taken:
             return
@@ -476,10 +488,15 @@ class NativeWorker:
             slot, frame = m[0], m[1]
             if self.board is not None:
                 _native.board_write(self.board, slot * self.board_slot, frame, mesh)
-            room.stats.meshes += 1
-            for rec in room._recordings.values():
-                rec.append(1, mesh)
-            self._base._publish(room, FrameResult(-1, 0.0, [], mesh=mesh), flush=True)
+            self._delivered(room, mesh)
+
+    def _delivered(self, room: RoomSim, mesh: bytes) -> None:
+        """A room's MESH, encoded (and on the board): counted, recorded, and handed to the
+        event loop for the clients the engine sends it to."""
+        room.stats.meshes += 1
+        for rec in room._recordings.values():
+            rec.append(1, mesh)
+        self._base._publish(room, FrameResult(-1, 0.0, [], mesh=mesh), flush=True)
 
 
 

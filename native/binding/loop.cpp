@@ -17,6 +17,9 @@
 #include "loop/exit.hpp"
 #include "loop/frame_loop.hpp"
 #include "loop/mesh_quant.hpp"
+#ifdef CLOTHBALL_HAVE_ZLIB
+#include "loop/mesh_msg.hpp"
+#endif
 
 namespace py = pybind11;
 using cbind::Array;
@@ -193,6 +196,46 @@ class Loop {
     }
     return out;
   }
+#ifdef CLOTHBALL_HAVE_ZLIB
+  // take_meshes, each encoded as a whole MESH message (loop/mesh_msg.hpp) and written into
+  // `board` (a writable buffer of slots of `slot_bytes`, or None), without the GIL: a list
+  // of (slot, frame, message).
+  py::list take_encoded(py::object board, std::size_t slot_bytes, double radius,
+                        bool compress) {
+    const int n = engine_.n();
+    std::unique_ptr<py::buffer_info> info;
+    if (!board.is_none()) {
+      info = std::make_unique<py::buffer_info>(py::reinterpret_borrow<py::buffer>(board).request(true));
+      if (info->ndim != 1 || info->itemsize != 1)
+        throw py::value_error("a board: expected a byte buffer");
+      if (slot_bytes % 64 != 0 || slot_bytes < lp::kBoardHead + lp::mesh_msg_max(n) ||
+          std::size_t(info->size) < slot_bytes * std::size_t(loop_->capacity()))
+        throw py::value_error("a board: its slots cannot hold this loop's meshes");
+    }
+    std::vector<lp::MeshSnapshot> got;
+    std::vector<std::vector<std::uint8_t>> msgs;
+    {
+      py::gil_scoped_release release;
+      got = loop_->take_meshes();
+      msgs.resize(got.size());
+      lp::MeshScratch scratch;
+      for (std::size_t i = 0; i < got.size(); ++i) {
+        const lp::MeshSnapshot& m = got[i];
+        lp::encode_mesh_msg(msgs[i], scratch, m.positions.data(), n, m.frame, m.server_time,
+                            m.ball, radius, m.hips, compress);
+        if (info)
+          lp::board_write(static_cast<unsigned char*>(info->ptr) + std::size_t(m.slot) * slot_bytes,
+                          m.frame, msgs[i].data(), std::uint32_t(msgs[i].size()));
+      }
+    }
+    py::list out;
+    for (std::size_t i = 0; i < got.size(); ++i)
+      out.append(py::make_tuple(got[i].slot, got[i].frame,
+                                py::bytes(reinterpret_cast<const char*>(msgs[i].data()),
+                                          msgs[i].size())));
+    return out;
+  }
+#endif
   py::memoryview block() {
     return py::memoryview::from_memory(loop_->block(), py::ssize_t(loop_->block_size()));
   }
@@ -276,6 +319,10 @@ void bind_loop(py::module_& m) {
       .def("wait_service", &Loop::wait_service, py::arg("timeout"))
       .def("notify_service", &Loop::notify_service)
       .def("take_meshes", &Loop::take_meshes)
+#ifdef CLOTHBALL_HAVE_ZLIB
+      .def("take_encoded", &Loop::take_encoded, py::arg("board"), py::arg("slot_bytes"),
+           py::arg("radius"), py::arg("compress"))
+#endif
       .def("block", &Loop::block)
       .def("block_fd", &Loop::block_fd)
       .def("cpu_seconds", &Loop::cpu_seconds);
@@ -331,6 +378,27 @@ void bind_loop(py::module_& m) {
         return py::make_tuple(q, delta, lo, hi);
       },
       py::arg("positions"));
+#ifdef CLOTHBALL_HAVE_ZLIB
+  // The loop's MESH encoder (mesh_msg.hpp), for the test against the Python one.
+  m.def(
+      "encode_mesh_msg",
+      [](py::array_t<double, py::array::c_style | py::array::forcecast> positions,
+         std::int64_t frame, double server_time, Array ball, double radius, Array hips,
+         bool compress) {
+        if (positions.ndim() != 3 || positions.shape(0) != positions.shape(1) ||
+            positions.shape(2) != 3 || positions.shape(0) < 1 || positions.shape(0) > 65535)
+          throw py::value_error("positions: expected (n, n, 3)");
+        cbind::sized(ball, 3, "ball");
+        cbind::sized(hips, 12, "hips");
+        std::vector<std::uint8_t> out;
+        lp::MeshScratch scratch;
+        lp::encode_mesh_msg(out, scratch, positions.data(), int(positions.shape(0)), frame,
+                            server_time, ball.data(), radius, hips.data(), compress);
+        return py::bytes(reinterpret_cast<const char*>(out.data()), out.size());
+      },
+      py::arg("positions"), py::arg("frame"), py::arg("server_time"), py::arg("ball"),
+      py::arg("radius"), py::arg("hips"), py::arg("compress"));
+#endif
   // The loop's CORNER encoder (corner_msg.hpp), for the test against the Python one.
   m.def("encode_corners",
         [](std::int64_t frame, double server_time, Array pos, Array vel, Array force,

@@ -1,0 +1,111 @@
+"""MESH messages made in C++ by the native frame loop's service thread
+(native/loop/mesh_msg.hpp, ``FrameLoop.take_encoded``: encoded without the GIL and written
+into the mesh board) against the Python encoder (``protocol.encode_quantised_mesh``,
+docs/protocol.md): the same header, body and nodes; the compressed payload inflates to the
+Python encoder's (zlib's bytes may differ between zlib builds, what they inflate to may
+not), for random cloths, flat ones and large frame numbers, and a live loop's meshes are
+the ones on its board."""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+import pytest
+from clothball import _native
+from clothball.game.wire import protocol as P
+from clothball.server import frameloop
+from clothball.server.sim import RoomSim, SimPool
+
+from tests.server.conftest import TINY, run, until
+
+pytestmark = pytest.mark.skipif(
+    not hasattr(_native, "encode_mesh_msg"),
+    reason="this build of clothball found no zlib headers (zlib1g-dev): the server encodes "
+           "MESH in Python; reinstall with them to have the native encoder")
+
+HEAD = P.HEADER.size + P.MESH_BODY.size
+
+
+def _python(positions, frame, server_time, ball, radius, hips, compress) -> bytes:
+    q, lo, hi = P.quantise(positions)
+    return P.encode_quantised_mesh(frame, server_time, q, lo, hi, ball, radius, hips,
+                                   compress=compress)
+
+
+def _same(ours: bytes, ref: bytes) -> None:
+    assert ours[:HEAD] == ref[:HEAD]
+    flags = P.HEADER.unpack_from(ours)[2]
+    if flags & P.FLAG_ZLIB:
+        assert zlib.decompress(ours[HEAD:]) == zlib.decompress(ref[HEAD:])
+    else:
+        assert ours[HEAD:] == ref[HEAD:]
+    a, b = P.decode_mesh(ours), P.decode_mesh(ref)
+    assert np.array_equal(a.positions, b.positions) and a.frame == b.frame
+
+
+@pytest.mark.parametrize("compress", [True, False])
+def test_the_loops_mesh_is_the_python_encoders_for_random_cloths(compress: bool) -> None:
+    rng = np.random.default_rng(33)
+    for k in range(200):
+        n = int(rng.choice([2, 3, 16, 48, 61]))
+        scale = 10.0 ** rng.uniform(-4, 2)
+        grid = np.stack(np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n)), -1)
+        positions = np.concatenate([grid, np.zeros((n, n, 1))], -1) * scale
+        positions += rng.normal(0.0, scale * 10.0 ** rng.uniform(-6, 0), (n, n, 3))
+        if k % 9 == 0:
+            positions[..., 1] = 0.75  # flat: a span of zero on y
+        if k % 13 == 0:  # white noise: compression gains too little, the nodes go raw
+            positions = rng.normal(0.0, 1.0, (n, n, 3))
+        frame = int(rng.integers(0, 2**40)) if k % 2 else int(rng.integers(0, 2**20))
+        ball = rng.normal(0.0, 1.0, 3)
+        hips = rng.normal(0.0, 1.0, (4, 3))
+        args = (positions, frame, float(rng.uniform(0, 1e6)), ball, float(rng.uniform(0, 1)),
+                hips, compress)
+        ours = _native.encode_mesh_msg(positions, frame, args[2], ball, args[4],
+                                       hips.reshape(12), compress)
+        _same(ours, _python(*args))
+
+
+def test_a_live_loops_meshes_are_on_its_board_and_decode_to_its_cloth(monkeypatch) -> None:
+    """A running room's MESH from the service thread (``take_encoded``): the room's
+    delivered MESH is the board's slot, and it decodes to the room's cloth as the Python
+    encoder quantises it (within a quantum)."""
+    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+
+    async def main() -> None:
+        got: list = []
+        pool = SimPool()
+        sim = RoomSim(TINY, "cpu", pool=pool, deliver=got.append)
+        try:
+            sim.start()
+            w = sim.worker
+            await until(lambda: sum(r.mesh is not None for r in got) >= 3, 10, "meshes")
+            mesh = [r.mesh for r in got if r.mesh is not None][-1]
+            assert w.board is not None
+            frame, raw = _native.board_read(w.board, sim.slot * w.board_slot, w.board_slot, -1)
+            m = P.decode_mesh(mesh)
+            assert frame >= m.frame
+            if frame == m.frame:
+                assert raw == mesh
+            assert m.positions.shape == (16, 16, 3)
+            assert np.isfinite(m.positions).all()
+            assert m.ball_radius == pytest.approx(sim.ball_radius, rel=1e-6)
+        finally:
+            sim.stop()
+            pool.close()
+
+    run(main())
+
+
+def test_a_board_too_small_for_the_meshes_is_refused() -> None:
+    pool = SimPool()
+    try:
+        sim = RoomSim(TINY, "cpu", pool=pool)
+        sim.start()
+        loop = sim.worker._loop
+        with pytest.raises(ValueError, match="board"):
+            loop.take_encoded(bytearray(64 * 4), 64, 0.1, True)
+        sim.stop()
+    finally:
+        pool.close()
