@@ -23,6 +23,7 @@ from clothball.game.sim.scene import Scene
 from clothball.server.app import GameServer
 from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
+from clothball.server.sim import RoomSim, SimPool
 from clothball.server.thread import ServerThread
 
 T = TypeVar("T")
@@ -88,6 +89,23 @@ async def until(pred: Callable[[], bool], timeout: float = 10.0, what: str = "")
         if loop.time() > end:
             raise AssertionError(f"timed out waiting for {what or pred}")
         await asyncio.sleep(0.01)
+
+
+@contextlib.contextmanager
+def started_room(deliver: Callable[[Any], None] | None = None,
+                 pool: SimPool | None = None) -> Iterator[RoomSim]:
+    """A started ``TINY`` room on the CPU engine in ``pool`` (else in a pool of its own,
+    closed after), stopped after."""
+    own = pool is None
+    pool = SimPool() if pool is None else pool
+    sim = RoomSim(TINY, "cpu", pool=pool, **({} if deliver is None else {"deliver": deliver}))
+    try:
+        sim.start()
+        yield sim
+    finally:
+        sim.stop()
+        if own:
+            pool.close()
 
 
 def hand_of(room: Any, seat: int) -> tuple[int, Any]:

@@ -23,7 +23,7 @@ from clothball.game.wire import protocol as P
 from clothball.server import frameloop
 from clothball.server.sim import RoomSim, SimPool
 
-from tests.server.conftest import TINY, run, until
+from tests.server.conftest import TINY, run, started_room, until
 
 
 @pytest.fixture(autouse=True)
@@ -265,11 +265,7 @@ def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() 
     import mmap
 
     async def main() -> None:
-        got: list = []
-        pool = SimPool()
-        sim = RoomSim(TINY, "cpu", pool=pool, deliver=got.append)
-        try:
-            sim.start()
+        with started_room() as sim:
             place = sim.lane_place(2)
             slot, occupant = place["slot"], place["occupant"]
             _, fd, size = sim.worker.block_share
@@ -311,9 +307,6 @@ def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() 
                 view.write_hip(view.rooms, 0, occupant2, 0.0, 0.0, 0.0, 1, 0.0)
             with pytest.raises(ValueError, match="not a frame loop block"):
                 _native.BlockView(bytearray(4096))
-        finally:
-            sim.stop()
-            pool.close()
 
     run(main())
 
@@ -324,46 +317,38 @@ def test_a_wake_up_is_written_after_each_pass_until_it_is_removed() -> None:
     the passes since its last read, at most the frames the room advanced), and never once
     it is removed (a loop created meanwhile has it too)."""
     async def main() -> None:
-        pool = SimPool()
-        sim = RoomSim(TINY, "cpu", pool=pool, deliver=lambda _: None)
         fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         try:
-            sim.start()
-            view = sim.worker.rooms_view
-            slot = sim.slot
-            await until(lambda: int(view["frame"][slot]) > 10, 10, "frames")
+            with started_room() as sim:
+                pool, view, slot = sim.pool, sim.worker.rooms_view, sim.slot
+                await until(lambda: int(view["frame"][slot]) > 10, 10, "frames")
+                pool.set_wake(fd, True)
+                f0 = int(view["frame"][slot])
+                with pytest.raises(BlockingIOError):  # drained (a pass may write meanwhile)
+                    while True:
+                        os.eventfd_read(fd)
+                await asyncio.sleep(0.1)
+                n = os.eventfd_read(fd)
+                f1 = int(view["frame"][slot])
+                # (+1: a pass that published before f0 was read may write it after the drain)
+                assert 0 < n <= f1 - f0 + 1, (n, f0, f1)
+                pool.set_wake(fd, False)
+                with pytest.raises(BlockingIOError):
+                    while True:
+                        os.eventfd_read(fd)
+                await until(lambda: int(view["frame"][slot]) > f1 + 20, 5, "frames")
+                with pytest.raises(BlockingIOError):
+                    os.eventfd_read(fd)
+            # Set before any loop is made: the loop made for a room then writes it too.
+            pool = SimPool()
             pool.set_wake(fd, True)
-            f0 = int(view["frame"][slot])
-            with pytest.raises(BlockingIOError):  # drained (a pass may write it meanwhile)
-                while True:
-                    os.eventfd_read(fd)
-            await asyncio.sleep(0.1)
-            n = os.eventfd_read(fd)
-            f1 = int(view["frame"][slot])
-            # (+1: a pass that published before f0 was read may write it after the drain)
-            assert 0 < n <= f1 - f0 + 1, (n, f0, f1)
-            pool.set_wake(fd, False)
-            with pytest.raises(BlockingIOError):
-                while True:
-                    os.eventfd_read(fd)
-            await until(lambda: int(view["frame"][slot]) > f1 + 20, 5, "frames")
-            with pytest.raises(BlockingIOError):
-                os.eventfd_read(fd)
-        finally:
-            sim.stop()
+            with started_room(pool=pool) as sim:
+                await until(lambda: int(sim.worker.rooms_view["frame"][sim.slot]) > 10, 10,
+                            "frames")
+                assert os.eventfd_read(fd) > 0
+                pool.set_wake(fd, False)
             pool.close()
-        # Set before any loop is made: the loop made for a room then writes it too.
-        pool = SimPool()
-        pool.set_wake(fd, True)
-        sim = RoomSim(TINY, "cpu", pool=pool, deliver=lambda _: None)
-        try:
-            sim.start()
-            await until(lambda: int(sim.worker.rooms_view["frame"][sim.slot]) > 10, 10,
-                        "frames")
-            assert os.eventfd_read(fd) > 0
         finally:
-            sim.stop()
-            pool.close()
             os.close(fd)
 
     run(main())

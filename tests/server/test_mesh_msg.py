@@ -3,8 +3,8 @@
 into the mesh board) against the Python encoder (``protocol.encode_quantised_mesh``,
 docs/protocol.md): the same header, body and nodes; the compressed payload inflates to the
 Python encoder's (zlib's bytes may differ between zlib builds, what they inflate to may
-not), for random cloths, flat ones and large frame numbers, and a live loop's meshes are
-the ones on its board."""
+not), for random cloths, flat ones and large frame numbers; a live loop's meshes are the
+ones on its board."""
 
 from __future__ import annotations
 
@@ -15,9 +15,8 @@ import pytest
 from clothball import _native
 from clothball.game.wire import protocol as P
 from clothball.server import frameloop
-from clothball.server.sim import RoomSim, SimPool
 
-from tests.server.conftest import TINY, run, until
+from tests.server.conftest import run, started_room, until
 
 pytestmark = pytest.mark.skipif(
     not hasattr(_native, "encode_mesh_msg"),
@@ -67,18 +66,15 @@ def test_the_loops_mesh_is_the_python_encoders_for_random_cloths(compress: bool)
         _same(ours, _python(*args))
 
 
-def test_a_live_loops_meshes_are_on_its_board_and_decode_to_its_cloth(monkeypatch) -> None:
-    """A running room's MESH from the service thread (``take_encoded``): the room's
-    delivered MESH is the board's slot, and it decodes to the room's cloth as the Python
-    encoder quantises it (within a quantum)."""
+def test_a_live_loops_meshes_are_on_its_board(monkeypatch) -> None:
+    """A running room's MESH from the service thread (``take_encoded``): what the room
+    delivers is what the board's slot holds (when of the same frame), an n x n cloth with
+    the scene's ball."""
     monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
 
     async def main() -> None:
         got: list = []
-        pool = SimPool()
-        sim = RoomSim(TINY, "cpu", pool=pool, deliver=got.append)
-        try:
-            sim.start()
+        with started_room(got.append) as sim:
             w = sim.worker
             await until(lambda: sum(r.mesh is not None for r in got) >= 3, 10, "meshes")
             mesh = [r.mesh for r in got if r.mesh is not None][-1]
@@ -91,21 +87,11 @@ def test_a_live_loops_meshes_are_on_its_board_and_decode_to_its_cloth(monkeypatc
             assert m.positions.shape == (16, 16, 3)
             assert np.isfinite(m.positions).all()
             assert m.ball_radius == pytest.approx(sim.ball_radius, rel=1e-6)
-        finally:
-            sim.stop()
-            pool.close()
 
     run(main())
 
 
-def test_a_board_too_small_for_the_meshes_is_refused() -> None:
-    pool = SimPool()
-    try:
-        sim = RoomSim(TINY, "cpu", pool=pool)
-        sim.start()
-        loop = sim.worker._loop
-        with pytest.raises(ValueError, match="board"):
-            loop.take_encoded(bytearray(64 * 4), 64, 0.1, True)
-        sim.stop()
-    finally:
-        pool.close()
+def test_a_board_too_small_for_the_meshes_is_refused(monkeypatch) -> None:
+    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+    with started_room() as sim, pytest.raises(ValueError, match="board"):
+        sim.worker._loop.take_encoded(bytearray(64 * 4), 64, 0.1, True)
