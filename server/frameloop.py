@@ -8,8 +8,9 @@ one call and publishes corners, forces, ball, frame, exits, failures and latenes
 block. Python learns of them through an eventfd the event loop waits on (``add_reader``):
 each wake-up takes every room's events at once and, for a room whose CORNER is due
 (``RoomSim.corner_interval`` after the last), reads its record and encodes its four CORNER
-messages. Meshes (the due rooms' nodes copied by the loop in one transfer), TRACK samples of
-rooms being recorded and the recording commands are handled by the worker's service thread.
+messages. Meshes (the due rooms' nodes copied by the loop in one transfer, encoded whole in
+C++ and written into the mesh board), TRACK samples of rooms being recorded and the
+recording commands are handled by the worker's service thread.
 The block's layout is read from offsets the binding exports (one definition, in C++).
 """
 
@@ -197,9 +198,9 @@ class NativeWorker:
             if self._board_fd >= 0:
                 os.close(self._board_fd)
                 self._board_fd = -1
-        # MESH encoding (numpy, zlib: both let go of the GIL for much of it) on a few
-        # threads: one thread encoding every room's MESH 30 times a second was the limit
-        # of a 16-core host at ~64 rooms (H100 run 4).
+        # Where the module has no C++ MESH encoder (built without zlib's headers), MESH
+        # encoding in Python on a few threads: one thread encoding every room's MESH 30
+        # times a second was the limit of a 16-core host at ~64 rooms (H100 run 4).
         self._encoders = MESH_THREADS
         self._encoder: ThreadPoolExecutor | None = None
         self.rooms_view = block[head:head + rooms * LAYOUT["room_bytes"]].view(ROOM_DTYPE)
