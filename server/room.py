@@ -388,11 +388,10 @@ class Room:
             return
         # A seated player's CORNERs, at any corner_rate: above what its timers keep, the
         # gateway sends them on the frame loops' wake-up (server.shared.lanes).
-        corners = seat is not None
-        conn.lane, conn.lane_mesh = corners, mesh
+        conn.lane, conn.lane_mesh = seat is not None, mesh
         i = 0 if seat is None else seat
         conn.send_json(lane_message(Lane(
-            self.id, place["block"], place["slot"], seat, corners, place["occupant"],
+            self.id, place["block"], place["slot"], seat, place["occupant"],
             self._reach_lo[i], self._reach_hi[i], conn.corner_interval,
             conn.limits.binary_rate, conn.limits.binary_burst,
             place["board"] if mesh else None, place["board_slot"])))

@@ -299,11 +299,10 @@ class Lane:
         self._loop = asyncio.get_running_loop()
         self._due = self._loop.time()
         self._timer: asyncio.TimerHandle | None = None
-        self._framed = False
-        if lane.corners:  # a seated player whose CORNERs are the gateway's to send
-            self._framed = lane.corner_interval < 1.0 / lanes.TIMER_MAX_HZ - 1e-4 and \
+        if lane.seat is not None:  # a seated player: its CORNERs are the gateway's to send
+            framed = lane.corner_interval < 1.0 / lanes.TIMER_MAX_HZ - 1e-4 and \
                 links.on_frames(self, True)
-            if not self._framed:
+            if not framed:
                 self._timer = self._loop.call_soon(self._corner)
         if lane.board is not None:
             links.watch(self)
@@ -317,8 +316,7 @@ class Lane:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
-        if self._framed:
-            self._framed = False
+        if self in self.links.framed:
             self.links.on_frames(self, False)
         if self.lane.board is not None:
             self.links.unwatch(self)
@@ -357,10 +355,8 @@ class Lane:
         return True
 
     def use_timer(self) -> None:
-        """Its CORNERs on its own timer (the gateway has no frame wake-up)."""
-        if self._framed:
-            self._framed = False
-            self._timer = self._loop.call_soon(self._corner)
+        """Its CORNERs on its own timer (taken off the frame wake-up: the gateway has none)."""
+        self._timer = self._loop.call_soon(self._corner)
 
     def _send_newest(self) -> bool | None:
         """The seat's newest CORNER to the client if a newer frame than the last sent is
@@ -386,7 +382,6 @@ class Lane:
             return
         sent = self._send_newest()
         if sent is None:  # as its timer would stop
-            self._framed = False
             self.links.on_frames(self, False)
         elif sent:
             due = self._due + max(self.lane.corner_interval, FRAME_S)

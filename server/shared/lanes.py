@@ -71,8 +71,7 @@ class Lane:
     room: str
     block: int
     slot: int
-    seat: int | None  # None: not seated (a spectator): MESH only
-    corners: bool  # the seat's CORNERs sent by the gateway (else by the engine)
+    seat: int | None  # None: not seated (a spectator): MESH only; else its CORNERs too
     occupant: int
     lo: tuple[float, ...]
     hi: tuple[float, ...]
@@ -88,7 +87,7 @@ def lane_message(lane: Lane | None) -> dict[str, Any]:
     if lane is None:
         return {"type": LANE_TYPE}
     return {"type": LANE_TYPE, "room": lane.room, "block": lane.block, "slot": lane.slot,
-            "seat": lane.seat, "corners": lane.corners,
+            "seat": lane.seat,
             "occupant": lane.occupant, "lo": list(lane.lo),
             "hi": list(lane.hi), "corner_interval": lane.corner_interval,
             "binary_rate": lane.binary_rate, "binary_burst": lane.binary_burst,
@@ -102,7 +101,7 @@ def parse_lane(payload: bytes) -> Lane | None:
         return None
     seat, board = m["seat"], m["board"]
     return Lane(str(m["room"]), int(m["block"]), int(m["slot"]),
-                None if seat is None else int(seat), bool(m["corners"]), int(m["occupant"]),
+                None if seat is None else int(seat), int(m["occupant"]),
                 tuple(map(float, m["lo"])), tuple(map(float, m["hi"])),
                 float(m["corner_interval"]), float(m["binary_rate"]),
                 float(m["binary_burst"]), None if board is None else int(board),

@@ -69,7 +69,7 @@ def test_between_messages_exactly_at_message_boundaries(seed: int, n: int) -> No
 
 def lane_payload(seat: int | None) -> bytes:
     from clothball.server.shared.lanes import Lane, lane_message
-    lane = None if seat is None else Lane("main", 1, 0, seat, True, 7, (0, 0, 0),
+    lane = None if seat is None else Lane("main", 1, 0, seat, 7, (0, 0, 0),
                                           (1, 1, 1), 0.008, 500.0, 50.0, 9, 14400)
     return P.encode_json(lane_message(lane)).encode()
 
