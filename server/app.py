@@ -34,6 +34,7 @@ from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .room import Room, RoomSettings
 from .shared import lanes
+from .shared.osthread import name_os_thread
 from .sim import SimPool
 from .storage.datadir import Storage, StorageOff
 from .storage.index import PRUNE_BATCH, ReplayIndex, Retention, access_key, owner_key
@@ -121,7 +122,8 @@ class GameServer:
             scene, [r.scene for r in self.lobby.rooms.values()])
         # Every directory call runs on these threads, bounded by IO_TIMEOUT_S: a hung store
         # never holds the event loop (joins wait for a read made for all of them at once).
-        self._dir_pool = ThreadPoolExecutor(3, thread_name_prefix="directory")
+        self._dir_pool = ThreadPoolExecutor(3, thread_name_prefix="directory",
+                                            initializer=name_os_thread)
         self._reads = OnDemand(self._read_directory, MIN_READ_GAP_S)
         self._publications = OnDemand(self._publish_rooms)
         self.lobby.fresh_view = lambda: self._reads.after_now(IO_TIMEOUT_S)

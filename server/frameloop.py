@@ -35,6 +35,7 @@ from ..game.sim.stability import substep_speed_limits
 from ..game.wire import protocol as P
 from .frames import FrameResult, Samples
 from .shared.lanes import board_slot_bytes
+from .shared.osthread import name_os_thread
 
 # server.sim makes the workers and imports this module: its types (SimPool, SimWorker,
 # RoomSim) are named here only as strings, without an import (no cycle).
@@ -405,6 +406,7 @@ class NativeWorker:
 
     # --- the service thread: recordings, tracks, meshes -----------------------------------
     def _serve(self) -> None:
+        name_os_thread()
         try:
             while not self._stop.is_set():
                 self._loop.wait_service(0.05)
@@ -480,7 +482,8 @@ class NativeWorker:
         due = ((room, m) for room, m in due if room is not None)
         if len(taken) > 1 and self._encoders > 1:
             if self._encoder is None:
-                self._encoder = ThreadPoolExecutor(self._encoders, "clothball-mesh-encode")
+                self._encoder = ThreadPoolExecutor(self._encoders, "clothball-mesh-encode",
+                                                   initializer=name_os_thread)
             items = list(due)
             done = zip(items, self._encoder.map(encode, items), strict=True)
         else:  # one at a time: a mesh's buffers are let go before the next one's

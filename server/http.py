@@ -58,6 +58,7 @@ from .lobby import Lobby
 from .metrics import CONTENT_TYPE as METRICS_TYPE
 from .metrics import exposition, registry_for
 from .shared.bucket import TokenBucket
+from .shared.osthread import name_os_thread
 from .storage.index import IndexUnavailable, ReplayIndex
 
 log = logging.getLogger("clothball.server")
@@ -196,8 +197,10 @@ class HttpSurface:
         self.bad = BadRequestLog()
         # Index queries get their own threads, so a flood of them cannot hold up files,
         # saves or anything else asyncio's default pool runs.
-        self._pool = ThreadPoolExecutor(INDEX_THREADS, thread_name_prefix="replay-index")
-        self._files = ThreadPoolExecutor(FILE_THREADS, thread_name_prefix="replay-files")
+        self._pool = ThreadPoolExecutor(INDEX_THREADS, thread_name_prefix="replay-index",
+                                        initializer=name_os_thread)
+        self._files = ThreadPoolExecutor(FILE_THREADS, thread_name_prefix="replay-files",
+                                         initializer=name_os_thread)
         self._waiting = 0
         self.downloads = 0  # under way now
         self._streams: set[asyncio.Transport] = set()  # their connections

@@ -49,6 +49,7 @@ from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
 from .frameloop import NativeWorker, frame_loop_wanted
 from .frames import FrameResult, Samples
+from .shared.osthread import name_os_thread
 from .storage.recorder import Recording
 
 _OCCUPANTS = itertools.count(1)  # RoomSim._occupant's numbers
@@ -387,6 +388,7 @@ class SimWorker:
 
     # --- the worker's thread --------------------------------------------------------------
     def _run(self) -> None:
+        name_os_thread()
         try:
             self._loop_body()
         except Exception as e:  # pragma: no cover - a bug: every room of the worker stops
@@ -514,6 +516,7 @@ class SimWorker:
 
     def _encode_meshes(self) -> None:
         """The encoder thread: each room's newest mesh snapshot -> one MESH message."""
+        name_os_thread()
         while not self._stop.is_set():
             if not self._mesh_ready.wait(0.1):
                 continue

@@ -8,8 +8,9 @@
 #   OUT=results bash tools/gpu_host.sh
 # Environment: W (default 16), STEP, MAX (120 Hz), STEP1K, MAX1K (1 kHz), RUN_S (each run's
 # limit), RUNS (default "w1 wW wW_off"), RATES (default "120 1000"), TESTS (server test
-# files run first on the CUDA engine, e.g. "tests/server/test_workers.py"), SKIP_BUILD=1
-# (a warm machine that has the build).
+# files run first on the CUDA engine, e.g. "tests/server/test_workers.py"), GPU_TESTS (test
+# paths whose GPU cases run before them: -k "cuda or batch"), SKIP_BUILD=1 (a warm machine
+# that has the build), FLAGS (more `bench --load` flags for every run, e.g. "--client-procs 6").
 OUT=${OUT:-gpu-results}
 if [ "${SKIP_BUILD:-0}" = 1 ]; then
   mkdir -p "$OUT"
@@ -19,6 +20,18 @@ else
   source "$(dirname "$0")/gpu_build.sh"
 fi
 root=$PWD
+python3 -c "from clothball import _native as n; print('MESH encoded in C++:', hasattr(n, 'encode_mesh_msg'))" \
+  | tee -a "$OUT/gpu.txt"
+if [ -n "${GPU_TESTS:-}" ]; then
+  cd /tmp
+  # shellcheck disable=SC2046  # the paths are words
+  OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout "${GPU_TESTS_S:-200}" \
+    python3 -m pytest -q -p no:cacheprovider -p no:benchmark -n "${TEST_WORKERS:-12}" \
+    -c "$root/setup.cfg" --rootdir "$root" -k "cuda or batch" \
+    $(for t in $GPU_TESTS; do echo "$root/$t"; done) >"$OUT/gpu_tests.txt" 2>&1
+  echo "GPU tests: rc=$? $(tail -1 "$OUT/gpu_tests.txt")"
+  cd "$root"
+fi
 if [ -n "${TESTS:-}" ]; then
   cd /tmp  # import the installed package, not the source tree
   # shellcheck disable=SC2046  # the paths are words
@@ -32,7 +45,7 @@ fi
 load() {  # $1: label; the rest: bench flags
   local label=$1; shift
   timeout "${RUN_S:-110}" python3 -m clothball.game.cli bench --load --server-backend cuda \
-    --scene default --load-seconds 5 --steps-past 1 --json "$OUT/load_$label.json" "$@" \
+    --scene default --load-seconds 5 --steps-past 1 --json "$OUT/load_$label.json" "$@" ${FLAGS:-} \
     2>>"$OUT/bench.err" | tee "$OUT/load_$label.txt" | tail -2
 }
 W=${W:-16}

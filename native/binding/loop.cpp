@@ -5,8 +5,11 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <pthread.h>
+
 #include <cstddef>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "binding/arrays.hpp"
@@ -421,6 +424,10 @@ void bind_loop(py::module_& m) {
           return out;
         });
   m.def("monotonic_now", &lp::monotonic_now);
+  // The calling thread's name as the OS knows it (/proc, top), cut to its 15 bytes.
+  m.def("name_os_thread", [](const std::string& name) {
+    pthread_setname_np(pthread_self(), name.substr(0, 15).c_str());
+  });
   m.def("exit_edge", [](Array ball, Array corners, double floor_y) {
     return lp::exit_edge(cbind::sized(ball, 3, "ball").data(),
                          cbind::sized(corners, 12, "corners").data(), floor_y);

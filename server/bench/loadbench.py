@@ -780,6 +780,14 @@ def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
     (pid, tid), (name, cores) = max(threads.items(), key=lambda kv: kv[1][1])
     step["server_busiest_thread_cores"] = cores
     step["server_busiest_thread"] = f"{name} (event loop)" if pid == tid else name
+    # Where the server's CPU goes: cores by process kind and thread name, summed over the
+    # processes (the engine's frame loops, its service threads, the gateways' event loops).
+    kinds = {p.pid: _process_kind(p) for p in servers}
+    spent: dict[str, float] = {}
+    for (pid, tid), (name, c) in threads.items():
+        label = f"{kinds.get(pid, 'server')} {'event loop' if pid == tid else name}"
+        spent[label] = spent.get(label, 0.0) + c
+    step["server_threads_cores"] = dict(sorted(spent.items(), key=lambda kv: -kv[1]))
     per_client = [(b - a) / dt for a, b in zip(cl0, cl1, strict=True)]
     step["clients_cpu_cores"] = sum(per_client)
     step["client_process_cores_max"] = max(per_client)
@@ -910,6 +918,12 @@ def _cpu_seconds(procs: list[subprocess.Popen[str]]) -> float:
     return sum(_stat_cpu_seconds(f"/proc/{p.pid}/stat") for p in procs)
 
 
+def _process_kind(p: subprocess.Popen[str]) -> str:
+    """A server process as the per-thread figures name it: a gateway or the engine (the one
+    process of ``--workers 1`` included)."""
+    return "gateway" if "clothball.server.gateway" in p.args else "engine"
+
+
 def _threads_cpu_seconds(procs: list[subprocess.Popen[str]]
                          ) -> dict[tuple[int, int], tuple[str, float]]:
     """Every thread of these processes: (pid, tid) -> (its name, CPU seconds so far)."""
@@ -954,7 +968,9 @@ def _load_line(s: dict[str, Any]) -> str:
             f"{s['mesh_hz_received']:.1f}/{s['mesh_hz_asked']:g} Hz  frames "
             f"{s['frames_per_s']:.0f}/s  CPU server {s['server_cpu_cores']:.2f} "
             f"({s['server_cpu_per_room']:.3f}/room) clients {s['clients_cpu_cores']:.2f} cores"
-            f"  load {s['load_average']:.1f}  {verdict}")
+            f"  load {s['load_average']:.1f}  {verdict}"
+            "\n      busiest threads (cores): " + ", ".join(
+                f"{k} {v:.2f}" for k, v in list(s.get("server_threads_cores", {}).items())[:5]))
 
 
 # --- clothball bench --load --cluster -----------------------------------------------------------

@@ -15,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from ..shared.osthread import name_os_thread
 from .index import LOCK_WAIT_S, IndexUnavailable, ReplayIndex, Retention
 from .postgres import PostgresIndex
 from .sqlite import SqliteIndex, locked
@@ -68,7 +69,8 @@ class Storage:
         self.saving = 0  # saves under way (on the writer thread or waiting for it)
         self._lock_trouble = False
         self._logged_without_store = False
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="replay-writer")
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="replay-writer",
+                                        initializer=name_os_thread)
 
     def _open_store(self, **kw: Any) -> ReplayIndex:
         if self.db is None:

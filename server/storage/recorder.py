@@ -25,6 +25,7 @@ from pathlib import Path
 
 from ...game.wire import protocol as P
 from ...game.wire.replay import RECORD
+from ..shared.osthread import name_os_thread
 
 log = logging.getLogger("clothball.server")
 
@@ -70,6 +71,7 @@ class _Writer:
         self._q.put((rec, data))
 
     def _run(self) -> None:
+        name_os_thread()
         while True:
             item = self._q.get()
             if item is None:

@@ -38,7 +38,7 @@ STEP_KEYS = {
     "skipped_frames", "messages_in_per_s", "messages_out_per_s", "hip_offered_per_s",
     "hip_sent_per_s", "load_average", "server_cpu_cores", "server_cpu_per_room",
     "server_cpu_per_added_room", "server_event_loop_cores", "server_busiest_thread_cores",
-    "server_busiest_thread", "clients_cpu_cores",
+    "server_busiest_thread", "server_threads_cores", "clients_cpu_cores",
     "client_process_cores_max", "hip_to_corner_p50_ms", "hip_to_corner_p99_ms",
     "hip_to_corner_samples", "hip_echo_unknown", "hip_echo_mismatch", "corner_hz_asked",
     "corner_hz_received", "corner_hz_min",
@@ -70,6 +70,12 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
     assert step["server_busiest_thread_cores"] >= step["server_event_loop_cores"] > 0
     assert step["server_cpu_cores"] >= step["server_busiest_thread_cores"] - 0.05  # clock ticks
     assert step["server_busiest_thread"]
+    # The per-thread split adds up to the processes' CPU (less threads gone by the end) and
+    # names the engine's event loop; its busiest entry is at least the busiest thread.
+    threads = step["server_threads_cores"]
+    assert step["server_cpu_cores"] >= sum(threads.values()) - 0.05
+    assert threads["engine event loop"] > 0
+    assert max(threads.values()) >= step["server_busiest_thread_cores"] - 1e-9
     assert step["clients_cpu_cores"] >= step["client_process_cores_max"] > 0
     assert step["corner_hz_asked"] == corner_hz
     assert step["corner_delivery"] == pytest.approx(step["corner_hz_received"] / corner_hz)
@@ -158,6 +164,11 @@ def test_load_bench_over_an_engine_and_a_gateway_on_one_port(tmp_path) -> None:
                          capture_output=True, text=True, timeout=240, check=True)
     r = json.loads(dest.read_text())
     assert r["workers"] == 2 and r["n"] == 12
+    # The OS names the engine's native frame loop and the gateway's event loop for the
+    # per-thread split (server/shared/osthread.py).
+    for step in r["steps"]:
+        assert step["server_threads_cores"]["engine cb-frame-loop"] > 0
+        assert step["server_threads_cores"]["gateway event loop"] > 0
     assert [s["rooms"] for s in r["steps"]] == [1, 2]
     for i, step in enumerate(r["steps"], start=1):
         assert step["rooms_per_host"] == [i]  # every room in the one engine
