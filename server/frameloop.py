@@ -199,9 +199,9 @@ class NativeWorker:
             if self._board_fd >= 0:
                 os.close(self._board_fd)
                 self._board_fd = -1
-        # Where the module has no C++ MESH encoder (built without zlib's headers), MESH
-        # encoding in Python on a few threads: one thread encoding every room's MESH 30
-        # times a second was the limit of a 16-core host at ~64 rooms (H100 run 4).
+        # MESH encoding on a few threads (C++ ones, else Python ones where the module was
+        # built without zlib's headers): one thread encoding every room's MESH 30 times a
+        # second was the limit of a 16-core host at ~64 rooms (H100 runs 4 and 16).
         self._encoders = MESH_THREADS
         self._encoder: ThreadPoolExecutor | None = None
         self.rooms_view = block[head:head + rooms * LAYOUT["room_bytes"]].view(ROOM_DTYPE)
@@ -457,9 +457,11 @@ class NativeWorker:
             # Encoded and written into the board in C++, without the GIL
             # (native/loop/mesh_msg.hpp): 4 threads encoding in Python contended for the
             # GIL with the event loop and one another (H100, 128 rooms: MESH at 17 of 30 Hz).
+            # The due rooms are shared among MESH_THREADS threads: zlib takes ~0.5 ms a
+            # mesh at n = 48, and one thread held 64 rooms' 30 Hz only at 0.95 core (H100).
             for slot, _, mesh in self._loop.take_encoded(
                     self.board, self.board_slot, self._ball_radius,
-                    self.pool.compress_mesh):
+                    self.pool.compress_mesh, self._encoders):
                 room = self._by_slot.get(slot)
                 if room is not None:
                     self._delivered(room, mesh)

@@ -22,6 +22,7 @@
 #include "loop/mesh_quant.hpp"
 #ifdef CLOTHBALL_HAVE_ZLIB
 #include "loop/mesh_msg.hpp"
+#include "loop/work_pool.hpp"
 #endif
 
 namespace py = pybind11;
@@ -201,10 +202,13 @@ class Loop {
   }
 #ifdef CLOTHBALL_HAVE_ZLIB
   // take_meshes, each encoded as a whole MESH message (loop/mesh_msg.hpp) and written into
-  // `board` (a writable buffer of slots of `slot_bytes`, or None), without the GIL: a list
-  // of (slot, frame, message).
+  // `board` (a writable buffer of slots of `slot_bytes`, or None), without the GIL, on
+  // `threads` threads (this one and threads - 1 kept for the next calls): a list of
+  // (slot, frame, message).
   py::list take_encoded(py::object board, std::size_t slot_bytes, double radius,
-                        bool compress) {
+                        bool compress, int threads) {
+    if (threads < 1 || threads > 64)
+      throw py::value_error("threads: expected 1..64, got " + std::to_string(threads));
     const int n = engine_.n();
     std::unique_ptr<py::buffer_info> info;
     if (!board.is_none()) {
@@ -221,15 +225,21 @@ class Loop {
       py::gil_scoped_release release;
       got = loop_->take_meshes();
       msgs.resize(got.size());
-      lp::MeshScratch scratch;
-      for (std::size_t i = 0; i < got.size(); ++i) {
-        const lp::MeshSnapshot& m = got[i];
-        lp::encode_mesh_msg(msgs[i], scratch, m.positions.data(), n, m.frame, m.server_time,
-                            m.ball, radius, m.hips, compress);
+      if (!pool_ || pool_->threads() != threads) {
+        pool_.reset();
+        pool_ = std::make_unique<lp::WorkPool>(threads);
+        mesh_scratch_.resize(std::size_t(threads));
+      }
+      // Each message into its own slot of the board: no two items write the same bytes.
+      pool_->run(int(got.size()), [&](int i, int t) {
+        const lp::MeshSnapshot& m = got[std::size_t(i)];
+        std::vector<std::uint8_t>& msg = msgs[std::size_t(i)];
+        lp::encode_mesh_msg(msg, mesh_scratch_[std::size_t(t)], m.positions.data(), n, m.frame,
+                            m.server_time, m.ball, radius, m.hips, compress);
         if (info)
           lp::board_write(static_cast<unsigned char*>(info->ptr) + std::size_t(m.slot) * slot_bytes,
-                          m.frame, msgs[i].data(), std::uint32_t(msgs[i].size()));
-      }
+                          m.frame, msg.data(), std::uint32_t(msg.size()));
+      });
     }
     py::list out;
     for (std::size_t i = 0; i < got.size(); ++i)
@@ -261,6 +271,10 @@ class Loop {
   std::vector<int> slots_;
   std::vector<std::uint32_t> bits_;
   lp::RoomRecord scratch_{};
+#ifdef CLOTHBALL_HAVE_ZLIB
+  std::unique_ptr<lp::WorkPool> pool_;  // take_encoded's threads, kept between calls
+  std::vector<lp::MeshScratch> mesh_scratch_;  // one a thread
+#endif
 };
 
 std::vector<double> values(Array a, size_t size, const char* what) {
@@ -324,7 +338,7 @@ void bind_loop(py::module_& m) {
       .def("take_meshes", &Loop::take_meshes)
 #ifdef CLOTHBALL_HAVE_ZLIB
       .def("take_encoded", &Loop::take_encoded, py::arg("board"), py::arg("slot_bytes"),
-           py::arg("radius"), py::arg("compress"))
+           py::arg("radius"), py::arg("compress"), py::arg("threads") = 1)
 #endif
       .def("block", &Loop::block)
       .def("block_fd", &Loop::block_fd)

@@ -8,6 +8,8 @@ ones on its board."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import zlib
 
 import numpy as np
@@ -15,6 +17,7 @@ import pytest
 from clothball import _native
 from clothball.game.wire import protocol as P
 from clothball.server import frameloop
+from clothball.server.sim import SimPool
 
 from tests.server.conftest import run, started_room, until
 
@@ -95,3 +98,50 @@ def test_a_board_too_small_for_the_meshes_is_refused(monkeypatch) -> None:
     monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
     with started_room() as sim, pytest.raises(ValueError, match="board"):
         sim.worker._loop.take_encoded(bytearray(64 * 4), 64, 0.1, True)
+
+
+def test_meshes_encoded_on_several_threads_land_in_their_own_rooms_slots(monkeypatch) -> None:
+    """MESH_THREADS threads share out the due rooms' meshes (native/loop/work_pool.hpp):
+    each room's delivered MESH is the one in its own slot of the board (when of the same
+    frame), for every room of one loop."""
+    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+    monkeypatch.setattr(frameloop, "MESH_THREADS", 3)
+    rooms = 6
+
+    async def main() -> None:
+        pool = SimPool()
+        got: list[list] = [[] for _ in range(rooms)]
+        try:
+            with contextlib.ExitStack() as stack:
+                sims = [stack.enter_context(started_room(got[k].append, pool))
+                        for k in range(rooms)]
+                w = sims[0].worker
+                assert all(s.worker is w for s in sims) and w._encoders == 3
+                await until(lambda: all(sum(r.mesh is not None for r in g) >= 3 for g in got),
+                            20, "every room's meshes")
+                # No pass while the board is read, and the meshes already taken delivered
+                # by then: each room's newest delivered MESH is its slot's.
+                w._loop.lock()
+                try:
+                    await asyncio.sleep(0.5)
+                    slots = set()
+                    for sim, g in zip(sims, got, strict=True):
+                        mesh = [r.mesh for r in g if r.mesh is not None][-1]
+                        frame, raw = _native.board_read(w.board, sim.slot * w.board_slot,
+                                                        w.board_slot, -1)
+                        assert raw == mesh and P.decode_mesh(raw).frame == frame
+                        assert P.decode_mesh(raw).positions.shape == (16, 16, 3)
+                        slots.add(sim.slot)
+                    assert len(slots) == rooms
+                finally:
+                    w._loop.unlock()
+        finally:
+            pool.close()
+
+    run(main())
+
+
+def test_mesh_encoder_threads_out_of_range_are_refused(monkeypatch) -> None:
+    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+    with started_room() as sim, pytest.raises(ValueError, match="threads"):
+        sim.worker._loop.take_encoded(None, 0, 0.1, True, 0)
