@@ -350,11 +350,13 @@ class NativeWorker:
     def set_ball(self, room: RoomSim, pos: Any, vel: Any) -> None:
         if room.slot is None or not room.has_ball:
             return
-        self._loop.lock()
-        try:
-            self.batch.set_ball(room.slot, pos, vel)
-        finally:
-            self._loop.unlock()
+        ball = np.concatenate([np.asarray(pos, dtype=np.float64).reshape(3),
+                               np.asarray(vel, dtype=np.float64).reshape(3)])
+        if not np.isfinite(ball).all():
+            raise ValueError(f"set_ball: the ball must be finite, got {ball}")
+        # One native call (the loop's lock taken without the GIL): a Python critical section
+        # under the loop's lock stalled every room of the loop while it waited for the GIL.
+        self._loop.set_ball(room.slot, ball)
 
     def applied(self, room: RoomSim, seat: int) -> tuple[int, float]:
         if room.slot is None:

@@ -143,6 +143,25 @@ class Loop {
   }
   void unlock() { loop_->release(); }
   void add_room(int slot, bool awake) { loop_->add_room(check(slot), awake); }
+  // A room's ball (position then velocity), set between two passes with no Python run
+  // while the loop waits: the GIL is let go before the loop's lock is taken and taken back
+  // after it is released. (Python holding the lock could wait up to the interpreter's
+  // switch interval, 5 ms, for the GIL, and every room of the loop with it.)
+  void set_ball(int slot, Array pv) {
+    check(slot);
+    const Array a = cbind::sized(pv, 6, "ball");
+    double v[6];
+    std::copy(a.data(), a.data() + 6, v);
+    py::gil_scoped_release release;
+    loop_->acquire();
+    try {
+      engine_.batch().at(slot).set_ball(v);
+    } catch (...) {
+      loop_->release();
+      throw;
+    }
+    loop_->release();
+  }
   void remove_room(int slot) { loop_->remove_room(check(slot)); }
   void set_awake(int slot, bool awake) {
     check(slot);
@@ -320,6 +339,7 @@ void bind_loop(py::module_& m) {
       .def("lock", &Loop::lock)
       .def("unlock", &Loop::unlock)
       .def("add_room", &Loop::add_room, py::arg("slot"), py::arg("awake"))
+      .def("set_ball", &Loop::set_ball, py::arg("slot"), py::arg("ball"))
       .def("remove_room", &Loop::remove_room)
       .def("set_awake", &Loop::set_awake)
       .def("set_hip", &Loop::set_hip, py::arg("slot"), py::arg("seat"), py::arg("x"),

@@ -137,6 +137,21 @@ def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backe
             mesh = P.decode_mesh([r.mesh for r in got if r.mesh][-1])
             assert mesh.positions.shape == (TINY.n, TINY.n, 3)
             assert np.all(np.isfinite(mesh.positions)) and sim.stats.meshes > 0
+            # A round's ball reset (one native call, the loop's lock taken without the GIL):
+            # the ball is where it was put, at rest high above the cloth, and then falls
+            # freely (at most g t^2 / 2 in the frames since, x and z unchanged).
+            f0 = sim.frame
+            sim.command("reset_ball", (np.array([0.3, 2.0, -0.2]), np.zeros(3)))
+            await until(lambda: any(r.corners and r.frame > f0 + 20 for r in got), 10,
+                        "frames after the reset")
+            c = P.decode_corner([r for r in got if r.corners][-1].corners[0])
+            t = (c.frame - f0 + 1) * TINY["sim"]["frame_dt"]
+            assert c.ball_position[0] == pytest.approx(0.3, abs=1e-5)
+            assert c.ball_position[2] == pytest.approx(-0.2, abs=1e-5)
+            assert 2.0 - 0.5 * 9.81 * t * t - 1e-4 < c.ball_position[1] < 2.0
+            assert c.ball_velocity[1] < 0
+            with pytest.raises(ValueError, match="finite"):
+                sim.worker.set_ball(sim, np.array([0.0, np.nan, 0.0]), np.zeros(3))
         finally:
             sim.stop()
             pool.close()
