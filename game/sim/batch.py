@@ -29,7 +29,7 @@ from .cloth import (
 )
 from .config import native_config
 from .scene import Scene
-from .stability import auto_substeps, auto_substeps_all
+from .stability import auto_substeps, substeps_for_speeds
 
 log = logging.getLogger("clothball.sim")
 
@@ -199,7 +199,7 @@ class ClothBatch:
             if self._fixed_substeps is None and self._has_ball and live.any():
                 # Every slot's need from one read of all balls (not a call per slot).
                 speeds = np.linalg.norm(self._outputs()[1][live, 3:], axis=1)
-                self._slot_substeps[live] = auto_substeps_all(self.scene, speeds)
+                self._slot_substeps[live] = substeps_for_speeds(self.scene, speeds)
         return failed
 
     def _fail(self, slot: int, substeps: int) -> None:

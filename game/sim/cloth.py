@@ -16,7 +16,7 @@ import numpy as np
 from ... import _native  # type: ignore[attr-defined]
 from .config import effect_names, native_config
 from .scene import Scene, SceneError
-from .stability import auto_substeps, stable_dt
+from .stability import auto_substeps, stable_dt, substeps_for_speeds
 
 log = logging.getLogger("clothball")
 
@@ -239,7 +239,7 @@ class Cloth:
             self._substeps = int(self._fixed_substeps)
         else:
             speed = float(np.linalg.norm(self._engine.ball()[3:])) if self._has_ball else 0.0
-            self._substeps = auto_substeps(self.scene, speed)
+            self._substeps = int(substeps_for_speeds(self.scene, np.array([speed]))[0])
 
     @property
     def substeps(self) -> int:

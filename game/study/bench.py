@@ -20,6 +20,7 @@ from ... import _native  # type: ignore[attr-defined]
 from ..sim.cloth import Cloth, cuda_unavailable_reason
 from ..sim.scene import Scene
 from ..sim.stability import auto_substeps
+from .integrators_ref import with_effects
 
 # The paper's Table 1: n -> (CPU ms, GPU double ms, GPU single ms), one update each.
 PAPER_TABLE1: dict[int, tuple[float, float, float]] = {
@@ -215,7 +216,9 @@ def run_effects(args: argparse.Namespace) -> list[dict[str, Any]]:
             }
             if label.endswith(BALL_OFF_LABEL):
                 changes.update(BALL_OFF)
-            scene = base.with_changes(changes)
+            # Without the keys of the base's effects this set leaves out (the default scene
+            # sets k_shear, bending_stiffness, ...: a scene may not set an absent effect's).
+            scene = with_effects(base, base.effects - set(effects)).with_changes(changes)
             with warnings.catch_warnings():  # every set runs at the full set's substeps
                 warnings.simplefilter("ignore")
                 cloth = Cloth(scene, backend=backend, precision=precision)

@@ -7,7 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from clothball.game import Cloth, ClothBatch, ReferenceCloth, Scene
-from clothball.game.sim.stability import auto_substeps
+from clothball.game.sim.stability import (
+    auto_substeps,
+    auto_substeps_all,
+    substep_speed_limits,
+    substeps_for_speeds,
+)
 
 from tests.engine.test_engine_vs_oracle import FRAMES, allowed_drift, scene_with
 
@@ -242,3 +247,20 @@ def test_bad_arguments_are_refused_with_their_name() -> None:
             batch.set_hips(bad, np.zeros((4, 3)))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="frames"):
         batch.step(0)
+
+
+@pytest.mark.parametrize("name", ["classic", "default", "windy", "silk"])
+def test_the_substep_lookup_is_the_stability_formula(name: str) -> None:
+    """What a cloth and a batch ask after each frame (a lookup in the scene's speed table)
+    is ``auto_substeps_all`` itself: random speeds, every boundary of the table and the
+    floats either side of it, rest, and speeds past the table (the formula's)."""
+    scene = Scene.load(name)
+    limits = substep_speed_limits(scene)
+    edges = limits[limits >= 0]
+    speeds = np.concatenate([
+        np.random.default_rng(3).uniform(0.0, 2.0 * edges.max(initial=1.0), 20_000),
+        edges, np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf),
+        [0.0, 1e-9, 1e5, 1e7],
+    ])
+    speeds = speeds[speeds >= 0]
+    assert np.array_equal(substeps_for_speeds(scene, speeds), auto_substeps_all(scene, speeds))

@@ -59,3 +59,23 @@ def test_bench_writes_the_rows_it_prints(tmp_path: Path) -> None:
         assert r["effective_gbs"] == pytest.approx(want, rel=1e-9)
         assert f"{r['substep_us']:.2f}" in proc.stdout  # the table shows what the file holds
     assert "GPU targets" not in proc.stdout  # no CUDA rows, no GPU verdicts
+
+
+@pytest.mark.slow
+def test_effects_bench_runs_on_a_scene_that_sets_keys_of_its_own_effects(tmp_path: Path) -> None:
+    """``bench --effects --scene default``: the default scene sets keys of shear, bend and
+    coupling, which the subsets without those effects drop (before, the first such subset
+    stopped the bench with a scene error). Every case gets a positive time."""
+    dest = tmp_path / "effects.json"
+    out = subprocess.run(
+        [sys.executable, "-m", "clothball.game.cli", "bench", "--effects", "--scene", "default",
+         "--sizes", "8", "--backends", "cpu", "--precisions", "float32", "--repeats", "1",
+         "--json", str(dest)],
+        capture_output=True, text=True, timeout=240, check=False)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = json.loads(dest.read_text())
+    rows = rows["rows"] if isinstance(rows, dict) else rows
+    labels = {r["label"] for r in rows}
+    assert {"structural alone", "shear alone", "+ bend", "default as shipped",
+            "default without ball"} <= labels
+    assert all(r["substep_us"] > 0 and r["n"] == 8 for r in rows)
