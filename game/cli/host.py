@@ -1,6 +1,7 @@
 """``clothball host``: run a game server until Ctrl-C or SIGTERM.
 
-With ``--workers N`` (default: one per core) of 2 or more it runs one engine process, which
+With ``--workers N`` (default: one per core; one process on 1-2 cores) of 2 or more it runs
+one engine process, which
 owns every room of the host, and N - 1 gateway processes that accept the clients on the
 one public port (SO_REUSEPORT) and carry each connection to the engine over its Unix
 socket (docs/architecture.md): a client reaches any room of the host through any gateway,
@@ -69,7 +70,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=WORKERS, default=None, metavar="N",
                         help="processes of this host: one engine (every room) and N - 1 "
                              "gateways sharing the port; 1: one process for everything "
-                             f"(default: one per core, here {os.cpu_count() or 1})")
+                             f"(default: one per core, one process on 1-2 cores; here "
+                             f"{default_workers()})")
     parser.add_argument("--cluster", type=redis_url, default=None, metavar="redis://HOST:PORT/DB",
                         help="join the hosts sharing this Redis as one service: one lobby, "
                              "rooms placed on the least-loaded host (docs/cluster.md); a "
@@ -224,8 +226,18 @@ async def _until_stopped(lifeline_fd: int | None = None) -> None:
 RESTART_S = 1.0  # a process that died is started again after this long
 
 
+def default_workers(cpus: int | None = None) -> int:
+    """This host's processes when ``--workers`` is not given: one per core, but one process
+    on a machine of 1 or 2 cores. There the engine's frame loop and event loop need both
+    cores, and a gateway beside them cost rooms: on a 2-core VM an engine and a gateway held
+    4 and 2 rooms where one process held 6 and 4 (docs/benchmarks/host-2026-11-27-lanes/
+    README.md). One process serves every room on the one port all the same."""
+    cpus = cpus if cpus is not None else os.cpu_count() or 1
+    return cpus if cpus >= 3 else 1
+
+
 def run(args: argparse.Namespace) -> int:
-    workers = args.workers or os.cpu_count() or 1
+    workers = args.workers or default_workers()
     try:  # CLOTHBALL_LOOP=uvloop chooses uvloop (server/loops.py)
         loops.loop_factory()
     except loops.LoopError as e:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from clothball.game.cli.host import default_workers
 from clothball.game.net.client import NetClient
 from clothball.game.sim.scene import ASSETS
 
@@ -349,3 +350,12 @@ def test_a_killed_engine_is_restarted_and_the_page_and_lobby_come_back(tmp_path)
     with host(tmp_path, 2, "--bots", "4") as h:
         run(main(h))
         assert any("the engine exited" in ln for ln in h.lines), "".join(h.lines)
+
+
+def test_a_host_of_one_or_two_cores_is_one_process_by_default() -> None:
+    """Without --workers: one process per core, but one in all on 1-2 cores (where a
+    gateway beside the engine cost rooms); the help says what this machine gets."""
+    assert [default_workers(c) for c in (1, 2, 3, 4, 16)] == [1, 1, 3, 4, 16]
+    out = subprocess.run([sys.executable, "-m", "clothball.game.cli", "host", "--help"],
+                         capture_output=True, text=True, timeout=60, check=True).stdout
+    assert f"here {default_workers()})" in " ".join(out.split())
