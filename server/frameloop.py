@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from .. import _native  # type: ignore[attr-defined]
+from ..game.sim.cloth import _as_finite
 from ..game.sim.stability import substep_speed_limits
 from ..game.wire import protocol as P
 from .frames import FrameResult, Samples
@@ -350,10 +351,9 @@ class NativeWorker:
     def set_ball(self, room: RoomSim, pos: Any, vel: Any) -> None:
         if room.slot is None or not room.has_ball:
             return
-        ball = np.concatenate([np.asarray(pos, dtype=np.float64).reshape(3),
-                               np.asarray(vel, dtype=np.float64).reshape(3)])
-        if not np.isfinite(ball).all():
-            raise ValueError(f"set_ball: the ball must be finite, got {ball}")
+        # The facade's check (ClothBatch.set_ball made it before this call replaced it).
+        ball = np.concatenate([_as_finite("position", pos, (3,)),
+                               _as_finite("velocity", vel, (3,))])
         # One native call (the loop's lock taken without the GIL): a Python critical section
         # under the loop's lock stalled every room of the loop while it waited for the GIL.
         self._loop.set_ball(room.slot, ball)

@@ -22,25 +22,20 @@ fi
 root=$PWD
 python3 -c "from clothball import _native as n; print('MESH encoded in C++:', hasattr(n, 'encode_mesh_msg'))" \
   | tee -a "$OUT/gpu.txt"
-if [ -n "${GPU_TESTS:-}" ]; then
-  cd /tmp
+gpu_pytest() {  # $1: output file, $2: seconds, $3: test paths (words); the rest: pytest flags
+  local out=$1 limit=$2 paths=$3; shift 3
   # shellcheck disable=SC2046  # the paths are words
-  OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout "${GPU_TESTS_S:-200}" \
+  (cd /tmp && OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout "$limit" \
     python3 -m pytest -q -p no:cacheprovider -p no:benchmark -n "${TEST_WORKERS:-12}" \
-    -c "$root/setup.cfg" --rootdir "$root" -k "cuda or batch" \
-    $(for t in $GPU_TESTS; do echo "$root/$t"; done) >"$OUT/gpu_tests.txt" 2>&1
-  echo "GPU tests: rc=$? $(tail -1 "$OUT/gpu_tests.txt")"
-  cd "$root"
+    -c "$root/setup.cfg" --rootdir "$root" "$@" $(for t in $paths; do echo "$root/$t"; done) \
+    >"$out" 2>&1)  # from /tmp: the installed package is imported, not the source tree
+  echo "rc=$? $(tail -1 "$out")"
+}
+if [ -n "${GPU_TESTS:-}" ]; then
+  echo "GPU tests: $(gpu_pytest "$OUT/gpu_tests.txt" "${GPU_TESTS_S:-200}" "$GPU_TESTS" -k "cuda or batch")"
 fi
 if [ -n "${TESTS:-}" ]; then
-  cd /tmp  # import the installed package, not the source tree
-  # shellcheck disable=SC2046  # the paths are words
-  OMP_NUM_THREADS=2 CLOTHBALL_TEST_BACKEND=cuda CLOTHBALL_REQUIRE_GPU=1 timeout "${TESTS_S:-240}" \
-    python3 -m pytest -q -p no:cacheprovider -p no:benchmark -n "${TEST_WORKERS:-12}" \
-    -c "$root/setup.cfg" --rootdir "$root" $(for t in $TESTS; do echo "$root/$t"; done) \
-    >"$OUT/server_cuda.txt" 2>&1
-  echo "server suites on CUDA: rc=$? $(tail -1 "$OUT/server_cuda.txt")"
-  cd "$root"
+  echo "server suites on CUDA: $(CLOTHBALL_TEST_BACKEND=cuda gpu_pytest "$OUT/server_cuda.txt" "${TESTS_S:-240}" "$TESTS")"
 fi
 load() {  # $1: label; the rest: bench flags
   local label=$1; shift

@@ -785,7 +785,7 @@ def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
     kinds = {p.pid: _process_kind(p) for p in servers}
     spent: dict[str, float] = {}
     for (pid, tid), (name, c) in threads.items():
-        label = f"{kinds.get(pid, 'server')} {'event loop' if pid == tid else name}"
+        label = f"{kinds[pid]} {'event loop' if pid == tid else name}"
         spent[label] = spent.get(label, 0.0) + c
     step["server_threads_cores"] = dict(sorted(spent.items(), key=lambda kv: -kv[1]))
     per_client = [(b - a) / dt for a, b in zip(cl0, cl1, strict=True)]
