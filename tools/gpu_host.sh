@@ -7,7 +7,7 @@
 # Usage (on a GPU machine, websockets etc. carried in .whl/):
 #   OUT=results bash tools/gpu_host.sh
 # Environment: W (default 16), STEP, MAX (120 Hz), STEP1K, MAX1K (1 kHz), RUN_S (each run's
-# limit), RUNS (default "w1 wW wW_off"), RATES (default "120 1000"), TESTS (server test
+# limit), RUNS (default "w1 wW wW_off"), RATES (default "120 1000"; empty: no load runs), TESTS (server test
 # files run first on the CUDA engine, e.g. "tests/server/test_workers.py"), GPU_TESTS (test
 # paths whose GPU cases run before them: -k "cuda or batch"), SKIP_BUILD=1 (a warm machine
 # that has the build), FLAGS (more `bench --load` flags for every run, e.g. "--client-procs 6").
@@ -44,7 +44,7 @@ load() {  # $1: label; the rest: bench flags
     2>>"$OUT/bench.err" | tee "$OUT/load_$label.txt" | tail -2
 }
 W=${W:-16}
-for rate in ${RATES:-120 1000}; do
+for rate in ${RATES-120 1000}; do  # RATES="" (set, empty): tests only
   if [ "$rate" = 120 ]; then flags=(--rooms-step "${STEP:-16}" --load-max-rooms "${MAX:-160}")
   else flags=(--corner-rate "$rate" --rooms-step "${STEP1K:-8}" --load-max-rooms "${MAX1K:-48}")
   fi
