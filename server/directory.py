@@ -140,11 +140,6 @@ class Snapshot:
                 out.append({**info, "host": host.address})
         return out
 
-    def least_loaded(self) -> HostEntry | None:
-        if not self.hosts:
-            return None
-        return min(self.hosts.values(), key=lambda h: (h.load, h.host_id))
-
 
 class Directory(Protocol):
     """What a server process needs from the shared room directory."""

@@ -171,9 +171,6 @@ class NetThread:
     def ready(self, ready: bool = True) -> concurrent.futures.Future[dict[str, Any]]:
         return self.request("ready", ready=ready)
 
-    def start_match(self) -> concurrent.futures.Future[dict[str, Any]]:
-        return self.request("start")
-
     def add_bot(self, seat: int | None = None) -> concurrent.futures.Future[dict[str, Any]]:
         fields = {} if seat is None else {"seat": seat}
         return self.request("add_bot", **fields)

@@ -29,9 +29,6 @@ class Reach:
         u = np.clip(np.asarray(u, dtype=np.float64), -1.0, 1.0)
         return self.centre + u * self.half_extent
 
-    def to_unit(self, h: np.ndarray) -> np.ndarray:
-        return np.clip((np.asarray(h, dtype=np.float64) - self.centre) / self.half_extent, -1, 1)
-
 
 @dataclass
 class CornerState:

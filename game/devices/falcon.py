@@ -111,9 +111,6 @@ class FalconMapping:
     def velocity_to_device(self, v_world: np.ndarray) -> np.ndarray:
         return np.asarray(v_world, dtype=np.float64) / self.scale * self.signs
 
-    def velocity_to_world(self, v_device: np.ndarray) -> np.ndarray:
-        return np.asarray(v_device, dtype=np.float64) * self.scale * self.signs
-
     def force_to_world(self, f_device: np.ndarray, force_scale: float) -> np.ndarray:
         return np.asarray(f_device, dtype=np.float64) * self.signs / force_scale
 

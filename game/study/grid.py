@@ -71,23 +71,6 @@ def per_node_twin(scene: Scene) -> Scene:
     return Scene(data, name=f"{scene.name} (per node at n = {scene.n})")
 
 
-def material_twin(scene: Scene) -> Scene:
-    """The scene with its per-node damping and contact stiffness replaced by the material
-    values that derive them at the scene's n: the same cloth at this n, and on every grid."""
-    data = scene.to_dict()
-    cloth, ball = data.setdefault("cloth", {}), data.setdefault("ball", {})
-    fx = scene.effects
-    if "damping" in fx and scene["cloth"]["damping_rate"] is None:
-        cloth.pop("damping", None)
-        cloth["damping_rate"] = node_damping(scene) * scene.n**2 / scene["cloth"]["mass"]
-    if "ball" in fx and scene["ball"]["stiffness_per_area"] is None:
-        ball.pop("stiffness", None)
-        share = 0.5 if scene["ball"]["contact"] == "edges" else 1.0
-        ball["stiffness_per_area"] = node_contact_stiffness(scene) / (
-            scene.rest_length**2 * share)
-    return Scene(data, name=f"{scene.name} (material, from n = {scene.n})")
-
-
 def dominant_hz(signal: Sequence[float], dt: float, min_hz: float = MIN_HZ) -> float:
     """The strongest frequency above ``min_hz`` of a signal sampled every dt (linear trend removed,
     Hann window, zero-padded 64x, the peak refined by a parabola through its 3 bins)."""
