@@ -32,7 +32,7 @@ concession; they share the win.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -74,25 +74,29 @@ def edge_distances(ball: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """Signed distance (m, seen from above) of the ball's centre outside each edge's line.
 
     Positive means outside the corner quadrilateral across that edge. Outward normals point
-    away from the corners' centroid, so the result does not depend on the winding.
+    away from the corners' centroid, so the result does not depend on the winding. Each
+    dot product is written out (no BLAS call, which may fuse or reorder it), so that the
+    answer is the same wherever it runs, and the frame loop's (native/loop/exit.hpp), which
+    computes it step for step, can be tested against it bit for bit.
     """
     c = np.asarray(corners, dtype=np.float64)[:, (0, 2)]
-    p = np.asarray(ball, dtype=np.float64)[[0, 2]]
-    centroid = c.mean(axis=0)
+    px, pz = (float(v) for v in np.asarray(ball, dtype=np.float64)[[0, 2]])
+    mx = (((c[0, 0] + c[1, 0]) + c[2, 0]) + c[3, 0]) / 4.0
+    mz = (((c[0, 1] + c[1, 1]) + c[2, 1]) + c[3, 1]) / 4.0
     out = np.empty(SEATS)
     for e in range(SEATS):
-        a, b = c[e], c[(e + 1) % SEATS]
-        d = b - a
-        length = float(np.hypot(*d))
+        ax, az = float(c[e, 0]), float(c[e, 1])
+        dx, dz = float(c[(e + 1) % SEATS, 0]) - ax, float(c[(e + 1) % SEATS, 1]) - az
+        length = math.hypot(dx, dz)
         if length < 1e-12:
-            normal = a - centroid
-            nl = float(np.hypot(*normal))
-            normal = normal / nl if nl > 1e-12 else np.array([1.0, 0.0])
+            nx, nz = ax - mx, az - mz
+            nl = math.hypot(nx, nz)
+            nx, nz = (nx / nl, nz / nl) if nl > 1e-12 else (1.0, 0.0)
         else:
-            normal = np.array([d[1], -d[0]]) / length
-            if float(np.dot(normal, a - centroid)) < 0.0:
-                normal = -normal
-        out[e] = float(np.dot(p - a, normal))
+            nx, nz = dz / length, -dx / length
+            if nx * (ax - mx) + nz * (az - mz) < 0.0:
+                nx, nz = -nx, -nz
+        out[e] = (px - ax) * nx + (pz - az) * nz
     return out
 
 
@@ -100,16 +104,22 @@ def edge_height(ball: np.ndarray, corners: np.ndarray, edge: int) -> float:
     """Height of an edge's corner-to-corner line where the ball's centre projects onto it."""
     i, j = edge_corners(edge)
     c = np.asarray(corners, dtype=np.float64)
-    a, b = c[i], c[j]
-    d = (b - a)[[0, 2]]
-    dd = float(np.dot(d, d))
-    t = 0.0 if dd < 1e-24 else float(np.dot(np.asarray(ball)[[0, 2]] - a[[0, 2]], d)) / dd
+    ax, ay, az = (float(v) for v in c[i])
+    bx, by, bz = (float(v) for v in c[j])
+    px, pz = float(ball[0]), float(ball[2])
+    dx, dz = bx - ax, bz - az
+    dd = dx * dx + dz * dz
+    t = 0.0 if dd < 1e-24 else ((px - ax) * dx + (pz - az) * dz) / dd
     t = min(1.0, max(0.0, t))
-    return float(a[1] + t * (b[1] - a[1]))
+    return ay + t * (by - ay)
 
 
 def exit_edge(ball: np.ndarray, corners: np.ndarray, floor_y: float) -> int | None:
-    """The edge the ball has left the cloth by, or None while it is still in play."""
+    """The edge the ball has left the cloth by, or None while it is still in play.
+
+    The server runs one exit check, the frame loop's (native/loop/exit.hpp, every frame);
+    this is the reference it is tested against (tests/server/test_rules.py) and the rule
+    as the docs state it."""
     ball = np.asarray(ball, dtype=np.float64)
     dist = edge_distances(ball, corners)
     crossed = [e for e in range(SEATS) if dist[e] > 0.0 and ball[1] < edge_height(ball, corners, e)]
@@ -118,70 +128,6 @@ def exit_edge(ball: np.ndarray, corners: np.ndarray, floor_y: float) -> int | No
     if ball[1] < floor_y:
         return int(np.argmax(dist))
     return None
-
-
-# Margins of the pre-test below, relative to the size of the coordinates involved. The two
-# computations of one signed distance differ by a few ulps of that size (about 1e-15 of
-# it); these margins are six orders of magnitude wider.
-_INSIDE_MARGIN = 1e-9
-_SHORT_EDGE = 1e-4
-
-
-def ball_clearly_in_play(ball: Sequence[float], corners: Sequence[Sequence[float]],
-                         floor_y: float) -> bool:
-    """A cheap, conservative pre-test of ``exit_edge``: True only when ``exit_edge`` would
-    return None, because the ball is not below the floor and its centre is inside every
-    edge's line by a clear margin (seen from above). False means "not sure": ask
-    ``exit_edge``. Plain floats, no NumPy: a few microseconds instead of tens.
-
-    Exact where it answers: ``exit_edge`` can only return an edge whose signed distance
-    (``edge_distances``) is positive, or when the ball is below the floor. This recomputes
-    each distance with the same formula (the same outward normal, away from the corners'
-    centroid) and answers True only when every one is negative by ``_INSIDE_MARGIN`` times
-    the coordinates' size, far beyond the rounding by which the two computations can differ;
-    an edge shorter than ``_SHORT_EDGE`` times that size (its normal ill-conditioned), a
-    centroid nearly on an edge's line, or a NaN/Inf gives False. The floor test is the same
-    comparison of the same floats. ``tests/test_rules.py`` checks the equivalence with
-    hypothesis.
-    """
-    px, py, pz = float(ball[0]), float(ball[1]), float(ball[2])
-    if not py >= floor_y:  # exit_edge tests ball[1] < floor_y (NaN: not sure)
-        return False
-    xs = [float(c[0]) for c in corners]
-    zs = [float(c[2]) for c in corners]
-    scale = 1.0 + max(abs(px), abs(pz), *map(abs, xs), *map(abs, zs))
-    tol = _INSIDE_MARGIN * scale
-    short = _SHORT_EDGE * scale
-    cx = (xs[0] + xs[1] + xs[2] + xs[3]) * 0.25
-    cz = (zs[0] + zs[1] + zs[2] + zs[3]) * 0.25
-    for e in range(SEATS):
-        ax, az = xs[e], zs[e]
-        dx, dz = xs[(e + 1) % SEATS] - ax, zs[(e + 1) % SEATS] - az
-        length = math.hypot(dx, dz)
-        if not length >= short:
-            return False
-        # Unit normal (dz, -dx) / length; s: its side of the centroid, q: the ball's.
-        s = (dz * (ax - cx) - dx * (az - cz)) / length
-        q = (dz * (px - ax) - dx * (pz - az)) / length
-        if s > tol:  # the normal points outward: distance q
-            if not q < -tol:
-                return False
-        elif s < -tol:  # exit_edge flips the normal: distance -q
-            if not q > tol:
-                return False
-        else:
-            return False
-    return True
-
-
-def exit_edge_fast(ball: Sequence[float], corners: Sequence[Sequence[float]],
-                   floor_y: float) -> int | None:
-    """``exit_edge`` with the pre-test first: the same answer, cheaply while the ball is
-    clearly on the cloth (the room thread asks every frame)."""
-    if ball_clearly_in_play(ball, corners, floor_y):
-        return None
-    return exit_edge(np.asarray(ball, dtype=np.float64), np.asarray(corners, dtype=np.float64),
-                     floor_y)
 
 
 @dataclass(frozen=True)

@@ -27,9 +27,10 @@ from websockets.asyncio.server import Server, serve
 from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
 from .directory import IO_TIMEOUT_S, MIN_READ_GAP_S, PUBLISH_S, Directory, HostEntry, OnDemand
-from .gateways import GatewayControl
 from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
+from .lanes.control import GatewayControl
+from .lanes.local import LocalLinks
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .room import Room, RoomSettings
@@ -111,8 +112,11 @@ class GameServer:
             self.storage.check_now()
         # Every room of a scene is a slot of that scene's worker: one call steps them all.
         self.sims = SimPool(epoch=self.epoch, spool_dir=spool_dir_for(self.data_dir))
+        # The lanes the engine serves itself (server.lanes): its own clients' HIPs, CORNERs
+        # and MESH, by the lane code its gateways run.
+        self.lane_links = LocalLinks(self.sims.local_shares, self.sims.set_wake)
         self._share_host_token()
-        self.lobby = Lobby(scenes, self, backend=backend, epoch=self.epoch,
+        self.lobby = Lobby(scenes, self, backend=backend,
                            max_rooms=self.limits.max_rooms, sims=self.sims)
         # Admission control: the server's own measure of what more it can run.
         self.headroom = Headroom(self.sims, lim.admit_lateness_ms, load=lim.admit_load,
@@ -149,16 +153,18 @@ class GameServer:
         """Listen and open the main room. A failure to listen (``OSError``: port taken,
         address not here) closes the replay index it opened, so nothing is left open."""
         try:
+            self.lane_links.start()
             self._server = await self._listen(self.port)
             if self.engine_socket is not None:
                 self._gateways = await self._listen_gateways(self.engine_socket)
                 self._control = GatewayControl(lanes.ctl_path(self.engine_socket),
-                                               self._blocks, self.stats,
+                                               self.sims.shares, self.stats,
                                                self.sims.set_wake)
                 await self._control.start()
         except BaseException:
             if self._server is not None:
                 self._server.close()
+            self.lane_links.stop()
             self.storage.close()
             raise
         sock = next(iter(self._server.sockets))
@@ -219,17 +225,6 @@ class GameServer:
         srv = await self._listen(None, path=str(path), unix=True)
         os.chmod(path, 0o600)
         return srv
-
-    def _blocks(self) -> list[tuple[int, int, int]]:
-        """The native frame loops' blocks and mesh boards, as the gateways map them (id,
-        memfd, bytes)."""
-        shares = []
-        for w in self.sims.workers:
-            if hasattr(w, "block_share"):
-                shares.append((*w.block_share, "block"))
-                if w.board_share is not None:
-                    shares.append((*w.board_share, "board"))
-        return shares
 
     async def _listen(self, port: int | None, **extra: Any) -> Server:
         where = {} if port is None else {"host": self.host, "port": port}
@@ -388,6 +383,7 @@ class GameServer:
                 log.warning("could not leave the room directory: %s", e)
         self._dir_pool.shutdown(wait=False)
         await self.lobby.close()
+        self.lane_links.stop()
         await asyncio.to_thread(self.sims.close)
         if self._saves:
             await asyncio.gather(*self._saves, return_exceptions=True)
@@ -584,6 +580,11 @@ class GameServer:
                          "room_cost": {n: self.headroom.cost(s) for n, s in self.scenes.items()}},
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
+            # the lanes' part: its gateways' (reported) and the engine's own
+            "lane_messages_in": self.stats["lane_messages_in"]
+            + self.lane_links.counts["messages_in"],
+            "lane_messages_out": self.stats["lane_messages_out"]
+            + self.lane_links.counts["messages_out"],
             "rooms": rooms,
         }
 

@@ -7,6 +7,11 @@ Outgoing data waits in three places, never in a growing queue of state:
 * the newest CORNER message (one slot: a newer frame replaces an unsent one);
 * the newest MESH message (one slot, likewise).
 
+Its CORNERs and MESHes come from its lane (``server.lanes``: the seat's hand in, its CORNER
+at ``corner_rate`` and its room's MESH out, from the frame loop's memory), which its gateway
+serves where it can (a lane message in its stream) and the engine's ``LocalLinks`` serve
+otherwise (``open_lane``).
+
 A single sender task writes them in that order, waiting for the socket to drain. A client
 whose socket stays backed up for ``Limits.slow_drop_s`` seconds is dropped. Every number
 here is a ``server.limits.Limits`` field (``docs/security.md``).
@@ -18,7 +23,6 @@ import asyncio
 import collections
 import ipaddress
 import logging
-import math
 import secrets
 import time
 from typing import TYPE_CHECKING, Any
@@ -28,8 +32,10 @@ from websockets.exceptions import ConnectionClosed
 
 from ..game.net.fastpath import try_send_binary
 from ..game.wire import protocol as P
+from .lanes.lane import Lane, Links
 from .limits import DEFAULT, Limits
 from .shared.bucket import TokenBucket
+from .shared.lanes import LaneSpec, lane_message
 
 if TYPE_CHECKING:
     from .room import Room
@@ -70,9 +76,11 @@ class Conn:
     """A websocket client of the server (lobby, player or spectator)."""
 
     def __init__(self, ws: ServerConnection, limits: Limits = DEFAULT, *,
-                 address: str | None = None, house: bool = False) -> None:
+                 address: str | None = None, house: bool = False,
+                 links: Links | None = None) -> None:
         """``address``: the client's, where a trusted proxy forwarded it (else the
-        socket's peer); ``house``: one of the server's own bots (no per-address slot)."""
+        socket's peer); ``house``: one of the server's own bots (no per-address slot);
+        ``links``: the engine's, for the lanes it serves itself."""
         self.id = secrets.token_urlsafe(6)
         self.ws = ws
         self.limits = limits
@@ -86,15 +94,16 @@ class Conn:
         self.name = "guest"
         self.want_mesh = True
         self.corner_interval = 0.0  # s between CORNER messages (client's corner_rate)
-        # Its gateway serves seated players' lanes; one is open (server.shared.lanes).
-        self.lanes = bool(getattr(ws, "lanes", False))
-        self.lane = self.lane_mesh = False
+        # Its gateway serves lanes it can map (server.shared.lanes); else the engine does.
+        self.gateway_lanes = bool(getattr(ws, "lanes", False))
+        self.links = links
+        self.lane: Lane | None = None  # the lane the engine serves it
+        self.relayed_lane = False  # its gateway serves its lane
         self.hello_done = False
         self.closed = False
         self._control: collections.deque[str] = collections.deque()
         self._corner: bytes | None = None
         self._mesh: bytes | None = None
-        self.corner_due = -math.inf  # server time its next CORNER may be sent
         self._wake = asyncio.Event()
         self.control_bucket = TokenBucket(limits.control_rate, limits.control_burst)
         self.binary_bucket = TokenBucket(limits.binary_rate, limits.binary_burst)
@@ -127,17 +136,43 @@ class Conn:
             return True
         return False
 
-    def offer_corner(self, data: bytes, server_time: float) -> None:
-        if self.closed or server_time < self.corner_due:
+    def open_lane(self, spec: LaneSpec | None, shared: bool) -> None:
+        """Its lane from now on (None: none): served by its gateway where it has one that
+        serves lanes and the room's memory is ``shared`` with it (a lane message in its
+        stream), else by the engine's own lane code."""
+        if self.lane is not None:
+            self.lane.close()
+            self.lane = None
+        if spec is not None and self.gateway_lanes and shared:
+            self.relayed_lane = True
+            self.send_json(lane_message(spec))
+            return
+        if self.relayed_lane:
+            self.relayed_lane = False
+            self.send_json(lane_message(None))
+        if spec is not None and self.links is not None:
+            self.lane = Lane(spec, self.links, self._lane_write,
+                             lambda: None if self.room is None else self.room.id)
+
+    def _lane_write(self, kind: str, head: bytes, payload: bytes) -> None:
+        """Its lane's CORNER or MESH (``head``: the frame header a gateway writes; here the
+        connection frames it)."""
+        assert self.links is not None
+        self.links.counts["messages_out"] += 1
+        if kind == "corner":
+            self.offer_corner(payload)
+        else:
+            self.offer_mesh(payload)
+
+    def take_hip(self, data: bytes) -> bool:
+        """A HIP its lane writes into the seat's hand (False: the engine answers it)."""
+        return self.lane is not None and self.lane.take(data)
+
+    def offer_corner(self, data: bytes) -> None:
+        if self.closed:
             return
         if self._sending_since is not None and self._stuck():  # (no call while not sending)
             return
-        # The next is due an interval after this one was due, not after it was sent: timed
-        # from each send, a rate that is no whole number of 1 ms frames lost up to a frame a
-        # message (corner_rate 120 gave 111 a second). A stream a whole interval behind (its
-        # start, a stall) starts afresh from now, with no burst to catch up.
-        due = self.corner_due + self.corner_interval
-        self.corner_due = due if server_time < due else server_time + self.corner_interval
         if self._send_now(data):
             return
         if self._corner is not None:
@@ -269,6 +304,7 @@ class Conn:
                 self.ws.transport.abort()
 
     async def finish(self) -> None:
+        self.open_lane(None, False)
         if self._closing is not None:
             # The close code and reason go out before the handler returns (which would
             # close the connection as a normal 1000).

@@ -2,13 +2,12 @@
 
 A new room is admitted or refused *before it exists*, from what it will cost: each scene's
 room costs the cores ``room_cost`` measured for it on this machine and backend (once per
-process, at start-up). On the CPU backend with the native frame loop (``server.frameloop``)
-the loop itself runs 16 rooms at real time and a room costs its share of the loop thread's
-CPU time (its pacing included), so the cost is what the loop really spends and CPU stolen by
-neighbours does not inflate it. Otherwise (a GPU, the Python
-loop) four rooms are stepped as the Python worker steps them, one ``ClothBatch`` call a
-frame (on the CPU timed by the stepping thread's CPU time); on a GPU also 64 rooms, so that
-the launch all of a worker's rooms share counts once per thread. Every open room
+process, at start-up). On the CPU backend the native frame loop (``server.sim.worker``)
+itself runs 16 rooms at real time and a room costs its share of the loop thread's CPU time
+(its pacing included), so the cost is what the loop really spends and CPU stolen by
+neighbours does not inflate it. On a GPU four rooms are stepped, one ``ClothBatch`` call a
+frame, and 64 rooms, so that the launch all of a worker's rooms share counts once per
+thread. Every open room
 counts, asleep or awake (a sleeping room wakes the moment someone joins it). A room fits
 while the rooms' cost stays within ``admit_load`` of the cores the process may use, and
 within ``admit_load`` of one core for the rooms one simulation thread steps (one per scene,
@@ -75,14 +74,14 @@ def _key(scene: Scene, backend: str) -> tuple[str, str, str]:
 
 
 def _frame_cost(scene: Scene, key: tuple[str, str, str], rooms: int) -> float:
-    """Cores a worker's thread spends stepping ``rooms`` rooms of ``scene`` at real time."""
+    """Cores a worker's thread spends stepping ``rooms`` rooms of ``scene`` on a GPU at real
+    time."""
     batch = ClothBatch(scene, rooms, key[1], key[2], threads=1)
     for _ in range(rooms):
         batch.add()
     batch.step(2)  # first-call costs (allocation, JIT of nothing) out of the measure
-    # The CPU backend's cost is the stepping thread's own CPU time (not inflated by time
-    # stolen from it); a GPU's is the wall time of a step, which the thread waits out.
-    clock = time.thread_time if key[1] == "cpu" else time.perf_counter
+    # A GPU's cost is the wall time of a step, which the thread waits out.
+    clock = time.perf_counter
     wall0, t0, frames = time.perf_counter(), clock(), 0
     while frames < 2000 and time.perf_counter() - wall0 < CALIBRATE_S:
         batch.step(1)
@@ -91,21 +90,16 @@ def _frame_cost(scene: Scene, key: tuple[str, str, str], rooms: int) -> float:
     return (clock() - t0) / max(frames, 1) / batch.frame_dt
 
 
-def _native_cost(scene: Scene, backend: str, rooms: int) -> float | None:
+def _native_cost(scene: Scene, backend: str, rooms: int) -> float:
     """Cores the native frame loop's thread spends on ``rooms`` awake rooms of ``scene``
-    at real time (its thread's CPU time over wall time); None where ``scene``'s rooms run
-    on the Python loop (``SimPool.native_for``)."""
+    at real time (its thread's CPU time over wall time)."""
     pool = SimPool()
     sims: list[RoomSim] = []
     try:
-        if not pool.native_for(scene):
-            return None
         for _ in range(rooms):
             sims.append(RoomSim(scene, backend, pool=pool))
             sims[-1].start()
         worker = sims[0].worker
-        if not getattr(worker, "native", False):
-            return None
         time.sleep(CALIBRATE_WARM_S)
         cpu0, wall0 = worker.cpu_seconds(), time.perf_counter()
         time.sleep(CALIBRATE_S)
@@ -121,11 +115,9 @@ def _measure(scene: Scene, backend: str) -> tuple[float, float]:
     with _costs_lock:
         if key in _costs:
             return _costs[key]
-    native = _native_cost(scene, backend, CALIBRATE_ROOMS_NATIVE) if key[1] == "cpu" else None
-    if native is not None:  # the loop's pacing shared by the rooms a thread holds
+    if key[1] == "cpu":  # the loop's pacing shared by the rooms a thread holds
+        native = _native_cost(scene, backend, CALIBRATE_ROOMS_NATIVE)
         cost = (0.0, native / CALIBRATE_ROOMS_NATIVE)
-    elif key[1] == "cpu":  # the Python loop: a slot is its own work, the cost the rooms'
-        cost = (0.0, _frame_cost(scene, key, CALIBRATE_ROOMS) / CALIBRATE_ROOMS)
     else:
         small = _frame_cost(scene, key, CALIBRATE_ROOMS)
         large = _frame_cost(scene, key, CALIBRATE_ROOMS_GPU)
@@ -196,12 +188,6 @@ class Headroom:
         """A room of ``scene``'s cost in cores (as measured; 0 if not measured yet)."""
         with _costs_lock:
             return _costs.get(_key(scene, self.backend), (0.0, 0.0))[1]
-
-    def thread_cost(self, scene: Scene) -> float:
-        """What the thread that steps ``scene``'s rooms costs whatever their number (a
-        GPU's launch; 0 on the CPU or if not measured yet)."""
-        with _costs_lock:
-            return _costs.get(_key(scene, self.backend), (0.0, 0.0))[0]
 
     def refusal(self, scene: Scene, rooms: list[Scene]) -> str | None:
         """Why a new room of ``scene`` would not fit beside the open ``rooms`` (their

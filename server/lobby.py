@@ -24,7 +24,7 @@ MAX_ROOMS = 32  # the default of Limits.max_rooms
 class Lobby:
     def __init__(self, scenes: dict[str, Scene], host: RoomHost, backend: str = "auto",
                  max_rooms: int = MAX_ROOMS, room_factory: Callable[..., Room] = Room,
-                 epoch: float | None = None, sims: SimPool | None = None) -> None:
+                 sims: SimPool | None = None) -> None:
         if not scenes:
             raise ValueError("scenes: at least one scene is needed")
         self.scenes = scenes
@@ -35,7 +35,6 @@ class Lobby:
         self.rooms: dict[str, Room] = {}
         self.addresses: dict[str, str] = {}  # room id -> the address that created it
         self._room_factory = room_factory
-        self.epoch = epoch
         self.sims = sims  # the simulation workers every room of this lobby runs on
         # With a shared directory (several processes or hosts): this process's entry and
         # the last snapshot of everyone's rooms (None: this lobby is the whole service).
@@ -76,7 +75,7 @@ class Lobby:
             raise ValueError(f"room id {room_id!r} is taken")
         room = self._room_factory(room_id, name, self.scenes[scene_name], self.host,
                                   backend=self.backend, public=public, settings=settings,
-                                  owner=owner, epoch=self.epoch, sims=self.sims)
+                                  owner=owner, sims=self.sims)
         self.rooms[room_id] = room
         if address is not None:
             self.addresses[room_id] = address

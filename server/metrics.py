@@ -5,8 +5,9 @@ message or frame paths.
 
 Frame lateness is a gauge per room and quantile (``quantile="0.5"``, ``"0.99"``,
 ``"0.999"``, ``"1"`` for the maximum), not a Prometheus summary or histogram: the engine
-keeps the newest frames' lateness in a window (``server.sim.LATENESS_SAMPLES``), not the
-cumulative count and sum those types promise, so the quantiles are the window's, as in
+keeps the newest frames' lateness in a window (the frame loop's ring,
+native/loop/block.hpp), not the cumulative count and sum those types promise, so the
+quantiles are the window's, as in
 ``/api/stats``.
 """
 

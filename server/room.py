@@ -12,7 +12,7 @@ import logging
 import math
 import secrets
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -24,7 +24,7 @@ from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from ..game.wire.replay import REPLAY_VERSION, new_round_id
 from .limits import Limits
-from .shared.lanes import Lane, lane_message
+from .shared.lanes import LaneSpec, in_reach
 from .sim import FrameResult, RoomSim, SimPool
 from .storage.recorder import Recording
 
@@ -34,9 +34,6 @@ REACH_FRACTION = 0.3  # a hand may move this fraction of the cloth's size from i
 RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
 # s the host's show room steps, with no one in it and no bots, after the rooms were listed
 SHOWN_AWAKE_S = 30.0
-MESH_FANOUT_CHUNK = 8  # connections offered a new MESH per pass of the event loop
-# s between deliveries of a room no player sits in (the native loop; spectators get MESH)
-IDLE_CORNER_INTERVAL = 0.01
 
 
 class Peer(Protocol):
@@ -49,18 +46,13 @@ class Peer(Protocol):
     role: str  # "lobby", "player" or "spectator"
 
     def send_json(self, msg: dict[str, Any]) -> None: ...
-    corner_due: float  # server time its next CORNER may be sent
     corner_interval: float  # s between its CORNER messages
-    # Its gateway serves lanes (server.shared.lanes); one is open: the gateway sends its
-    # CORNERs (lane), its MESH (lane_mesh), from the engine's shared memory.
-    lanes: bool
-    lane: bool
-    lane_mesh: bool
     want_mesh: bool
     limits: Limits
 
-    def offer_corner(self, data: bytes, server_time: float) -> None: ...
-    def offer_mesh(self, data: bytes) -> None: ...
+    # Its lane (server.lanes: its HIPs in, its CORNERs and its room's MESH out), or none;
+    # ``shared``: a gateway can map the room's block and board.
+    def open_lane(self, spec: LaneSpec | None, shared: bool) -> None: ...
     def error(self, err: ProtocolError | str, message: str = "", re: object = None) -> None: ...
     def kicked(self, reason: str) -> None: ...
 
@@ -143,7 +135,6 @@ class Room:
                  backend: str = "auto", public: bool = True,
                  settings: RoomSettings | None = None, owner: str | None = None,
                  mesh_hz: float = 30.0, track_hz: float = 100.0,
-                 clock: Callable[[], float] = time.perf_counter, epoch: float | None = None,
                  rng: np.random.Generator | None = None, sims: SimPool | None = None) -> None:
         self.id = room_id
         self.name = name
@@ -162,8 +153,8 @@ class Room:
         self.loop = asyncio.get_running_loop()
         # `sims`: the server's pool (this room becomes a slot of its scene's worker).
         self.sim = RoomSim(scene, backend, deliver=self._on_frame, loop=self.loop,
-                           mesh_hz=mesh_hz, track_hz=track_hz, clock=clock, epoch=epoch,
-                           pool=sims)
+                           mesh_hz=mesh_hz, track_hz=track_hz, pool=sims)
+        self.sim.corner_interval = math.inf  # its frames are wanted for exits and failures
         self.anchors = self.sim.anchors
         self.size = self.sim.size
         self.half_extent = np.full(3, REACH_FRACTION * self.size)
@@ -183,8 +174,6 @@ class Room:
         self._finishing: set[asyncio.Task[None]] = set()  # rounds' recordings being ended
         self._recording: RoundRecord | None = None
         self._closed = False
-        self.frame = 0
-        self.server_time = 0.0
         self.last_exit: tuple[int, int, list[float]] | None = None
 
     # --- life -----------------------------------------------------------------------------
@@ -209,14 +198,6 @@ class Room:
         if self.permanent:
             self._shown_at = self.loop.time()
             self.update_awake()
-
-    def _update_corner_interval(self) -> None:
-        """The native frame loop wakes this room at its fastest player's CORNER rate
-        (``corner_rate``), else at ``IDLE_CORNER_INTERVAL`` (the room's frame for its
-        events; exits and failures wake it at once)."""
-        rates = [s.conn.corner_interval for s in self.seats
-                 if s.conn is not None and not s.conn.lane]
-        self.sim.corner_interval = min(rates) if rates else IDLE_CORNER_INTERVAL
 
     async def close(self) -> None:
         self._closed = True
@@ -250,7 +231,7 @@ class Room:
             "spectators": len(self.spectators),
             "bots_allowed": self.settings.bots_allowed,
             "unguarded": self.settings.unguarded,
-            "frame": self.frame,
+            "frame": self.sim.frame,
         }
 
     def geometry(self) -> dict[str, Any]:
@@ -291,7 +272,6 @@ class Room:
     def broadcast_state(self) -> None:
         # Every change of who is in the room comes through here.
         self.update_awake()
-        self._update_corner_interval()
         self.broadcast({"type": "room", **self.info()})
 
     def event(self, kind: str, /, **fields: Any) -> None:
@@ -379,28 +359,25 @@ class Room:
         self._open_lane(conn, seat.index)
 
     def _open_lane(self, conn: Peer, seat: int | None) -> None:
-        """A client whose gateway serves lanes (server.shared.lanes): a seated player's
-        HIPs and CORNERs, and the MESH it wants, go through its gateway from now on."""
-        place = self.sim.lane_place(seat) if conn.lanes else None
-        mesh = place is not None and conn.want_mesh and place["board"] is not None
+        """The client's lane (server.lanes): a seated player's HIPs and CORNERs, and the
+        MESH it wants, from the room's frame loop memory, by its gateway or the engine."""
+        place = self.sim.lane_place(seat)
+        mesh = place is not None and conn.want_mesh
         if place is None or (seat is None and not mesh):
-            self._close_lane(conn)
+            conn.open_lane(None, False)
             return
-        # A seated player's CORNERs, at any corner_rate: above what its timers keep, the
-        # gateway sends them on the frame loops' wake-up (server.shared.lanes).
-        conn.lane, conn.lane_mesh = seat is not None, mesh
+        # A seated player's CORNERs, at any corner_rate: above what timers keep, on the
+        # frame loops' wake-up (server.shared.lanes).
         i = 0 if seat is None else seat
-        conn.send_json(lane_message(Lane(
+        conn.open_lane(LaneSpec(
             self.id, place["block"], place["slot"], seat, place["occupant"],
             self._reach_lo[i], self._reach_hi[i], conn.corner_interval,
             conn.limits.binary_rate, conn.limits.binary_burst,
-            place["board"] if mesh else None, place["board_slot"])))
+            place["board"] if mesh else None, place["board_slot"]), place["shared"])
 
     @staticmethod
     def _close_lane(conn: Peer) -> None:
-        if conn.lane or conn.lane_mesh:
-            conn.lane = conn.lane_mesh = False
-            conn.send_json(lane_message(None))
+        conn.open_lane(None, False)
 
     def _detach(self, seat: Seat) -> None:
         conn = seat.conn
@@ -656,24 +633,10 @@ class Room:
 
     # --- frames from the simulation -------------------------------------------------------
     def _on_frame(self, result: FrameResult) -> None:
+        """An exit or a failure of the room's frame loop (its CORNERs and MESH go out by
+        the lanes, server.lanes, without the room)."""
         if self._closed:
             return
-        if result.corners:
-            self.frame, self.server_time = result.frame, result.server_time
-            # The native loop wakes the room again when its first player's next CORNER is due
-            # (one whose gateway does not send them).
-            corners, due = result.corners, None
-            for s in self.seats:
-                conn = s.conn
-                if conn is not None and not conn.lane:
-                    corner = corners[s.index]
-                    if corner is not None:
-                        conn.offer_corner(corner, result.server_time)
-                    if due is None or conn.corner_due < due:
-                        due = conn.corner_due
-            self.sim.corner_due = -math.inf if due is None else due
-        if result.mesh is not None:
-            self._fan_out_mesh(result.mesh, self.conns(), 0)
         if result.sim_error is not None:
             self._stop_on_error(result.sim_error)
             return
@@ -704,24 +667,11 @@ class Room:
         self._closed = True
         self.host.room_stopped(self, reason)
 
-    def _fan_out_mesh(self, mesh: bytes, conns: list[Peer], start: int) -> None:
-        """Offer a MESH to ``conns[start:]``, ``MESH_FANOUT_CHUNK`` per pass of the event
-        loop, so that the players' HIPs are read between the passes: fifty spectators' sends
-        in one pass held the HIPs arriving just after it up by about 2 ms (median)."""
-        end = start + MESH_FANOUT_CHUNK
-        for c in conns[start:end]:
-            if not c.lane_mesh:  # (else its gateway sends it, from the mesh board)
-                c.offer_mesh(mesh)
-        if end < len(conns) and not self._closed:
-            self.loop.call_soon(self._fan_out_mesh, mesh, conns, end)
-
     def on_hip(self, conn: Peer, hip: P.Hip) -> None:
         seat = conn.seat
         if seat is None or self.seats[seat].conn is not conn:
             raise ProtocolError("not_allowed", "HIP messages are for seated players only")
-        x, y, z = hip.position
-        lo, hi = self._reach_lo[seat], self._reach_hi[seat]
-        if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
+        if not in_reach(self._reach_lo[seat], self._reach_hi[seat], hip.position):
             raise ProtocolError(
                 "out_of_range",
                 f"HIP {[round(v, 4) for v in hip.position]} is outside seat {seat}'s reach box "

@@ -167,7 +167,7 @@ class WsEndpoint:
         # The client's address (forwarded by a trusted proxy) and whether it is one of the
         # server's own bots: what server.http found at the upgrade.
         conn = Conn(ws, self.srv.limits, address=getattr(ws, "client_address", None),
-                    house=getattr(ws, "house", False))
+                    house=getattr(ws, "house", False), links=self.srv.lane_links)
         self.srv.clients.add(conn)
         sock = ws.transport.get_extra_info("socket") if ws.transport is not None else None
         if sock is not None:
@@ -315,6 +315,8 @@ class WsEndpoint:
             conn.fail("internal error")
 
     def _on_binary(self, conn: Conn, data: bytes) -> None:
+        if conn.take_hip(data):  # its lane wrote it into the seat's hand, as a gateway's does
+            return
         if not conn.binary_bucket.take():
             self.srv.stats["bad_messages"] += 1
             conn.error("rate_limited", f"at most {conn.binary_bucket.rate:g} binary "

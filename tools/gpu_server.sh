@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU run of the server's frame loop (issue 32): build with CUDA, the engine, study and
 # frame-loop tests with CLOTHBALL_REQUIRE_GPU=1, the rooms one engine holds, and the load
-# bench over one server process on CUDA, the Python loop and the native one in the same run.
+# bench over one server process on CUDA.
 # Usage (on a machine with an NVIDIA GPU; websockets etc. carried in .whl/):
 #   OUT=results bash tools/gpu_server.sh
 # TESTS: the test paths (default tests/engine tests/study and the frame loop's); BASE: a
@@ -42,12 +42,10 @@ if [ -n "${BASE:-}" ]; then
 else
   rooms head PYTHONPATH="${PYTHONPATH:-}"
 fi
-for loop in ${LOOPS:-python native}; do
-  timeout "${LOAD_S:-240}" python3 -m clothball.game.cli bench --load --server-backend cuda \
-    --workers 1 --scene default --rooms-step "${ROOMS_STEP:-8}" \
-    --load-max-rooms "${MAX_ROOMS:-64}" --load-seconds 5 --steps-past 1 --frame-loop "$loop" \
-    --json "$OUT/run/load_cuda_$loop.json" 2>>"$OUT/run/bench.err" \
-    | tee "$OUT/run/load_cuda_$loop.txt" | tail -4
-done
+timeout "${LOAD_S:-240}" python3 -m clothball.game.cli bench --load --server-backend cuda \
+  --workers 1 --scene default --rooms-step "${ROOMS_STEP:-8}" \
+  --load-max-rooms "${MAX_ROOMS:-64}" --load-seconds 5 --steps-past 1 \
+  --json "$OUT/run/load_cuda.json" 2>>"$OUT/run/bench.err" \
+  | tee "$OUT/run/load_cuda.txt" | tail -4
 tar czf "$OUT/results.tgz" -C "$OUT" run
 exit "$tests_rc"

@@ -7,6 +7,7 @@
 
 #include <pthread.h>
 
+#include <cmath>
 #include <cstddef>
 #include <memory>
 #include <string>
@@ -19,11 +20,9 @@
 #include "loop/corner_msg.hpp"
 #include "loop/exit.hpp"
 #include "loop/frame_loop.hpp"
-#include "loop/mesh_quant.hpp"
-#ifdef CLOTHBALL_HAVE_ZLIB
 #include "loop/mesh_msg.hpp"
+#include "loop/mesh_quant.hpp"
 #include "loop/work_pool.hpp"
-#endif
 
 namespace py = pybind11;
 using cbind::Array;
@@ -94,10 +93,13 @@ class BlockView {
     const double p[3] = {x, y, z};
     return lp::write_hand(at(slot, seat), seat, occupant, p, seq, time);
   }
+  // (frame, CORNER message, occupant whose hand that frame applied)
   py::tuple read_corner(int slot, int seat) {
     std::uint8_t msg[lp::kCornerBytes];
-    const std::int64_t frame = lp::read_corner(at(slot, seat), seat, msg);
-    return py::make_tuple(frame, py::bytes(reinterpret_cast<const char*>(msg), lp::kCornerBytes));
+    std::uint64_t occupant = 0;
+    const std::int64_t frame = lp::read_corner(at(slot, seat), seat, msg, occupant);
+    return py::make_tuple(frame, py::bytes(reinterpret_cast<const char*>(msg), lp::kCornerBytes),
+                          occupant);
   }
 
  private:
@@ -179,6 +181,11 @@ class Loop {
   void set_armed(int slot, bool on) { loop_->set_armed(check(slot), on); }
   void set_recording(int slot, bool on) { loop_->set_recording(check(slot), on); }
   void set_corner_due(int slot, double t) { loop_->set_corner_due(check(slot), t); }
+  void set_clock(double t) {
+    if (!std::isfinite(t)) throw py::value_error("set_clock: the time must be finite");
+    py::gil_scoped_release release;
+    loop_->set_clock(t);
+  }
   int event_fd() const { return loop_->event_fd(); }
   void add_wake(int fd) { loop_->add_wake(fd); }
   void remove_wake(int fd) {
@@ -201,27 +208,8 @@ class Loop {
     return loop_->wait_service(timeout);
   }
   void notify_service() { loop_->notify_service(); }
-  py::list take_meshes() {
-    std::vector<lp::MeshSnapshot> got;
-    {
-      py::gil_scoped_release release;
-      got = loop_->take_meshes();
-    }
-    py::list out;
-    const int n = engine_.n();
-    for (auto& m : got) {
-      Array pos({n, n, 3});
-      std::copy(m.positions.begin(), m.positions.end(), pos.mutable_data());
-      Array ball(6, m.ball);
-      Array hips({4, 3});
-      std::copy(m.hips, m.hips + 12, hips.mutable_data());
-      out.append(py::make_tuple(m.slot, m.frame, m.server_time, ball, hips, pos));
-    }
-    return out;
-  }
-#ifdef CLOTHBALL_HAVE_ZLIB
-  // take_meshes, each encoded as a whole MESH message (loop/mesh_msg.hpp) and written into
-  // `board` (a writable buffer of slots of `slot_bytes`, or None), without the GIL, on
+  // The due rooms' meshes (FrameLoop::take_meshes), each encoded as a whole MESH message
+  // (loop/mesh_msg.hpp) and written into `board` (a writable buffer of slots of `slot_bytes`, or None), without the GIL, on
   // `threads` threads (this one and threads - 1 kept for the next calls): a list of
   // (slot, frame, message).
   py::list take_encoded(py::object board, std::size_t slot_bytes, double radius,
@@ -267,7 +255,6 @@ class Loop {
                                           msgs[i].size())));
     return out;
   }
-#endif
   py::memoryview block() {
     return py::memoryview::from_memory(loop_->block(), py::ssize_t(loop_->block_size()));
   }
@@ -290,10 +277,8 @@ class Loop {
   std::vector<int> slots_;
   std::vector<std::uint32_t> bits_;
   lp::RoomRecord scratch_{};
-#ifdef CLOTHBALL_HAVE_ZLIB
   std::unique_ptr<lp::WorkPool> pool_;  // take_encoded's threads, kept between calls
   std::vector<lp::MeshScratch> mesh_scratch_;  // one a thread
-#endif
 };
 
 std::vector<double> values(Array a, size_t size, const char* what) {
@@ -319,6 +304,15 @@ void bind_loop(py::module_& m) {
       .def_readwrite("stiffness", &lp::LoopConfig::stiffness)
       .def_readwrite("mesh_every", &lp::LoopConfig::mesh_every)
       .def_readwrite("track_every", &lp::LoopConfig::track_every)
+      .def_readwrite("gust_amplitude", &lp::LoopConfig::gust_amplitude)
+      .def_readwrite("gust_period", &lp::LoopConfig::gust_period)
+      .def_readwrite("manual_clock", &lp::LoopConfig::manual_clock)
+      .def_property(
+          "wind", [](const lp::LoopConfig& c) { return std::vector<double>(c.wind, c.wind + 3); },
+          [](lp::LoopConfig& c, Array a) {
+            auto v = values(a, 3, "wind");
+            std::copy(v.begin(), v.end(), c.wind);
+          })
       .def_property(
           "ball_start", [](const lp::LoopConfig& c) { return std::vector<double>(c.ball_start, c.ball_start + 3); },
           [](lp::LoopConfig& c, Array a) {
@@ -348,6 +342,7 @@ void bind_loop(py::module_& m) {
       .def("set_armed", &Loop::set_armed)
       .def("set_recording", &Loop::set_recording)
       .def("set_corner_due", &Loop::set_corner_due)
+      .def("set_clock", &Loop::set_clock, py::arg("t"))
       .def("event_fd", &Loop::event_fd)
       .def("add_wake", &Loop::add_wake, py::arg("fd"))
       .def("remove_wake", &Loop::remove_wake, py::arg("fd"))
@@ -355,23 +350,12 @@ void bind_loop(py::module_& m) {
       .def("read_room", &Loop::read_room)
       .def("wait_service", &Loop::wait_service, py::arg("timeout"))
       .def("notify_service", &Loop::notify_service)
-      .def("take_meshes", &Loop::take_meshes)
-#ifdef CLOTHBALL_HAVE_ZLIB
       .def("take_encoded", &Loop::take_encoded, py::arg("board"), py::arg("slot_bytes"),
            py::arg("radius"), py::arg("compress"), py::arg("threads") = 1)
-#endif
       .def("block", &Loop::block)
       .def("block_fd", &Loop::block_fd)
       .def("cpu_seconds", &Loop::cpu_seconds);
   m.def("frame_block_layout", &layout);
-  m.def("board_write", [](py::buffer board, std::size_t offset, std::int64_t frame,
-                          py::bytes data) {
-    const std::string_view d = data;
-    const py::buffer_info info = board.request(true);
-    unsigned char* slot = board_slot(info, offset, d.size());
-    py::gil_scoped_release release;
-    lp::board_write(slot, frame, d.data(), std::uint32_t(d.size()));
-  }, py::arg("board"), py::arg("offset"), py::arg("frame"), py::arg("data"));
   m.def("board_read", [](py::buffer board, std::size_t offset, std::size_t slot_bytes,
                          std::int64_t after) -> py::tuple {
     const py::buffer_info info = board.request(true);
@@ -395,7 +379,7 @@ void bind_loop(py::module_& m) {
            py::arg("time"))
       .def("read_corner", &BlockView::read_corner, py::arg("slot"), py::arg("seat"));
   // A MESH's quantised nodes and their row deltas (mesh_quant.hpp), off the GIL: what
-  // game.wire.protocol.quantise and encode_mesh compute, for the mesh encoder thread.
+  // game.wire.protocol.quantise and encode_mesh compute, for the test against them.
   m.def(
       "quantise_mesh",
       [](py::array_t<double, py::array::c_style | py::array::forcecast> positions) {
@@ -415,7 +399,6 @@ void bind_loop(py::module_& m) {
         return py::make_tuple(q, delta, lo, hi);
       },
       py::arg("positions"));
-#ifdef CLOTHBALL_HAVE_ZLIB
   // The loop's MESH encoder (mesh_msg.hpp), for the test against the Python one.
   m.def(
       "encode_mesh_msg",
@@ -435,7 +418,6 @@ void bind_loop(py::module_& m) {
       },
       py::arg("positions"), py::arg("frame"), py::arg("server_time"), py::arg("ball"),
       py::arg("radius"), py::arg("hips"), py::arg("compress"));
-#endif
   // The loop's CORNER encoder (corner_msg.hpp), for the test against the Python one.
   m.def("encode_corners",
         [](std::int64_t frame, double server_time, Array pos, Array vel, Array force,

@@ -79,7 +79,7 @@ struct alignas(64) RoomRecord {
   double hips[kSeats][3];              // the hands the newest frame used
   std::uint64_t applied_seq[kSeats];   // the HIP each seat's newest frame applied (0: none)
   double applied_time[kSeats];         // (NaN: none)
-  std::uint64_t applied_occupant[kSeats];
+  std::uint64_t applied_occupant[kSeats];  // whose hand it was (the seat's occupant then)
   // each seat's CORNER message of the newest frame, as sent (corner_msg.hpp)
   std::uint8_t corner_msg[kSeats][kCornerBytes];
   // --- events (atomic), and what they say ----------------------------------------------------
@@ -172,13 +172,16 @@ inline bool write_hand(RoomRecord& r, int seat, std::uint64_t occupant, const do
   return held;
 }
 
-// The seat's CORNER message of the newest frame and that frame (a consistent pair, read
-// under out_lock): what a gateway sends its player.
-inline std::int64_t read_corner(const RoomRecord& r, int seat, std::uint8_t* out) {
+// The seat's CORNER message of the newest frame, that frame, and the occupant whose hand the
+// frame applied (read together under out_lock): what a lane sends its player, when the
+// occupant is the lane's (a CORNER made from a former occupant's hand echoes its HIP).
+inline std::int64_t read_corner(const RoomRecord& r, int seat, std::uint8_t* out,
+                                std::uint64_t& occupant) {
   for (;;) {
     const std::uint32_t v0 = load(r.out_lock);
     if (v0 & 1u) continue;
     const std::int64_t frame = r.frame;
+    occupant = r.applied_occupant[seat];
     for (int b = 0; b < kCornerBytes; ++b) out[b] = r.corner_msg[seat][b];
     fence();
     if (load(r.out_lock) == v0) return frame;

@@ -51,6 +51,8 @@ FrameLoop::FrameLoop(Batch& batch, LoopConfig cfg)
   if (cfg_.frame_dt <= 0.0) throw std::invalid_argument("frame_dt must be > 0");
   if (cfg_.fixed_substeps <= 0 && cfg_.substep_speeds.empty())
     throw std::invalid_argument("automatic substeps need substep_speeds");
+  if (!(cfg_.gust_period > 0.0) || !std::isfinite(cfg_.gust_amplitude))
+    throw std::invalid_argument("gusts need a period > 0 and a finite amplitude");
   bytes_ = block_bytes(cap_);
   // A memfd, so that another process may map the same block (docs/frameloop.md), unless
   // the process may not make a file that large (RLIMIT_FSIZE: growing it would raise
@@ -98,6 +100,9 @@ FrameLoop::FrameLoop(Batch& batch, LoopConfig cfg)
   corners_.assign(24 * n, 0.0);
   balls_.assign(6 * n, 0.0);
   finite_.assign(n, 1);
+  applied_seq_.assign(4 * n, 0);
+  applied_occupant_.assign(4 * n, 0);
+  applied_time_.assign(4 * n, kNaN);
 }
 
 FrameLoop::~FrameLoop() {
@@ -150,9 +155,14 @@ void FrameLoop::add_room(int slot, bool awake) {
   const size_t k = size_t(slot);
   done_[k] = next_mesh_[k] = next_track_[k] = 0;
   failed_[k] = 0;
+  for (size_t a = 4 * k; a < 4 * k + 4; ++a) {
+    applied_seq_[a] = applied_occupant_[a] = 0;
+    applied_time_[a] = kNaN;
+  }
   was_awake_[k] = awake ? 1 : 0;
   store(r.awake, std::uint32_t(awake ? 1 : 0));
   store(r.used, std::uint32_t(1));
+  if (awake && idle_ && std::isnan(resume_at_)) resume_at_ = now();
   idle_cv_.notify_all();
 }
 
@@ -165,11 +175,14 @@ void FrameLoop::remove_room(int slot) {
 }
 
 void FrameLoop::set_awake(int slot, bool awake) {
-  store(rooms_[slot].awake, std::uint32_t(awake ? 1 : 0));
   if (awake) {
     acquire();  // not lost between the loop's check and wait
+    if (idle_ && std::isnan(resume_at_)) resume_at_ = now();
+    store(rooms_[slot].awake, std::uint32_t(1));
     release();
     idle_cv_.notify_all();
+  } else {
+    store(rooms_[slot].awake, std::uint32_t(0));
   }
 }
 
@@ -203,6 +216,29 @@ void FrameLoop::set_recording(int slot, bool on) {
 }
 void FrameLoop::set_corner_due(int slot, double server_time) {
   store(rooms_[slot].corner_due, server_time);
+}
+
+double FrameLoop::now() const {
+  return cfg_.manual_clock ? manual_now_.load(std::memory_order_acquire) : monotonic_now();
+}
+
+void FrameLoop::set_clock(double t) {
+  manual_now_.store(t, std::memory_order_release);
+  acquire();  // not lost between the loop's check and its wait
+  release();
+  idle_cv_.notify_all();
+}
+
+// Each live room's wind for its next frame (ClothBatch.step's gusts, from the room's own
+// simulated time): the frame loop steps a frame a call while gusts blow.
+void FrameLoop::set_gusts(const std::vector<int>& live, int frames_into_pass) {
+  const double two_pi = 6.283185307179586;
+  for (int s : live) {
+    const double t = double(rooms_[s].frame + frames_into_pass) * cfg_.frame_dt;
+    const double f = 1.0 + cfg_.gust_amplitude * std::sin(two_pi * t / cfg_.gust_period);
+    const double w[3] = {cfg_.wind[0] * f, cfg_.wind[1] * f, cfg_.wind[2] * f};
+    batch_.at(s).set_wind(w);
+  }
 }
 
 void FrameLoop::add_wake(int fd) {
@@ -303,7 +339,8 @@ void FrameLoop::run() {
   // Named for /proc, top and the load bench's per-thread CPU (15 bytes at most).
   pthread_setname_np(pthread_self(), "cb-frame-loop");
   const double dt = cfg_.frame_dt;
-  double t0 = monotonic_now();
+  const bool gusts = cfg_.gust_amplitude != 0.0;
+  double t0 = now();
   long long done = 0;  // frames simulated since t0
   bool was_idle = true;
   std::vector<int> live;
@@ -335,18 +372,23 @@ void FrameLoop::run() {
     }
     if (live.empty()) {
       // Nothing to step: wait for a room or a wake-up, using no CPU.
-      was_idle = true;
+      was_idle = idle_ = true;
       idle_cv_.wait_for(lock, std::chrono::milliseconds(50));
       continue;
     }
-    if (was_idle) {  // pace afresh: the idle time is not replayed
-      t0 = monotonic_now();
-      was_idle = false;
+    if (was_idle) {  // pace afresh, from the first room's arrival: the idle time is not replayed
+      t0 = std::isnan(resume_at_) ? now() : resume_at_;
+      resume_at_ = std::numeric_limits<double>::quiet_NaN();
+      was_idle = idle_ = false;
       done = 0;
     }
-    const double now = monotonic_now();
-    long long behind = (long long)std::floor((now - t0 + cfg_.timer_slack) / dt) - done;
+    const double t_now = now();
+    long long behind = (long long)std::floor((t_now - t0 + cfg_.timer_slack) / dt) - done;
     if (behind <= 0) {
+      if (cfg_.manual_clock) {  // until set_clock moves it (or a room changes)
+        idle_cv_.wait_for(lock, std::chrono::milliseconds(5));
+        continue;
+      }
       lock.unlock();
       sleep_until(t0 + double(done + 1) * dt - cfg_.timer_slack);
       lock.lock();
@@ -381,9 +423,10 @@ void FrameLoop::run() {
           const std::uint64_t occ = has ? r.hip_occupant[seat] : r.seat_occupant[seat];
           fence();
           if (!dead && load(r.hip_lock[seat]) != v0) continue;
-          r.applied_seq[seat] = seq;  // published below, under out_lock
-          r.applied_time[seat] = t;
-          r.applied_occupant[seat] = occ;
+          const size_t a = 4 * size_t(s) + size_t(seat);  // published with the frame
+          applied_seq_[a] = seq;
+          applied_time_[a] = t;
+          applied_occupant_[a] = occ;
           break;
         }
       }
@@ -394,6 +437,10 @@ void FrameLoop::run() {
       const int substeps = substeps_for(live);
       int chunk = cfg_.fixed_substeps > 0 ? remaining : std::min(remaining, cfg_.max_frames_per_call);
       chunk = std::min(chunk, std::max(1, std::numeric_limits<int>::max() / substeps));
+      if (gusts) {  // the wind changes every frame
+        chunk = 1;
+        set_gusts(live, frames - remaining);
+      }
       batch_.step(chunk, substeps, dt / substeps, finite_.data());
       for (int s : live) rooms_[s].substeps = std::uint32_t(substeps);
       remaining -= chunk;
@@ -419,7 +466,7 @@ void FrameLoop::run() {
     eng_->passes += 1;
     eng_->live = std::int64_t(live.size());
     batch_.get_corners_all(corners_.data(), balls_.data());
-    const double t_end = monotonic_now();
+    const double t_end = now();
     const double server_time = t_end - cfg_.epoch;
     const double late = t_end - (t0 + double(done) * dt);
     bool any = false;
@@ -482,6 +529,12 @@ void FrameLoop::publish(int slot, int frames, double server_time, const double* 
   r.frame += frames;
   r.steps += 1;
   r.server_time = server_time;
+  for (int seat = 0; seat < kSeats; ++seat) {
+    const size_t a = 4 * k + size_t(seat);
+    r.applied_seq[seat] = applied_seq_[a];
+    r.applied_time[seat] = applied_time_[a];
+    r.applied_occupant[seat] = applied_occupant_[a];
+  }
   for (int seat = 0; seat < kSeats; ++seat)
     for (int d = 0; d < 3; ++d) {
       const double p = corners[6 * seat + d];

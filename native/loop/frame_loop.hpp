@@ -11,8 +11,9 @@
 // through a condition variable. docs/frameloop.md.
 #pragma once
 #include <condition_variable>
-#include <cstdint>
 #include <atomic>
+#include <cstdint>
+#include <limits>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -41,6 +42,15 @@ struct LoopConfig {
   int mesh_every = 33;           // frames between meshes (0: none)
   int track_every = 10;          // frames between TRACK samples while recording
   int nodes = 0;                 // n * n
+  // Wind gusts (clothball.game.sim.cloth.wind_at): before each frame a room's wind is
+  // wind * (1 + gust_amplitude sin(2 pi t / gust_period)), t its simulated time; 0: the
+  // wind the batch holds stays.
+  double wind[3] = {0, 0, 0};
+  double gust_amplitude = 0.0;
+  double gust_period = 1.0;
+  // The loop's clock is set by set_clock (a test's clock, in seconds of server time from
+  // epoch 0) instead of CLOCK_MONOTONIC; the loop waits for it to move instead of sleeping.
+  bool manual_clock = false;
 };
 
 // A room's mesh snapshot, as the encoder thread takes it.
@@ -86,6 +96,8 @@ class FrameLoop {
   void set_armed(int slot, bool armed);
   void set_recording(int slot, bool on);
   void set_corner_due(int slot, double server_time);
+  // Any thread: the time a loop with a manual clock (LoopConfig::manual_clock) reads.
+  void set_clock(double t);
   // Any thread: eventfds written once a pass, after the pass's corners are published (a
   // gateway's: it sends CORNERs at frame rate from the block, which timers that wait whole
   // milliseconds cannot). The loop does not own them: remove one before closing it.
@@ -113,7 +125,8 @@ class FrameLoop {
 
  private:
   void run();
-  void pass(int frames, double t_start_frames);
+  double now() const;  // the loop's clock: CLOCK_MONOTONIC, or set_clock's
+  void set_gusts(const std::vector<int>& live, int frames_into_pass);
   int substeps_for(const std::vector<int>& live);
   void publish(int slot, int frames, double server_time, const double* corners,
                const double* ball, const double* hips, bool& signal);
@@ -135,7 +148,13 @@ class FrameLoop {
   std::vector<int> wakes_;  // add_wake's
   // the loop's own
   std::mutex mutex_;
-  std::atomic<int> waiting_{0};  // threads in acquire(): the loop lets them in between passes
+  std::atomic<int> waiting_{0};
+  std::atomic<double> manual_now_{0.0};
+  // Under the lock: the loop has no room to step, and when the first room of that idle
+  // spell was added or woken (NaN: none yet): the loop paces from then, not from when it
+  // noticed (a test's clock may have moved in between).
+  bool idle_ = true;
+  double resume_at_ = std::numeric_limits<double>::quiet_NaN();  // threads in acquire(): the loop lets them in between passes
   std::condition_variable idle_cv_;
   std::thread thread_;
   bool stop_ = false;
@@ -143,6 +162,10 @@ class FrameLoop {
   std::vector<int> next_mesh_, next_track_;
   std::vector<std::uint8_t> was_awake_, failed_;
   std::vector<double> hips_, corners_, balls_, stage_;
+  // The HIP each seat's hand of this pass came from (seq, client time, occupant), written
+  // into the record with the frame's CORNERs, under out_lock: never beside an older CORNER.
+  std::vector<std::uint64_t> applied_seq_, applied_occupant_;
+  std::vector<double> applied_time_;
   std::vector<std::uint8_t> finite_;
   // meshes for the encoder
   mutable std::mutex mesh_mutex_;

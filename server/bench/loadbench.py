@@ -21,8 +21,7 @@ saturated, clients' CPU saturated). Reported per step (``--json``: one row each)
 frame lateness p50/p99 (the server's counters, the worst room), HIP-to-CORNER latency
 p50/p99 (client clock), server CPU (/proc, every thread of every server process; per room;
 per added room), messages in and out a second, the clients' CPU, CORNER and MESH rates
-received against those asked, frames advanced a second. ``--frame-loop native|python``
-sets ``CLOTHBALL_FRAME_LOOP`` for the server processes it starts.
+received against those asked, frames advanced a second.
 
 ``clothball bench --load --workers N``: the same with an engine and N - 1 gateways on one
 port, as ``clothball host --workers N`` runs them (docs/architecture.md): every client
@@ -113,9 +112,6 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--steps-past", type=int, default=0, metavar="N",
                    help="--load: steps still measured after the first that did not hold (the "
                         "curve past it; default %(default)s)")
-    g.add_argument("--frame-loop", default=None, choices=("native", "python"),
-                   help="--load, --server: the server processes' frame loop "
-                        "(CLOTHBALL_FRAME_LOOP; default: the server's own default)")
     g.add_argument("--client-procs", type=int, default=None, metavar="P",
                    help="--load: processes of lean clients, rooms given to them in turn "
                         "(default: a quarter of the CPUs, 1 to 4)")
@@ -195,8 +191,6 @@ async def _serve(args: argparse.Namespace) -> None:
         print(json.dumps({"port": srv.port, "room": room.id if room is not None else None,
                           "backend": probe.backend, "substeps": probe.substeps,
                           "scene": scene_name, "n": scene.n,
-                          # what this process was given (the loop itself decides from it)
-                          "frame_loop": os.environ.get("CLOTHBALL_FRAME_LOOP") or "default",
                           "token": srv.host_token, "loop": loops.running()}), flush=True)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -355,8 +349,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"server bench: {args.players} players x {args.hip_rate:g} Hz HIP, "
               f"{args.spectators} spectators, {seconds:g} s, scene {info['scene']} "
               f"n={info['n']}, backend {info['backend']} ({info['substeps']} substeps/frame), "
-              f"event loop {info['loop']}, frame loop {info['frame_loop']}, "
-              f"{os.cpu_count()} CPUs", file=sys.stderr)
+              f"event loop {info['loop']}, {os.cpu_count()} CPUs", file=sys.stderr)
         if args.spectators > 0:
             spect = subprocess.Popen(
                 [*base, "--role", "spectators", "--url",
@@ -389,7 +382,6 @@ def run(args: argparse.Namespace) -> int:
         "hip_rate_target_hz": args.hip_rate,
         "scene": info["scene"],
         "n": info["n"],
-        "frame_loop": info["frame_loop"],
         "corner_rate_asked_hz": args.corner_rate,
         "backend": info["backend"],
         "substeps": info["substeps"],
@@ -518,12 +510,8 @@ def room_counts(step: int, most: int) -> list[int]:
 
 
 def _server_env(args: argparse.Namespace) -> dict[str, str]:
-    """The server processes' environment: ``--frame-loop`` as ``CLOTHBALL_FRAME_LOOP``
-    (unset: theirs, so the server's default)."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    if getattr(args, "frame_loop", None):
-        env["CLOTHBALL_FRAME_LOOP"] = args.frame_loop
-    return env
+    """The server processes' environment: this one's, unbuffered."""
+    return {**os.environ, "PYTHONUNBUFFERED": "1"}
 
 
 class _Clients:
@@ -635,7 +623,7 @@ def _load_meta(args: argparse.Namespace, info: dict[str, Any], load_before: tupl
     return {
         "scene": info.get("scene"), "n": info.get("n"), "backend": info.get("backend"),
         "substeps": info.get("substeps"), "server_loop": info.get("loop"),
-        "frame_loop": info.get("frame_loop"), "cpus": os.cpu_count(),
+        "cpus": os.cpu_count(),
         "hip_rate_hz": args.hip_rate, "corner_rate_hz": args.corner_rate,
         "spectators_per_room": args.load_spectators, "seconds_per_step": args.load_seconds,
         "rooms_step": args.rooms_step, "lateness_target_ms": args.lateness_target,
@@ -699,7 +687,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
               f"{args.corner_rate:g} Hz, MESH) + {args.load_spectators} spectators, "
               f"{seconds:g} s a step, rooms {_counts_text(counts)}, scene {info['scene']} "
               f"n={info['n']}, backend {info['backend']} ({info['substeps']} substeps/frame), "
-              f"event loop {info['loop']}, frame loop {info['frame_loop']}, "
+              f"event loop {info['loop']}, "
               f"{args.client_procs} client process{'es' if args.client_procs > 1 else ''}, "
               f"{os.cpu_count()} CPUs shared by servers and clients, load average "
               f"{os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)

@@ -28,10 +28,11 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
+from ..lanes.lane import Lane
 from ..shared import proxyline
 from ..shared.lanes import ctl_path, parse_lane
 from .frames import ServerFrames, close_frame, text_frame
-from .lanes import WRITE_SKIP, ClientFrames, Lane, Lanes, lanes_wanted
+from .lanes import WRITE_SKIP, ClientFrames, SocketLinks, lanes_wanted
 
 CHUNK = 1 << 16  # bytes read at a time, each way
 WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
@@ -48,8 +49,8 @@ class Gateway:
     def __init__(self, host: str, port: int, engine: Path) -> None:
         self.host, self.port, self.engine = host, port, engine
         self.server: asyncio.Server | None = None
-        # Seated players' HIPs and CORNERs served here (server.gateway.lanes), unless off.
-        self.lanes = Lanes(ctl_path(engine)) if lanes_wanted() else None
+        # Its clients' lanes served here (server.lanes), unless off.
+        self.lanes = SocketLinks(ctl_path(engine)) if lanes_wanted() else None
         self._open: set[asyncio.BaseTransport] = set()  # both sides of every relay
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -105,7 +106,7 @@ class _Client(asyncio.Protocol):
         self.head = asyncio.Event()  # a request's head is in ``early`` (or the client ended)
         self.eof = False
         self.frames: ClientFrames | None = None  # its websocket frames, once upgraded
-        self.lane: Lane | None = None  # its open lane (server.shared.lanes)
+        self.lane: Lane | None = None  # its open lane (server.lanes)
         # lane messages waiting for a message boundary (header, payload), the newest of each
         self.pending: dict[str, tuple[bytes, bytes]] = {}
 
@@ -167,10 +168,10 @@ class _Client(asyncio.Protocol):
         if self.lane is not None:
             self.lane.close()
             self.lane = None
-        lane = parse_lane(payload)
-        if lane is not None and self.gw.lanes is not None and self.engine is not None:
+        spec = parse_lane(payload)
+        if spec is not None and self.gw.lanes is not None and self.engine is not None:
             frames = self.engine.frames
-            self.lane = Lane(lane, self.gw.lanes, self.write_lane, lambda: frames.room)
+            self.lane = Lane(spec, self.gw.lanes, self.write_lane, lambda: frames.room)
 
     def write_lane(self, kind: str, head: bytes, payload: bytes) -> None:
         """A message of the client's lane (a CORNER, a MESH) to the client, between two of

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .shared import lanes
+from ..shared import lanes
 
 log = logging.getLogger("clothball.server")
 

@@ -62,7 +62,7 @@ def ctl_path(engine_socket: Path) -> Path:
 
 
 @dataclass(frozen=True)
-class Lane:
+class LaneSpec:
     """A client served by the gateway from the engine's shared memory: a seated player's
     hand and CORNER (``seat``: where they are in which block, the seat's occupant, its
     reach box, the client's CORNER interval and binary rate), and any client's MESH
@@ -82,7 +82,14 @@ class Lane:
     board_slot: int  # bytes of a board slot; the room's is at slot * board_slot
 
 
-def lane_message(lane: Lane | None) -> dict[str, Any]:
+def in_reach(lo: tuple[float, ...], hi: tuple[float, ...], position: tuple[float, ...]) -> bool:
+    """A hand ``position`` is inside a seat's reach box [lo, hi] (the one check, for a
+    lane's HIPs and for the engine's answer to one a lane refused)."""
+    x, y, z = position
+    return lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]
+
+
+def lane_message(lane: LaneSpec | None) -> dict[str, Any]:
     """The engine's message opening a lane (None: closing it)."""
     if lane is None:
         return {"type": LANE_TYPE}
@@ -94,13 +101,13 @@ def lane_message(lane: Lane | None) -> dict[str, Any]:
             "board": lane.board, "board_slot": lane.board_slot}
 
 
-def parse_lane(payload: bytes) -> Lane | None:
+def parse_lane(payload: bytes) -> LaneSpec | None:
     """A lane message's payload as the gateway reads it (None: the lane is closed)."""
     m = json.loads(payload)
     if "room" not in m:
         return None
     seat, board = m["seat"], m["board"]
-    return Lane(str(m["room"]), int(m["block"]), int(m["slot"]),
+    return LaneSpec(str(m["room"]), int(m["block"]), int(m["slot"]),
                 None if seat is None else int(seat), int(m["occupant"]),
                 tuple(map(float, m["lo"])), tuple(map(float, m["hi"])),
                 float(m["corner_interval"]), float(m["binary_rate"]),

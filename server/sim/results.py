@@ -1,6 +1,5 @@
-"""What a sim worker hands the event loop (``FrameResult``), and the fixed-size ring its
-lateness is kept in (``Samples``): shared by both frame loops (``server.sim``'s Python one
-and ``server.frameloop``'s native one)."""
+"""What a room's frame loop hands the event loop after a frame (``FrameResult``), and the
+fixed-size ring lateness is kept in (``Samples``)."""
 
 from __future__ import annotations
 
@@ -11,25 +10,16 @@ import numpy as np
 
 @dataclass
 class FrameResult:
-    """The state after the newest frame, as the event loop receives it."""
+    """A room's state after its newest frame, as the event loop receives it (its MESH comes
+    on its own: ``RoomSim``'s ``deliver_mesh``)."""
 
     frame: int
     server_time: float
     corners: list[bytes | None]  # one CORNER message per seat (None: not for its occupant)
-    mesh: bytes | None = None  # newest MESH message, when one was made since the last delivery
     exit: tuple[int, int, list[float]] | None = None  # (edge, frame, ball position)
     sim_error: str | None = None
     # Per seat, the occupant the CORNER's HIP echo belongs to (RoomSim.set_hip's count).
     occupants: tuple[int, ...] = ()
-
-    def merge_older(self, prev: FrameResult) -> None:
-        """Coalesce: keep this (newer) frame, but never lose a mesh, an exit or an error."""
-        if self.mesh is None:
-            self.mesh = prev.mesh
-        if self.exit is None:
-            self.exit = prev.exit
-        if self.sim_error is None:
-            self.sim_error = prev.sim_error
 
 
 class Samples:

@@ -1,16 +1,19 @@
-"""The native frame loop's Python side: a sim worker whose 1 ms frames run in C++
-(``native/loop``, docs/frameloop.md), with Python woken only at event and network rates.
+"""A sim worker: every room of one (scene, backend, precision), up to its batch's capacity,
+stepped by one native frame loop (``native/loop``, docs/frameloop.md), with Python woken
+only at event and network rates.
 
-A ``NativeWorker`` is a ``SimWorker`` (the same batch, pool, recordings and coalesced
-hand-over) whose frames are stepped by ``_native.FrameLoop``: one C++ thread that paces the
-frames, reads every room's newest hands from the memory block, steps every awake room in
-one call and publishes corners, forces, ball, frame, exits, failures and lateness into the
-block. Python learns of them through an eventfd the event loop waits on (``add_reader``):
-each wake-up takes every room's events at once and, for a room whose CORNER is due
-(``RoomSim.corner_interval`` after the last), reads its record and encodes its four CORNER
-messages. Meshes (the due rooms' nodes copied by the loop in one transfer, encoded whole in
-C++ and written into the mesh board), TRACK samples of rooms being recorded and the
-recording commands are handled by the worker's service thread.
+``_native.FrameLoop`` is one C++ thread that paces the 1 ms frames (simulated time locked
+to the monotonic clock, or to a test's clock set with ``SimPool.set_clock``), reads every
+room's newest hands from the memory block, sets each room's wind gusts, steps every awake
+room in one call and publishes corners, forces, ball, frame, exits, failures and lateness
+into the block, without the interpreter lock. Python learns of them through an eventfd the
+event loop waits on (``add_reader``): each wake-up takes every room's events at once and,
+for a room whose CORNER is due (``corner_interval`` after the last), reads its record with
+its four CORNER messages as the loop encoded them. Meshes (the due rooms' nodes copied by
+the loop in one transfer, encoded whole in C++ on ``MESH_THREADS`` threads and written
+into the mesh board), TRACK samples of rooms being recorded and the recording commands are
+handled by the worker's service thread; a room's MESH reaches the event loop coalesced (the
+newest one per room, one hand-over for all rooms pending).
 The block's layout is read from offsets the binding exports (one definition, in C++).
 """
 
@@ -18,33 +21,29 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import mmap
 import os
 import queue
 import secrets
 import struct
 import threading
-from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
-from .. import _native  # type: ignore[attr-defined]
-from ..game.sim.cloth import _as_finite
-from ..game.sim.stability import substep_speed_limits
-from ..game.wire import protocol as P
-from .frames import FrameResult, Samples
-from .shared.lanes import board_slot_bytes
-from .shared.osthread import name_os_thread
-
-# server.sim makes the workers and imports this module: its types (SimPool, SimWorker,
-# RoomSim) are named here only as strings, without an import (no cycle).
-RoomSim = SimPool = SimWorker = Any
+from ... import _native
+from ...game.sim.batch import ClothBatch
+from ...game.sim.cloth import _as_finite, corners_of, rest_positions
+from ...game.sim.scene import Scene
+from ...game.sim.stability import substep_speed_limits
+from ...game.wire import protocol as P
+from ..shared.lanes import board_slot_bytes
+from ..shared.osthread import name_os_thread
+from .results import FrameResult, Samples
 
 log = logging.getLogger("clothball.server")
 
-FRAME_LOOP_ENV = "CLOTHBALL_FRAME_LOOP"  # "native" (default) or "python" (sim.SimWorker)
 MESH_THREADS = max(1, min(4, (os.cpu_count() or 1) // 4))  # a worker's MESH encoders
 LAYOUT: dict[str, Any] = _native.frame_block_layout()
 EVENT = LAYOUT["events"]
@@ -60,7 +59,6 @@ def _dtype(fields: list[tuple[str, int, str, tuple[int, ...]]], itemsize: int) -
 
 ROOM_DTYPE = _dtype(LAYOUT["room"], LAYOUT["room_bytes"])
 ENGINE_DTYPE = _dtype(LAYOUT["engine"], LAYOUT["engine_bytes"])
-# What FrameLoop.read_room copies: the record up to its events.
 # Where FrameLoop.read_room's copy (the record up to its events) holds what a wake-up reads.
 _AT = {f[0]: f[1] for f in LAYOUT["room"]}
 _FRAME, _TIME, _SUBSTEPS = struct.Struct("<q"), struct.Struct("<d"), struct.Struct("<I")
@@ -68,12 +66,24 @@ _OCCUPANTS = struct.Struct("<4Q")
 assert _AT["events"] == LAYOUT["room_out_bytes"] and LAYOUT["corner_bytes"] == P.CORNER_SIZE
 
 
-def frame_loop_wanted() -> bool:
-    """Whether sim workers run the native frame loop (``CLOTHBALL_FRAME_LOOP``)."""
-    v = os.environ.get(FRAME_LOOP_ENV, "native").strip().lower()
-    if v not in ("native", "python"):
-        raise ValueError(f"{FRAME_LOOP_ENV} must be 'native' or 'python', got {v!r}")
-    return v == "native"
+class Stepped(Protocol):
+    """What a worker knows of a room it steps (``RoomSim``): its slot, and where its frames,
+    meshes and recording commands go."""
+
+    slot: int | None
+    delivered: int  # the newest frame delivered
+    corner_interval: float  # s between its CORNER deliveries (0: every frame; inf: none)
+    corner_due: float  # server time its first player's next CORNER is due (-inf: unknown)
+    error: str | None
+    stats: RoomStats
+    wants_meshes: bool  # its MESH messages are handed to the event loop (deliver_mesh)
+
+    def deliver(self, result: FrameResult) -> None: ...  # on the event loop
+    def deliver_mesh(self, mesh: bytes) -> None: ...  # on the event loop
+    def apply(self, name: str, arg: Any) -> None: ...  # a recording command, service thread
+    def record(self, message: bytes) -> None: ...  # a MESH or TRACK, service thread
+    def recording(self) -> bool: ...
+    def drop_recordings(self) -> None: ...
 
 
 class RingSamples(Samples):
@@ -100,14 +110,15 @@ class RingSamples(Samples):
         self._base = self._end()
 
 
-class NativeStats:
-    """A room's ``SimStats``, read from its record in the block."""
+class RoomStats:
+    """A room's counters, read from its record in the block (kept as they were once the
+    room leaves its slot), its frames' lateness (its worker's passes) and its meshes."""
 
-    def __init__(self, worker: NativeWorker, room: RoomSim) -> None:
+    def __init__(self, worker: FrameWorker, room: Stepped) -> None:
         self._worker = worker
         self._room = room
         self.lateness = RingSamples(worker.engine_view)
-        self.meshes = 0
+        self.meshes = 0  # MESH messages encoded (the service thread counts them)
         self._last = (0, 0, 0)  # frames, steps, skipped when the room left its slot
 
     def _get(self, field: str, k: int) -> int:
@@ -133,90 +144,133 @@ class NativeStats:
         self._last = (self.frames, self.steps, self.skipped_frames)
 
 
-def loop_config(worker: NativeWorker, sample: RoomSim) -> Any:
+@dataclass(frozen=True)
+class Arena:
+    """What every room of a scene shares that the loop and the room both use: the hands'
+    anchors, the floor, the ball and the coupling, from the scene's keys."""
+
+    anchors: np.ndarray  # (4, 3): each seat's corner at rest (its hand without a HIP)
+    size: float
+    floor_y: float  # below it, the ball is out (docs/protocol.md)
+    has_ball: bool
+    ball_radius: float
+    ball_start: tuple[float, float, float]
+    stiffness: float  # the coupling's K (0 without it)
+
+    @classmethod
+    def of(cls, scene: Scene) -> Arena:
+        size = float(scene["cloth"]["size"])
+        has_ball = "ball" in scene.effects
+        coupled = "coupling" in scene.effects
+        return cls(anchors=corners_of(rest_positions(scene)), size=size,
+                   floor_y=float(scene["cloth"]["height"]) - 1.5 * size, has_ball=has_ball,
+                   ball_radius=float(scene["ball"]["radius"]) if has_ball else 0.0,
+                   ball_start=tuple(scene["ball"]["position"]) if has_ball else (0, 0, 0),
+                   stiffness=float(scene["coupling"]["stiffness"]) if coupled else 0.0)
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """How a pool's frame loops keep time and encode meshes (``SimPool``'s)."""
+
+    epoch: float  # monotonic seconds of server time 0 (0 with a manual clock)
+    max_catchup: int = 50  # frames a loop steps to catch up; older time is dropped
+    cpu_threads: int | None = 1  # the CPU engine's threads a loop (None: one per core)
+    compress_mesh: bool = True
+    manual_clock: bool = False  # time moves only by SimPool.set_clock (a test's clock)
+
+
+def loop_config(scene: Scene, arena: Arena, settings: LoopSettings, frame_dt: float,
+                mesh_every: int, track_every: int) -> Any:
     """The frame loop's settings for a worker's scene (those of its rooms)."""
-    scene = worker.scene
     c = _native.FrameLoopConfig()
-    c.frame_dt = worker.frame_dt
-    c.epoch = worker.pool.epoch
-    c.max_catchup = worker.pool.max_catchup
+    c.frame_dt = frame_dt
+    c.epoch = settings.epoch
+    c.max_catchup = settings.max_catchup
+    c.manual_clock = settings.manual_clock
     fixed = scene["sim"]["substeps"]
     c.fixed_substeps = int(fixed) if fixed is not None else 0
     if fixed is None:
         c.substep_speeds = substep_speed_limits(scene).tolist()
-    c.has_ball = sample.has_ball
-    c.floor_y = sample.floor_y
-    c.lost_ball_y = sample.floor_y - 50.0 * sample.size
-    if sample.has_ball:
-        c.ball_start = np.asarray(scene["ball"]["position"], dtype=np.float64)
-    c.stiffness = sample.stiffness
-    c.anchors = np.asarray(sample.anchors, dtype=np.float64).reshape(12)
-    c.mesh_every = sample.mesh_every
-    c.track_every = sample.track_every
+    c.has_ball = arena.has_ball
+    c.floor_y = arena.floor_y
+    c.lost_ball_y = arena.floor_y - 50.0 * arena.size
+    c.ball_start = np.asarray(arena.ball_start, dtype=np.float64)
+    c.stiffness = arena.stiffness
+    c.anchors = np.asarray(arena.anchors, dtype=np.float64).reshape(12)
+    c.mesh_every = mesh_every
+    c.track_every = track_every
+    if "wind" in scene.effects and scene["wind"]["gust_amplitude"] > 0.0:
+        # The loop sets each room's wind every frame (game.sim.cloth.wind_at's formula).
+        c.wind = np.asarray(scene["wind"]["velocity"], dtype=np.float64)
+        c.gust_amplitude = float(scene["wind"]["gust_amplitude"])
+        c.gust_period = float(scene["wind"]["gust_period"])
     return c
 
 
-class NativeWorker:
-    """Every room of one (scene, backend, precision) stepped by the native frame loop; the
-    ``SimWorker`` API the pool and ``RoomSim`` use (see the module doc)."""
+class FrameWorker:
+    """Every room of one (scene, backend, precision), up to ``capacity``, stepped by one
+    native frame loop (see the module doc). Rooms are ``Stepped`` (``RoomSim``)."""
 
-    native = True
-
-    def __init__(self, pool: SimPool, base: SimWorker, sample: RoomSim) -> None:
-        # `base`: a Python worker, never started, whose batch and coalesced hand-over to the
-        # event loop this one uses.
-        self._base = base
-        scene = base.scene
-        self.pool = pool
+    def __init__(self, scene: Scene, backend: str, capacity: int, settings: LoopSettings,
+                 mesh_every: int, track_every: int) -> None:
         self.scene = scene
-        self.batch = self._base.batch
-        self.frame_dt = self._base.frame_dt
-        self.members = 0
-        self.mesh_every, self.track_every = sample.mesh_every, sample.track_every
-        self._ball_radius = sample.ball_radius  # the scene's: every room's here
-        self._loop = _native.FrameLoop(self.batch.native_engine, loop_config(self, sample))
-        block = np.frombuffer(self._loop.block(), dtype=np.uint8)
+        self.settings = settings
+        self.arena = Arena.of(scene)
+        self.batch = ClothBatch(scene, capacity, backend, on_failure="remove",
+                                threads=settings.cpu_threads)
+        self.frame_dt = self.batch.frame_dt
+        self.members = 0  # rooms assigned here and not yet removed (event-loop side)
+        self.mesh_every, self.track_every = mesh_every, track_every
+        self.frame_loop = _native.FrameLoop(
+            self.batch.native_engine,
+            loop_config(scene, self.arena, settings, self.frame_dt, mesh_every, track_every))
+        block = np.frombuffer(self.frame_loop.block(), dtype=np.uint8)
         # The block as a gateway maps it (server.shared.lanes: id, memfd, bytes).
         self.block_id = secrets.randbits(48)  # not reused by a restarted engine
-        self.block_share = (self.block_id, self._loop.block_fd(), block.size)
+        self.block_share = (self.block_id, self.frame_loop.block_fd(), block.size)
         head = LAYOUT["header_bytes"]
         rooms = self.batch.capacity
         # Each slot's newest MESH message, for the gateways to send (native/loop/board.hpp;
         # a MESH is at most its header and the raw quantised nodes: P.encode_mesh).
         n = scene.n
         self.board_slot = board_slot_bytes(P.HEADER.size + P.MESH_BODY.size + 6 * n * n)
-        self.board: mmap.mmap | None = None
-        self.board_id: int | None = None
+        # A memfd, so that the gateways map it too; where the process may not make one (a
+        # file size limit), anonymous memory: the engine's own lanes read it, no gateway.
+        size = rooms * self.board_slot
+        self.board_id = secrets.randbits(48)
         self.board_share: tuple[int, int, int] | None = None
         self._board_fd = -1
         try:
             self._board_fd = os.memfd_create("clothball-meshes", os.MFD_CLOEXEC)
-            os.ftruncate(self._board_fd, rooms * self.board_slot)
-            self.board = mmap.mmap(self._board_fd, rooms * self.board_slot)
-            self.board_id = secrets.randbits(48)
-            self.board_share = (self.board_id, self._board_fd, rooms * self.board_slot)
-        except OSError as e:  # e.g. a file size limit: the engine sends every MESH itself
-            log.warning("no mesh board (%s): the gateways send no MESH", e)
+            os.ftruncate(self._board_fd, size)
+            self.board = mmap.mmap(self._board_fd, size)
+            self.board_share = (self.board_id, self._board_fd, size)
+        except OSError as e:
+            log.warning("mesh board not shared (%s): the engine sends its rooms' MESH", e)
             if self._board_fd >= 0:
                 os.close(self._board_fd)
                 self._board_fd = -1
-        # MESH encoding on a few threads (C++ ones, else Python ones where the module was
-        # built without zlib's headers): one thread encoding every room's MESH 30 times a
-        # second was the limit of a 16-core host at ~64 rooms (H100 runs 4 and 16).
-        self._encoders = MESH_THREADS
-        self._encoder: ThreadPoolExecutor | None = None
+            self.board = mmap.mmap(-1, size)
+        # MESH encoding on a few C++ threads: one thread encoding every room's MESH 30 times
+        # a second was the limit of a 16-core host at ~64 rooms (H100 runs 4 and 16).
+        self.encoders = MESH_THREADS
         self.rooms_view = block[head:head + rooms * LAYOUT["room_bytes"]].view(ROOM_DTYPE)
         eng = head + rooms * LAYOUT["room_bytes"]
         self.engine_view = block[eng:eng + LAYOUT["engine_bytes"]].view(ENGINE_DTYPE)  # (1,)
         self.lateness = RingSamples(self.engine_view)
-        self._by_slot: dict[int, RoomSim] = {}
-        self._inbox: queue.SimpleQueue[tuple[RoomSim, str, Any]] = queue.SimpleQueue()
+        self._by_slot: dict[int, Stepped] = {}
+        self._inbox: queue.SimpleQueue[tuple[Stepped, str, Any]] = queue.SimpleQueue()
         self._tracks_seen: dict[int, int] = {}
         self._service: threading.Thread | None = None
         self._stop = threading.Event()
-        self._reader_loop: asyncio.AbstractEventLoop | None = None
+        self._event_loop: asyncio.AbstractEventLoop | None = None
+        # The service thread's meshes for the event loop: the newest per room, one
+        # hand-over scheduled at a time.
+        self._meshes_lock = threading.Lock()
+        self._meshes: dict[Stepped, bytes] = {}
+        self._scheduled = False
 
-    # --- the SimWorker API ----------------------------------------------------------------
     @property
     def running(self) -> bool:
         return self._service is not None and not self._stop.is_set()
@@ -241,28 +295,31 @@ class NativeWorker:
 
     def cpu_seconds(self) -> float:
         """CPU seconds the frame loop's thread has used (admission's calibration)."""
-        return float(self._loop.cpu_seconds())
+        return float(self.frame_loop.cpu_seconds())
+
+    @property
+    def service_thread_id(self) -> int | None:
+        """The OS thread id of the service thread (None before start)."""
+        return None if self._service is None else self._service.native_id
 
     def start(self) -> None:
-        self._loop.start()
+        self.frame_loop.start()
         self._service = threading.Thread(target=self._serve, name="clothball-mesh",
                                          daemon=True)
         self._service.start()
-        self._watch()
 
-    def _watch(self) -> None:
-        """The event loop waits on the loop's eventfd (once it is known)."""
-        loop = self.pool.loop
-        if loop is not None and self._reader_loop is None:
-            self._reader_loop = loop
-            _on_loop(loop, loop.add_reader, self._loop.event_fd(), self._on_events)
+    def watch(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Deliver to ``loop``: it waits on the frame loop's eventfd (from its own thread)."""
+        if self._event_loop is None:
+            self._event_loop = loop
+            _on_loop(loop, loop.add_reader, self.frame_loop.event_fd(), self._on_events)
 
     def stop(self) -> None:
         self._stop.set()
-        loop = self._reader_loop
+        loop = self._event_loop
         if loop is not None and not loop.is_closed():
-            _on_loop(loop, loop.remove_reader, self._loop.event_fd())
-        self._loop.notify_service()
+            _on_loop(loop, loop.remove_reader, self.frame_loop.event_fd())
+        self.frame_loop.notify_service()
         if self._service is not None and self._service is not threading.current_thread():
             self._service.join(timeout=5.0)
         if self._service is None or not self._service.is_alive():
@@ -278,109 +335,107 @@ class NativeWorker:
                     break
             for room in rooms:
                 room.drop_recordings()
-        self._loop.stop()
-        if self._service is None or not self._service.is_alive():
-            if self._encoder is not None:
-                self._encoder.shutdown()
-            if self.board is not None:
-                self.board.close()  # (a gateway's mapping of it stays valid: a memfd)
-                os.close(self._board_fd)
+        self.frame_loop.stop()
+        if self._board_fd >= 0:
+            os.close(self._board_fd)  # (a mapping of it, a gateway's, stays valid)
+            self._board_fd = -1
 
     def add_wake(self, fd: int) -> None:
-        self._loop.add_wake(fd)
+        self.frame_loop.add_wake(fd)
 
     def remove_wake(self, fd: int) -> None:
-        self._loop.remove_wake(fd)
+        self.frame_loop.remove_wake(fd)
 
-    def post(self, room: RoomSim, name: str, arg: Any) -> None:
-        """A command for the service thread (recordings), in order."""
+    def local_shares(self) -> list[tuple[int, Any, str, object]]:
+        """Its block and board as this process's lanes read them (``server.lanes.local``),
+        with itself as their owner (the memory lives while it does)."""
+        return [(self.block_id, self.frame_loop.block(), "block", self),
+                (self.board_id, self.board, "board", self)]
+
+    def set_clock(self, t: float) -> None:
+        """The loop's time, with a manual clock (``LoopSettings.manual_clock``)."""
+        self.frame_loop.set_clock(t)
+
+    def post(self, room: Stepped, name: str, arg: Any) -> None:
+        """A recording command for the service thread, in order."""
         self._inbox.put((room, name, arg))
-        self._loop.notify_service()
+        self.frame_loop.notify_service()
 
     # --- rooms (event-loop side) ----------------------------------------------------------
-    def add(self, room: RoomSim) -> None:
-        self._watch()
-        self._loop.lock()
+    def add(self, room: Stepped, awake: bool) -> int:
+        """A slot for ``room``, stepped from the next pass (its hands at their anchors)."""
+        self.frame_loop.lock()
         try:
             slot = self.batch.add()
-            self.batch.set_active(slot, room._awake)
-            self._loop.add_room(slot, room._awake)
+            self.batch.set_active(slot, awake)
+            self.frame_loop.add_room(slot, awake)
         finally:
-            self._loop.unlock()
+            self.frame_loop.unlock()
         room.slot = slot
         self._by_slot[slot] = room
-        room.stats = NativeStats(self, room)
-        for seat, hip in enumerate(room._hip_slots):  # and each seat's occupant
-            self.set_hip(room, seat, hip)
+        return slot
 
-    def remove(self, room: RoomSim) -> None:
+    def remove(self, room: Stepped) -> None:
         slot = room.slot
         if slot is None:
             return
-        if isinstance(room.stats, NativeStats):
-            room.stats.keep()
-        self._loop.lock()
+        self.frame_loop.lock()
         try:
-            self._loop.remove_room(slot)
+            self.frame_loop.remove_room(slot)
             self.batch.remove(slot)
         finally:
-            self._loop.unlock()
+            self.frame_loop.unlock()
         self._by_slot.pop(slot, None)
         self._tracks_seen.pop(slot, None)
+        with self._meshes_lock:
+            self._meshes.pop(room, None)
         room.slot = None
 
-    def set_hip(self, room: RoomSim, seat: int, hip: tuple[Any, int, float, int] | None) -> None:
-        if room.slot is None:
-            return
-        if hip is None:
-            self._loop.clear_hip(room.slot, seat, room._occupant[seat])
-            return
-        x, y, z = hip[0]
-        self._loop.set_hip(room.slot, seat, float(x), float(y), float(z),
-                           int(hip[1]) & 0xFFFFFFFFFFFFFFFF,
-                           float(hip[2]), hip[3])
+    def set_hip(self, slot: int, seat: int, position: Any, seq: int, client_time: float,
+                occupant: int) -> None:
+        x, y, z = position
+        self.frame_loop.set_hip(slot, seat, float(x), float(y), float(z),
+                                int(seq) & 0xFFFFFFFFFFFFFFFF, float(client_time), occupant)
 
-    def set_awake(self, room: RoomSim, awake: bool) -> None:
-        if room.slot is not None:
-            self._loop.set_awake(room.slot, awake)
+    def clear_hip(self, slot: int, seat: int, occupant: int) -> None:
+        self.frame_loop.clear_hip(slot, seat, occupant)
 
-    def set_armed(self, room: RoomSim, armed: bool) -> None:
-        if room.slot is not None:
-            self._loop.set_armed(room.slot, armed)
+    def set_awake(self, slot: int, awake: bool) -> None:
+        self.frame_loop.set_awake(slot, awake)
 
-    def set_ball(self, room: RoomSim, pos: Any, vel: Any) -> None:
-        if room.slot is None or not room.has_ball:
-            return
+    def set_armed(self, slot: int, armed: bool) -> None:
+        self.frame_loop.set_armed(slot, armed)
+
+    def set_ball(self, slot: int, pos: Any, vel: Any) -> None:
         # The facade's check (ClothBatch.set_ball made it before this call replaced it).
         ball = np.concatenate([_as_finite("position", pos, (3,)),
                                _as_finite("velocity", vel, (3,))])
         # One native call (the loop's lock taken without the GIL): a Python critical section
         # under the loop's lock stalled every room of the loop while it waited for the GIL.
-        self._loop.set_ball(room.slot, ball)
+        self.frame_loop.set_ball(slot, ball)
 
-    def applied(self, room: RoomSim, seat: int) -> tuple[int, float]:
-        if room.slot is None:
-            return (0, math.nan)
+    def applied(self, slot: int, seat: int) -> tuple[int, float]:
         r = self.rooms_view
-        return int(r["applied_seq"][room.slot, seat]), float(r["applied_time"][room.slot, seat])
+        return int(r["applied_seq"][slot, seat]), float(r["applied_time"][slot, seat])
 
     # --- the event loop's wake-up ---------------------------------------------------------
     def _on_events(self) -> None:
-        slots, bits = self._loop.take_events()
+        slots, bits = self.frame_loop.take_events()
         for slot, b in zip(slots.tolist(), bits.tolist(), strict=True):
             room = self._by_slot.get(slot)
             if room is not None:
                 self._room_events(room, slot, b)
 
-    def _room_events(self, room: RoomSim, slot: int, bits: int) -> None:
-        raw = self._loop.read_room(slot)
+    def _room_events(self, room: Stepped, slot: int, bits: int) -> None:
+        raw = self.frame_loop.read_room(slot)
         frame, server_time = _FRAME.unpack_from(raw, _AT["frame"])[0], \
             _TIME.unpack_from(raw, _AT["server_time"])[0]
         if frame <= room.delivered and not bits & (EVENT["exit"] | EVENT["failed"]):
             return  # this frame was delivered by an earlier wake-up
         # The four CORNER messages as the loop encoded them (native/loop/corner_msg.hpp).
         at = _AT["corner_msg"]
-        corners = [raw[at + k * P.CORNER_SIZE:at + (k + 1) * P.CORNER_SIZE] for k in range(4)]
+        corners: list[bytes | None] = [raw[at + k * P.CORNER_SIZE:at + (k + 1) * P.CORNER_SIZE]
+                                       for k in range(4)]
         result = FrameResult(frame, server_time, corners,
                              occupants=_OCCUPANTS.unpack_from(raw, _AT["applied_occupant"]))
         r = self.rooms_view
@@ -403,15 +458,15 @@ class NativeWorker:
             # The next wake-up: when the room's players' next CORNER is due (their own
             # schedules, Conn.offer_corner), else one interval on (inf: none wanted).
             due = room.corner_due
-            self._loop.set_corner_due(slot, due if due > server_time
-                                      else server_time + room.corner_interval)
+            self.frame_loop.set_corner_due(slot, due if due > server_time
+                                           else server_time + room.corner_interval)
 
     # --- the service thread: recordings, tracks, meshes -----------------------------------
     def _serve(self) -> None:
         name_os_thread()
         try:
             while not self._stop.is_set():
-                self._loop.wait_service(0.05)
+                self.frame_loop.wait_service(0.05)
                 self._drain_tracks()
                 self._drain_inbox()
                 self._encode_meshes()
@@ -429,15 +484,15 @@ class NativeWorker:
             except OSError as e:  # e.g. a spool that cannot be removed: the others go on
                 log.warning("room command %s failed: %s", name, e)
                 continue
-            if room.slot is not None and name in ("record_start", "record_stop", "remove"):
-                self._loop.set_recording(room.slot, bool(room._recordings))
+            if room.slot is not None and name in ("record_start", "record_stop"):
+                self.frame_loop.set_recording(room.slot, room.recording())
             if name == "record_start" and room.slot is not None:
                 self._tracks_seen[room.slot] = int(self.rooms_view["track_count"][room.slot])
 
     def _drain_tracks(self) -> None:
         ring = LAYOUT["track_ring"]
         for slot, room in list(self._by_slot.items()):
-            if not room._recordings:
+            if not room.recording():
                 continue
             total = int(self.rooms_view["track_count"][slot])
             seen = self._tracks_seen.get(slot, total)
@@ -448,64 +503,52 @@ class NativeWorker:
                 seen = total - ring
             for c in range(seen, total):
                 t = self.rooms_view["track"][slot, c % ring].copy()
-                track = P.encode_track(int(t[0]), float(t[1]), t[2:5], t[5:8],
-                                       t[8:20].reshape(4, 3), t[20:32].reshape(4, 3))
-                for rec in room._recordings.values():
-                    rec.append(1, track)
+                room.record(P.encode_track(int(t[0]), float(t[1]), t[2:5], t[5:8],
+                                           t[8:20].reshape(4, 3), t[20:32].reshape(4, 3)))
             self._tracks_seen[slot] = total
 
     def _encode_meshes(self) -> None:
-        if hasattr(self._loop, "take_encoded"):
-            # Encoded and written into the board in C++, without the GIL
-            # (native/loop/mesh_msg.hpp): 4 threads encoding in Python contended for the
-            # GIL with the event loop and one another (H100, 128 rooms: MESH at 17 of 30 Hz).
-            # The due rooms are shared among MESH_THREADS threads: zlib takes ~0.5 ms a
-            # mesh at n = 48, and one thread held 64 rooms' 30 Hz only at 0.95 core (H100).
-            for slot, _, mesh in self._loop.take_encoded(
-                    self.board, self.board_slot, self._ball_radius,
-                    self.pool.compress_mesh, self._encoders):
-                room = self._by_slot.get(slot)
-                if room is not None:
-                    self._delivered(room, mesh)
+        # Encoded and written into the board in C++, without the GIL
+        # (native/loop/mesh_msg.hpp): 4 threads encoding in Python contended for the GIL
+        # with the event loop and one another (H100, 128 rooms: MESH at 17 of 30 Hz). The
+        # due rooms are shared among the encoder threads: zlib takes ~0.5 ms a mesh at
+        # n = 48, and one thread held 64 rooms' 30 Hz only at 0.95 core (H100).
+        taken = self.frame_loop.take_encoded(self.board, self.board_slot,
+                                             self.arena.ball_radius,
+                                             self.settings.compress_mesh, self.encoders)
+        fresh: dict[Stepped, bytes] = {}
+        for slot, _, mesh in taken:
+            room = self._by_slot.get(slot)
+            if room is not None:
+                room.stats.meshes += 1
+                room.record(mesh)
+                if room.wants_meshes:
+                    fresh[room] = mesh
+        if fresh:
+            self._hand_over(fresh)
+
+    def _hand_over(self, fresh: dict[Stepped, bytes]) -> None:
+        """Rooms' newest MESH to the event loop: one scheduled call delivers every room's
+        pending one, however many the service thread made meanwhile."""
+        loop = self._event_loop
+        if loop is None:
             return
-        taken = self._loop.take_meshes()
-        if not taken:
-            return
+        with self._meshes_lock:
+            self._meshes.update(fresh)
+            if self._scheduled:
+                return
+            self._scheduled = True
+        try:
+            loop.call_soon_threadsafe(self._deliver_meshes)
+        except RuntimeError:  # the loop is closed: the server is stopping
+            self._stop.set()
 
-        def encode(item: tuple[RoomSim, tuple[Any, ...]]) -> bytes:
-            room, (_, frame, server_time, ball, hips, positions) = item
-            # Quantised and delta-coded in C++, off the GIL (the same bits as
-            # protocol.quantise and mesh_deltas; NumPy's took most of a mesh's encoding
-            # time), then zlib'd (also off the GIL).
-            q, deltas, lo, hi = _native.quantise_mesh(positions)
-            return P.encode_quantised_mesh(frame, server_time, q, lo, hi, ball[:3],
-                                           room.ball_radius, hips,
-                                           compress=self.pool.compress_mesh, deltas=deltas)
-
-        due = ((self._by_slot.get(m[0]), m) for m in taken)
-        due = ((room, m) for room, m in due if room is not None)
-        if len(taken) > 1 and self._encoders > 1:
-            if self._encoder is None:
-                self._encoder = ThreadPoolExecutor(self._encoders, "clothball-mesh-encode",
-                                                   initializer=name_os_thread)
-            items = list(due)
-            done = zip(items, self._encoder.map(encode, items), strict=True)
-        else:  # one at a time: a mesh's buffers are let go before the next one's
-            done = ((item, encode(item)) for item in due)
-        for (room, m), mesh in done:
-            slot, frame = m[0], m[1]
-            if self.board is not None:
-                _native.board_write(self.board, slot * self.board_slot, frame, mesh)
-            self._delivered(room, mesh)
-
-    def _delivered(self, room: RoomSim, mesh: bytes) -> None:
-        """A room's MESH, encoded (and on the board): counted, recorded, and handed to the
-        event loop for the clients the engine sends it to."""
-        room.stats.meshes += 1
-        for rec in room._recordings.values():
-            rec.append(1, mesh)
-        self._base._publish(room, FrameResult(-1, 0.0, [], mesh=mesh), flush=True)
-
+    def _deliver_meshes(self) -> None:
+        with self._meshes_lock:
+            meshes, self._meshes = self._meshes, {}
+            self._scheduled = False
+        for room, mesh in meshes.items():
+            room.deliver_mesh(mesh)
 
 
 def _on_loop(loop: asyncio.AbstractEventLoop, fn: Any, *args: Any) -> None:

@@ -17,7 +17,6 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
-import numpy as np
 import pytest
 from clothball.game.sim.scene import Scene
 from clothball.server.app import GameServer
@@ -93,12 +92,13 @@ async def until(pred: Callable[[], bool], timeout: float = 10.0, what: str = "")
 
 @contextlib.contextmanager
 def started_room(deliver: Callable[[Any], None] | None = None,
-                 pool: SimPool | None = None) -> Iterator[RoomSim]:
+                 pool: SimPool | None = None,
+                 deliver_mesh: Callable[[bytes], None] | None = None) -> Iterator[RoomSim]:
     """A started ``TINY`` room on the CPU engine in ``pool`` (else in a pool of its own,
     closed after), stopped after."""
     own = pool is None
     pool = SimPool() if pool is None else pool
-    sim = RoomSim(TINY, "cpu", pool=pool, **({} if deliver is None else {"deliver": deliver}))
+    sim = RoomSim(TINY, "cpu", pool=pool, deliver=deliver, deliver_mesh=deliver_mesh)
     try:
         sim.start()
         yield sim
@@ -110,15 +110,14 @@ def started_room(deliver: Callable[[Any], None] | None = None,
 
 def hand_of(room: Any, seat: int) -> tuple[int, Any]:
     """The hand a room's newest frame applied for a seat, (HIP seq, position), (0, None)
-    for none, whoever wrote it: the engine, or the gateway that serves the player's lane
-    (docs/architecture.md), which the engine's own HIP slots never see."""
+    for none, whoever wrote it (the player's lane, in the engine or its gateway:
+    docs/architecture.md), read from the frame loop's block."""
     sim = room.sim
-    if sim._native and sim.slot is not None:
-        r = sim.worker.rooms_view
-        seq = int(r["applied_seq"][sim.slot, seat])
-        return seq, (r["hips"][sim.slot, seat].copy() if seq else None)
-    hip = sim._hip_slots[seat]
-    return (0, None) if hip is None else (int(hip[1]), np.asarray(hip[0]))
+    if sim.slot is None:
+        return 0, None
+    r = sim.worker.rooms_view
+    seq = int(r["applied_seq"][sim.slot, seat])
+    return seq, (r["hips"][sim.slot, seat].copy() if seq else None)
 
 
 def local_server(data: Path, *, bots: int = 0, **settings: Any) -> ServerThread:

@@ -1,7 +1,7 @@
 """Admission's calibration (server/headroom.py) on the CPU backend: with the native frame
 loop a room costs its share of the loop thread's CPU time, read from the loop itself
 (``FrameLoop.cpu_seconds``, checked against the kernel's count for that thread in /proc),
-not the Python per-frame call the loop no longer makes; with the Python loop, as before."""
+not the Python per-frame call the loop no longer makes."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import os
 import time
 
 import pytest
-from clothball.server import frameloop, headroom
+from clothball.server import headroom
 from clothball.server.sim import RoomSim, SimPool
 
 from tests.server.conftest import TINY
@@ -32,8 +32,7 @@ def _thread_cpu(tid: int) -> float:
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux /proc")
-def test_the_loop_reports_its_own_threads_cpu_time(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+def test_the_loop_reports_its_own_threads_cpu_time() -> None:
     before = set(os.listdir("/proc/self/task"))
     pool = SimPool()
     try:
@@ -41,11 +40,10 @@ def test_the_loop_reports_its_own_threads_cpu_time(monkeypatch: pytest.MonkeyPat
         for s in sims:
             s.start()
         worker = sims[0].worker
-        assert worker.native
         # The threads the worker started: the frame loop's and its service thread.
         new = sorted(int(t) for t in set(os.listdir("/proc/self/task")) - before)
         assert len(new) == 2, new
-        (loop_tid,) = [t for t in new if t != worker._service.native_id]
+        (loop_tid,) = [t for t in new if t != worker.service_thread_id]
         _wait(lambda: worker.cpu_seconds() > 0.2, timeout=120)
         ours, kernel = worker.cpu_seconds(), _thread_cpu(loop_tid)
         # Read one after the other: the kernel's count is in clock ticks (10 ms) and may
@@ -62,7 +60,6 @@ def test_the_loop_reports_its_own_threads_cpu_time(monkeypatch: pytest.MonkeyPat
 def test_a_cpu_room_costs_its_share_of_the_native_loops_cpu(monkeypatch) -> None:
     """The native loop's measure is the room cost (its 16 rooms' share); ClothBatch's
     per-frame Python call is not timed."""
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
     monkeypatch.setattr(headroom, "_costs", {})
     calls: list[tuple[str, int]] = []
 
@@ -80,23 +77,11 @@ def test_a_cpu_room_costs_its_share_of_the_native_loops_cpu(monkeypatch) -> None
     assert calls == [("native", headroom.CALIBRATE_ROOMS_NATIVE)]
 
 
-def test_the_python_loop_is_still_timed_through_clothbatch(monkeypatch) -> None:
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "python")
-    monkeypatch.setattr(headroom, "_costs", {})
-    seen = []
-    monkeypatch.setattr(headroom, "_frame_cost",
-                        lambda scene, key, rooms: seen.append(rooms) or 0.2)
-    assert headroom._native_cost(TINY, "cpu", 4) is None  # no loop started
-    assert headroom.room_cost(TINY, "cpu") == pytest.approx(0.2 / headroom.CALIBRATE_ROOMS)
-    assert seen == [headroom.CALIBRATE_ROOMS]
-
-
-def test_the_native_measure_runs_the_loop_and_gives_a_cost(monkeypatch) -> None:
+def test_the_native_measure_runs_the_loop_and_gives_a_cost() -> None:
     """A real calibration: a positive cost, under the one core a loop thread can use, and
     every room it started is gone after (the pool closed)."""
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
     threads = set(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else None
     cores = headroom._native_cost(TINY, "cpu", 4)
-    assert cores is not None and 0.0 < cores <= 1.05
+    assert 0.0 < cores <= 1.05
     if threads is not None:
         _wait(lambda: set(os.listdir("/proc/self/task")) <= threads, timeout=10)

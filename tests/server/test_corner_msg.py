@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from clothball import _native
 from clothball.game.wire import protocol as P
-from clothball.server import frameloop
 from clothball.server.sim import RoomSim, SimPool
+from clothball.server.sim import worker as sim_worker
 
 from tests.server.conftest import TINY
 
@@ -60,10 +60,9 @@ def test_the_loops_corner_bytes_are_the_python_encoders_for_random_states() -> N
             assert P.decode_corner(a).frame == frame
 
 
-def test_a_live_loops_corner_bytes_encode_its_own_record(monkeypatch) -> None:
+def test_a_live_loops_corner_bytes_encode_its_own_record() -> None:
     """The block's corner_msg of a running room is what the Python encoder makes of the
     same record's fields (read in one consistent copy)."""
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
     pool = SimPool()
     try:
         sim = RoomSim(TINY, "cpu", pool=pool)
@@ -71,12 +70,12 @@ def test_a_live_loops_corner_bytes_encode_its_own_record(monkeypatch) -> None:
         sim.set_hip(1, (float(sim.anchors[1][0]), float(sim.anchors[1][1]) + 0.01,
                         float(sim.anchors[1][2])), 77, 1.5)
         worker = sim.worker
-        dtype = frameloop._dtype([f for f in frameloop.LAYOUT["room"]
-                                  if f[1] < frameloop.LAYOUT["room_out_bytes"]],
-                                 frameloop.LAYOUT["room_out_bytes"])
+        dtype = sim_worker._dtype([f for f in sim_worker.LAYOUT["room"]
+                                   if f[1] < sim_worker.LAYOUT["room_out_bytes"]],
+                                  sim_worker.LAYOUT["room_out_bytes"])
         seen = 0
         while seen < 20:
-            rec = np.frombuffer(worker._loop.read_room(sim.slot), dtype=dtype)[0]
+            rec = np.frombuffer(worker.frame_loop.read_room(sim.slot), dtype=dtype)[0]
             if rec["frame"] == 0:
                 continue
             seen += 1
@@ -99,3 +98,58 @@ def test_wrong_sizes_are_refused(n: int) -> None:
     with pytest.raises(ValueError, match="positions"):
         _native.encode_corners(1, 0.0, np.zeros(n), np.zeros(12), np.zeros(12), 1.0,
                                np.zeros(6), [0] * 4, [0.0] * 4)
+
+
+def test_a_corners_position_is_its_hands_grip_point_which_the_same_frames_mesh_gives() -> None:
+    """docs/protocol.md, CORNER: the position is the point the seat's hand holds, its grip's
+    nodes less their rest offsets weighted by their shares (``oracle.grip_points``), not the
+    corner node (the default scene's hands hold a 1 cm grip): from the engine's own nodes of
+    the same frame to float32 rounding, and from the same frame's MESH nodes to within the
+    MESH's quantisation (its box / 65535 an axis) and float32 rounding."""
+    import time
+
+    from clothball import _native
+    from clothball.game.sim.oracle import grip_points
+    from clothball.game.sim.scene import Scene
+
+    scene = Scene.load("default").with_changes({"cloth": {"n": 16}})
+    assert scene["coupling"]["grip_radius"] > 0
+    pool = SimPool()
+    sim = RoomSim(scene, "cpu", pool=pool)
+    try:
+        sim.start()
+        w = sim.worker
+        sim.set_hip(2, sim.anchors[2] + [0.0, 0.06, 0.02], 5, 1.0)  # a hand that pulls
+        matched = 0
+        end = time.monotonic() + 60
+        while matched < 3 and time.monotonic() < end:
+            w.frame_loop.lock()  # between two passes: the record and the nodes of one frame
+            try:
+                frame = int(w.rooms_view["frame"][sim.slot])
+                nodes = w.batch.positions(sim.slot)
+                msgs = [bytes(w.rooms_view["corner_msg"][sim.slot][s]) for s in range(4)]
+                mesh_frame, raw = _native.board_read(w.board, sim.slot * w.board_slot,
+                                                     w.board_slot, -1)
+            finally:
+                w.frame_loop.unlock()
+            if frame < 200:
+                time.sleep(0.01)
+                continue
+            held = grip_points(scene, nodes)
+            got = np.array([P.decode_corner(m).position for m in msgs])
+            scale = np.abs(held).max()
+            assert np.abs(got - held).max() <= 4 * np.finfo(np.float32).eps * scale
+            # the corner node itself is another point (the grip's deformation)
+            ends = nodes[[0, 0, -1, -1], [0, -1, -1, 0]]
+            assert np.abs(ends - held).max() > 1e-5
+            if raw is not None and mesh_frame == frame:
+                m = P.decode_mesh(raw)
+                step = (m.hi - m.lo) / 65535.0
+                bound = step + 4 * np.finfo(np.float32).eps * scale
+                assert np.all(np.abs(grip_points(scene, m.positions) - got) <= bound)
+                matched += 1
+            time.sleep(0.001)
+        assert matched == 3, "no MESH of the frame the record held"
+    finally:
+        sim.stop()
+        pool.close()

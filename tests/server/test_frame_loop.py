@@ -1,4 +1,4 @@
-"""The native frame loop (native/loop, server/frameloop.py; docs/frameloop.md): its exit
+"""The native frame loop (native/loop, server/sim/worker.py; docs/worker.md): its exit
 check against ``game.rules.exit_edge``, its block's layout as the binding exports it, its
 rooms stepped and published without Python, its meshes (one gather of the due rooms'
 nodes) against the batch's own, a stalled event loop that loses nothing, and a loop that
@@ -20,16 +20,10 @@ from clothball import _native
 from clothball.game.rules import exit_edge
 from clothball.game.sim.cloth import corners_of, rest_positions
 from clothball.game.wire import protocol as P
-from clothball.server import frameloop
 from clothball.server.sim import RoomSim, SimPool
+from clothball.server.sim import worker as sim_worker
 
 from tests.server.conftest import TINY, run, started_room, until
-
-
-@pytest.fixture(autouse=True)
-def native_loop(monkeypatch: pytest.MonkeyPatch) -> None:
-    """These tests are of the native loop, whatever the default."""
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
 
 
 def _random_states(rng: np.random.Generator, count: int):
@@ -81,16 +75,16 @@ def test_the_native_exit_check_gives_exit_edges_answer_over_random_states() -> N
 
 
 def test_the_block_layout_is_the_bindings_and_the_block_says_so() -> None:
-    layout = frameloop.LAYOUT
-    assert frameloop.ROOM_DTYPE.itemsize == layout["room_bytes"]
-    assert frameloop.ROOM_DTYPE.fields["hip_pos"][0].shape == (4, 3)
-    assert frameloop.ENGINE_DTYPE.fields["lateness"][0].shape == (layout["lateness_ring"],)
+    layout = sim_worker.LAYOUT
+    assert sim_worker.ROOM_DTYPE.itemsize == layout["room_bytes"]
+    assert sim_worker.ROOM_DTYPE.fields["hip_pos"][0].shape == (4, 3)
+    assert sim_worker.ENGINE_DTYPE.fields["lateness"][0].shape == (layout["lateness_ring"],)
     pool = SimPool()
     sample = RoomSim(TINY, "cpu", pool=pool)
     try:
         w = sample.worker
-        assert isinstance(w, frameloop.NativeWorker)
-        head = np.frombuffer(w._loop.block(), dtype=np.uint8)
+        assert isinstance(w, sim_worker.FrameWorker)
+        head = np.frombuffer(w.frame_loop.block(), dtype=np.uint8)
         magic = int(head[:8].view(np.uint64)[0])
         version = int(head[8:12].view(np.uint32)[0])
         assert (magic, version) == (layout["magic"], layout["version"])
@@ -107,10 +101,11 @@ def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backe
     """On each backend (CUDA: the batch's graph a frame and its gather copy for meshes)."""
     async def main() -> None:
         got: list = []
+        meshes: list[bytes] = []
         pool = SimPool()
-        sim = RoomSim(TINY, backend, pool=pool, deliver=got.append)
+        sim = RoomSim(TINY, backend, pool=pool, deliver=got.append, deliver_mesh=meshes.append)
         try:
-            assert sim._native and sim.backend == backend
+            assert sim.backend == backend
             sim.start()
             hand = sim.anchors[1] + np.array([0.0, 0.05, 0.0])
             sim.set_hip(1, hand, 7, 12.5)
@@ -133,8 +128,8 @@ def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backe
             assert sim.frame == f
             sim.set_awake(True)
             await until(lambda: sim.frame > f + 50, 10, "awake again")
-            await until(lambda: any(r.mesh for r in got), 10, "a mesh")
-            mesh = P.decode_mesh([r.mesh for r in got if r.mesh][-1])
+            await until(lambda: bool(meshes), 10, "a mesh")
+            mesh = P.decode_mesh(meshes[-1])
             assert mesh.positions.shape == (TINY.n, TINY.n, 3)
             assert np.all(np.isfinite(mesh.positions)) and sim.stats.meshes > 0
             # A round's ball reset (one native call, the loop's lock taken without the GIL):
@@ -151,7 +146,7 @@ def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backe
             assert 2.0 - 0.5 * 9.81 * t * t - 1e-4 < c.ball_position[1] < 2.0
             assert c.ball_velocity[1] < 0
             with pytest.raises(ValueError, match="finite"):
-                sim.worker.set_ball(sim, np.array([0.0, np.nan, 0.0]), np.zeros(3))
+                sim.worker.set_ball(sim.slot, np.array([0.0, np.nan, 0.0]), np.zeros(3))
         finally:
             sim.stop()
             pool.close()
@@ -166,15 +161,14 @@ def test_meshes_come_from_the_loop_for_every_room_at_its_rate() -> None:
     async def main() -> None:
         pool = SimPool()
         got: dict[int, list] = {0: [], 1: []}
-        sims = [RoomSim(TINY, "cpu", pool=pool, deliver=lambda r, k=k: got[k].append(r))
-                for k in range(2)]
+        sims = [RoomSim(TINY, "cpu", pool=pool, deliver_mesh=got[k].append) for k in range(2)]
         try:
             for s in sims:
                 s.start()
-            await until(lambda: all(sum(1 for r in m if r.mesh) >= 3 for m in got.values()),
-                        10, "meshes of both rooms")
+            await until(lambda: all(len(m) >= 3 for m in got.values()), 10,
+                        "meshes of both rooms")
             for k, s in enumerate(sims):
-                meshes = [P.decode_mesh(r.mesh) for r in got[k] if r.mesh]
+                meshes = [P.decode_mesh(m) for m in got[k]]
                 frames = [m.frame for m in meshes]
                 assert frames == sorted(frames) and len(set(frames)) == len(frames)
                 assert all(m.positions.shape == (TINY.n, TINY.n, 3) for m in meshes)
@@ -248,7 +242,6 @@ def test_a_loop_that_cannot_keep_up_still_lets_rooms_in_and_out_and_stops() -> N
             for s in sims:
                 s.start()
             await asyncio.sleep(0.5)
-            assert sims[0].worker.native, "not the native loop"
             f0 = sims[0].frame
             await asyncio.sleep(0.5)
             assert sims[0].frame - f0 < 450, ("1 kHz kept: not a test of a loop behind",
@@ -266,8 +259,7 @@ def test_a_loop_that_cannot_keep_up_still_lets_rooms_in_and_out_and_stops() -> N
     # The machine's cores for the loop, one thread: the rooms are behind wherever this
     # runs (n = 64, the default scene's substeps: tens of ms a frame on one core).
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         timeout=60, env={**os.environ, "OMP_NUM_THREADS": "1",
-                                           frameloop.FRAME_LOOP_ENV: "native"})
+                         timeout=60, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stdout + out.stderr
 
 
@@ -299,7 +291,8 @@ def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() 
             c = corner()
             assert c.hip_time == 3.5 and c.seat == 2
             assert np.allclose(c.force, -sim.stiffness * (hand - c.position), atol=1e-3)
-            frame, raw = view.read_corner(slot, 2)
+            frame, raw, occ = view.read_corner(slot, 2)
+            assert occ == occupant
             assert raw[:1] == bytes([P.CORNER]) and P.decode_corner(raw).frame == frame
             # The seat changes hands: the old occupant's hand is refused, the corner rests.
             sim.set_hip(2, None)

@@ -10,7 +10,6 @@ longer hunt (``CLOTHBALL_FUZZ_EXAMPLES=5000 pytest tests/test_fuzz_server.py``).
 
 from __future__ import annotations
 
-import inspect
 import json
 import os
 import time
@@ -318,27 +317,17 @@ def test_memory_stays_bounded_under_garbage_connections(live: LiveServer) -> Non
                 finish(ws)
             live.http(b"GET /api/replays?player=%00&limit=x HTTP/1.1\r\nHost: h\r\n\r\n")
 
-    # The rooms' lateness samples take their fixed ring (sim.LATENESS_SAMPLES) whatever the
-    # clients do: not what is measured here.
-    not_samples = [tracemalloc.Filter(False, "*/server/sim.py")]
-    # Nor the deflate workspace zlib takes for the length of one MESH's compression on the
-    # rooms' thread (~300 KB, 9 blocks, freed as the call returns): a snapshot taken during
-    # one counted it, and the CI dry runs at 007a1e3 and d79e3fe failed on it. Only that
-    # line of the encoder is left out; the MESH messages it makes are counted as before.
-    src, first = inspect.getsourcelines(P.encode_quantised_mesh)
-    deflate = first + next(k for k, line in enumerate(src) if "zlib.compress(" in line)
-    not_samples.append(tracemalloc.Filter(False, inspect.getsourcefile(P), deflate))
-
     def held() -> int:
         # Cyclic garbage not yet collected (the clients' own connections, mostly) is not
         # held: collected first, so what remains is what the process keeps. The least of a
-        # few snapshots: the rooms' own threads hold a frame's buffers while they work
-        # (a MESH being encoded: ~300 KB caught by one snapshot of the CI run at 007a1e3),
-        # which come and go; what the clients left behind is in every snapshot.
+        # few snapshots: the service threads hold a MESH's bytes while they hand it over
+        # (it was ~300 KB of Python encoding in the CI run at 007a1e3; the frame loop's
+        # ring and its encoders' buffers are C++ now, not traced), which come and go; what
+        # the clients left behind is in every snapshot.
         sizes = []
         for _ in range(3):
             gc.collect()
-            snap = tracemalloc.take_snapshot().filter_traces(not_samples)
+            snap = tracemalloc.take_snapshot()
             sizes.append(sum(t.size for t in snap.traces))
             time.sleep(0.05)
         return min(sizes)

@@ -68,8 +68,8 @@ def test_between_messages_exactly_at_message_boundaries(seed: int, n: int) -> No
 
 
 def lane_payload(seat: int | None) -> bytes:
-    from clothball.server.shared.lanes import Lane, lane_message
-    lane = None if seat is None else Lane("main", 1, 0, seat, 7, (0, 0, 0),
+    from clothball.server.shared.lanes import LaneSpec, lane_message
+    lane = None if seat is None else LaneSpec("main", 1, 0, seat, 7, (0, 0, 0),
                                           (1, 1, 1), 0.008, 500.0, 50.0, 9, 14400)
     return P.encode_json(lane_message(lane)).encode()
 
@@ -295,7 +295,7 @@ def test_a_gateway_without_its_engine_answers_503_saying_so(tmp_path) -> None:
 
 
 def test_the_control_socket_gives_a_gateway_its_frame_wake_up_and_arms_it(tmp_path) -> None:
-    """The engine's control socket (``server.gateways``) as a gateway speaks to it
+    """The engine's control socket (``server.lanes.control``) as a gateway speaks to it
     (``server.shared.lanes``): ``WAKE`` passes an eventfd, the same one the engine hands
     its frame loops on ``ARM`` and takes back on ``DISARM`` and when the gateway's
     connection ends (then closing its own descriptor); a line that is none of these is
@@ -303,7 +303,7 @@ def test_the_control_socket_gives_a_gateway_its_frame_wake_up_and_arms_it(tmp_pa
     import os
     import socket
 
-    from clothball.server.gateways import GatewayControl
+    from clothball.server.lanes.control import GatewayControl
     from clothball.server.shared import lanes
 
     async def main() -> None:

@@ -74,7 +74,9 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
     # names the engine's event loop; its busiest entry is at least the busiest thread.
     threads = step["server_threads_cores"]
     assert step["server_cpu_cores"] >= sum(threads.values()) - 0.05
-    assert threads["engine event loop"] > 0
+    # (named, whatever it used: with the lanes in the gateway, the engine's event loop sees
+    # control messages only, a few ticks or none in a short step)
+    assert "engine event loop" in threads
     assert max(threads.values()) >= step["server_busiest_thread_cores"] - 1e-9
     assert step["clients_cpu_cores"] >= step["client_process_cores_max"] > 0
     assert step["corner_hz_asked"] == corner_hz
@@ -95,14 +97,12 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
 @pytest.mark.slow
 def test_load_bench_runs_and_reports_every_step(tmp_path) -> None:
     dest = tmp_path / "load.json"
-    out = subprocess.run([*BENCH, *TINY, "--frame-loop", "python", "--json", str(dest)],
+    out = subprocess.run([*BENCH, *TINY, "--json", str(dest)],
                          capture_output=True, text=True, timeout=180, check=True)
     r = json.loads(dest.read_text())
     assert r["n"] == 12 and r["scene"] == "classic" and r["spectators_per_room"] == 1
     assert r["hip_rate_hz"] == 120 and r["corner_rate_hz"] == 120  # the desktop client's
     assert r["cpus"] >= 1 and r["client_processes"] >= 1 and r["workers"] == 1
-    # --frame-loop reached the server process as CLOTHBALL_FRAME_LOOP (it says what it got)
-    assert r["frame_loop"] == "python" and "frame loop python" in out.stderr
     assert [s["rooms"] for s in r["steps"]] == [1, 2]
     for i, step in enumerate(r["steps"], start=1):
         _check_step(step, i, i, 1, 120.0, 120.0)
@@ -207,13 +207,6 @@ def test_load_bench_refuses_a_bad_flag_from_the_command_line() -> None:
     assert out.stderr.strip().splitlines() == [
         "clothball bench: --hip-rate must be more than 0 and at most 1000 (HIP messages a "
         "second per player), got -5"]
-
-
-def test_load_bench_refuses_an_unknown_frame_loop() -> None:
-    out = subprocess.run([*BENCH, "--frame-loop", "fast"], capture_output=True, text=True,
-                         timeout=60)
-    assert out.returncode == 2 and "Traceback" not in out.stderr
-    assert "--frame-loop" in out.stderr and "invalid choice" in out.stderr
 
 
 def test_room_counts_start_with_one_room_then_add_k_a_step() -> None:

@@ -16,15 +16,10 @@ import numpy as np
 import pytest
 from clothball import _native
 from clothball.game.wire import protocol as P
-from clothball.server import frameloop
 from clothball.server.sim import SimPool
+from clothball.server.sim import worker as sim_worker
 
 from tests.server.conftest import run, started_room, until
-
-pytestmark = pytest.mark.skipif(
-    not hasattr(_native, "encode_mesh_msg"),
-    reason="this build of clothball found no zlib headers (zlib1g-dev): the server encodes "
-           "MESH in Python; reinstall with them to have the native encoder")
 
 HEAD = P.HEADER.size + P.MESH_BODY.size
 
@@ -69,18 +64,17 @@ def test_the_loops_mesh_is_the_python_encoders_for_random_cloths(compress: bool)
         _same(ours, _python(*args))
 
 
-def test_a_live_loops_meshes_are_on_its_board(monkeypatch) -> None:
+def test_a_live_loops_meshes_are_on_its_board() -> None:
     """A running room's MESH from the service thread (``take_encoded``): what the room
     delivers is what the board's slot holds (when of the same frame), an n x n cloth with
     the scene's ball."""
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
 
     async def main() -> None:
-        got: list = []
-        with started_room(got.append) as sim:
+        got: list[bytes] = []
+        with started_room(deliver_mesh=got.append) as sim:
             w = sim.worker
-            await until(lambda: sum(r.mesh is not None for r in got) >= 3, 10, "meshes")
-            mesh = [r.mesh for r in got if r.mesh is not None][-1]
+            await until(lambda: len(got) >= 3, 10, "meshes")
+            mesh = got[-1]
             assert w.board is not None
             frame, raw = _native.board_read(w.board, sim.slot * w.board_slot, w.board_slot, -1)
             m = P.decode_mesh(mesh)
@@ -94,18 +88,16 @@ def test_a_live_loops_meshes_are_on_its_board(monkeypatch) -> None:
     run(main())
 
 
-def test_a_board_too_small_for_the_meshes_is_refused(monkeypatch) -> None:
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+def test_a_board_too_small_for_the_meshes_is_refused() -> None:
     with started_room() as sim, pytest.raises(ValueError, match="board"):
-        sim.worker._loop.take_encoded(bytearray(64 * 4), 64, 0.1, True)
+        sim.worker.frame_loop.take_encoded(bytearray(64 * 4), 64, 0.1, True)
 
 
 def test_meshes_encoded_on_several_threads_land_in_their_own_rooms_slots(monkeypatch) -> None:
     """MESH_THREADS threads share out the due rooms' meshes (native/loop/work_pool.hpp):
     each room's delivered MESH is the one in its own slot of the board (when of the same
     frame), for every room of one loop."""
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
-    monkeypatch.setattr(frameloop, "MESH_THREADS", 3)
+    monkeypatch.setattr(sim_worker, "MESH_THREADS", 3)
     rooms = 6
 
     async def main() -> None:
@@ -113,20 +105,19 @@ def test_meshes_encoded_on_several_threads_land_in_their_own_rooms_slots(monkeyp
         got: list[list] = [[] for _ in range(rooms)]
         try:
             with contextlib.ExitStack() as stack:
-                sims = [stack.enter_context(started_room(got[k].append, pool))
+                sims = [stack.enter_context(started_room(deliver_mesh=got[k].append, pool=pool))
                         for k in range(rooms)]
                 w = sims[0].worker
-                assert all(s.worker is w for s in sims) and w._encoders == 3
-                await until(lambda: all(sum(r.mesh is not None for r in g) >= 3 for g in got),
-                            20, "every room's meshes")
+                assert all(s.worker is w for s in sims) and w.encoders == 3
+                await until(lambda: all(len(g) >= 3 for g in got), 20, "every room's meshes")
                 # No pass while the board is read, and the meshes already taken delivered
                 # by then: each room's newest delivered MESH is its slot's.
-                w._loop.lock()
+                w.frame_loop.lock()
                 try:
                     await asyncio.sleep(0.5)
                     slots = set()
                     for sim, g in zip(sims, got, strict=True):
-                        mesh = [r.mesh for r in g if r.mesh is not None][-1]
+                        mesh = g[-1]
                         frame, raw = _native.board_read(w.board, sim.slot * w.board_slot,
                                                         w.board_slot, -1)
                         assert raw == mesh and P.decode_mesh(raw).frame == frame
@@ -134,14 +125,13 @@ def test_meshes_encoded_on_several_threads_land_in_their_own_rooms_slots(monkeyp
                         slots.add(sim.slot)
                     assert len(slots) == rooms
                 finally:
-                    w._loop.unlock()
+                    w.frame_loop.unlock()
         finally:
             pool.close()
 
     run(main())
 
 
-def test_mesh_encoder_threads_out_of_range_are_refused(monkeypatch) -> None:
-    monkeypatch.setenv(frameloop.FRAME_LOOP_ENV, "native")
+def test_mesh_encoder_threads_out_of_range_are_refused() -> None:
     with started_room() as sim, pytest.raises(ValueError, match="threads"):
-        sim.worker._loop.take_encoded(None, 0, 0.1, True, 0)
+        sim.worker.frame_loop.take_encoded(None, 0, 0.1, True, 0)

@@ -19,7 +19,7 @@ from clothball.server.room import RoomSettings
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from tests.server.conftest import FAST, http_get, http_json, run, server, until
+from tests.server.conftest import FAST, hand_of, http_get, http_json, run, server, until
 from tests.server.workers import public_port
 
 HELLO = {"type": "hello", "version": P.PROTOCOL_VERSION}
@@ -144,6 +144,23 @@ def test_limits_from_the_command_line_are_checked() -> None:
                       ("max_rooms=0", "> 0"), ("control_rate=-1", "> 0")]:
         with pytest.raises(ValueError, match=what):
             Limits().with_setting(bad)
+    # One rule, as docs/security.md states it: a finite number > 0, or 0 for exactly the
+    # limits it names (each row then says what 0 means).
+    from dataclasses import fields
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "security.md").read_text()
+    rule = doc[doc.index("--limit NAME=VALUE"):doc.index("refuses to start")]
+    zero_ok = {f.name for f in fields(Limits) if f"`{f.name}`" in rule}
+    assert zero_ok == {"admit_load", "admit_lateness_ms", "admit_cores"}
+    for f in fields(Limits):
+        if f.type not in (int, "int", float, "float"):
+            continue
+        if f.name in zero_ok:
+            assert getattr(Limits().with_setting(f"{f.name}=0"), f.name) == 0
+        else:
+            with pytest.raises(ValueError, match="> 0"):
+                Limits().with_setting(f"{f.name}=0")
     assert parse_origins(None) is None
     assert parse_origins(["https://a.example/"]) == ("https://a.example",)
     with pytest.raises(ValueError, match="origin"):
@@ -167,7 +184,7 @@ def test_a_spectator_cannot_act_as_a_player(tmp_path) -> None:
                     await spec.request(t, **fields)
                 assert e.value.code == "not_allowed", t
             await asyncio.sleep(0.2)
-            assert room.sim._hip_slots == [None] * 4  # no corner was moved
+            assert all(hand_of(room, k) == (0, None) for k in range(4))  # none moved
             assert all(s.kind == "empty" for s in room.seats)
             await spec.close()
 
@@ -186,14 +203,15 @@ def test_a_player_moves_only_its_own_corner(tmp_path) -> None:
             for _ in range(50):
                 await a.send_hip(lifted)
                 await asyncio.sleep(0.002)
-            await until(lambda: room.sim._hip_slots[0] is not None, 5)
-            assert np.allclose(room.sim._hip_slots[0][0], lifted, atol=1e-6)
-            assert room.sim._hip_slots[1] is None  # b's corner rests at its anchor
+            await until(lambda: hand_of(room, 0)[0] > 0, 5)
+            assert np.allclose(hand_of(room, 0)[1], lifted, atol=1e-6)
+            assert hand_of(room, 1) == (0, None)  # b's corner rests at its anchor
             # a HIP aimed at b's corner is outside a's reach box: refused
             await a.send_hip(room.anchors[1])
             err = await a.wait_for(lambda m: m["type"] == "error")
             assert err["code"] == "out_of_range" and "seat 0" in err["message"]
-            assert room.sim._hip_slots[1] is None
+            await asyncio.sleep(0.05)
+            assert hand_of(room, 1) == (0, None)
             # no second seat, no taking b's seat away, no removing a human as a bot
             with pytest.raises(ServerError) as e:
                 await a.join(room.id, seat=1)

@@ -156,9 +156,10 @@ def test_corners_reach_the_player_in_frame_order(tmp_path) -> None:
             assert p.counts["bad"] == 0
             assert all(b > a for a, b in zip(frames, frames[1:], strict=False))
             conn = next(c for c in srv.clients if c.seat == 1)
-            # from the engine's frame hand-over; or, where the player came through a gateway
-            # that serves its lane, from the gateway: the engine sent only its few replies
-            assert conn.sent >= len(frames) if not conn.lane else conn.sent < 20, conn.sent
+            # from the engine's lane; or, where the player came through a gateway that serves
+            # its lane, from the gateway: the engine sent only its few replies
+            assert conn.sent >= len(frames) if not conn.relayed_lane else conn.sent < 20, \
+                conn.sent
             await p.close()
 
     run(main())

@@ -216,3 +216,46 @@ def test_http_surface(tmp_path) -> None:
             assert status == 200 and b"clothball" in body  # the placeholder page
 
     run(main())
+
+
+def test_a_seat_that_changes_hands_echoes_nothing_of_its_former_occupant(tmp_path) -> None:
+    """docs/protocol.md: a CORNER's ``seq`` is the last HIP the server applied for this
+    seat, from its present occupant. Twenty times, with the machine loaded by two busy
+    processes: a bot holds seat 1 and its HIPs are applied; a human joins and takes the seat
+    from it at once (the bot's hand was in the newest frame as the seat changed hands);
+    every CORNER the human gets before it sends a HIP says seq 0 and no time, never the
+    bot's, whichever way the server serves it (one process, or the gateway's lane)."""
+    import math
+    import subprocess
+    import sys
+
+    busy = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(2)]
+
+    async def main() -> None:
+        async with server(tmp_path, settings=RoomSettings()) as srv:
+            owner = await NetClient.connect(srv.ws_url, name="owner")
+            rid = (await owner.request("create_room", name="handovers"))["room"]
+            await owner.join(rid, seat=0)
+            room = srv.lobby.rooms[rid]
+            for k in range(20):
+                await owner.request("add_bot", seat=1)
+                await until(lambda: room.seats[1].connected and room.sim.hip_echo(1)[0] > 0,
+                            20, "the bot's HIPs applied")
+                human = await NetClient.connect(srv.ws_url, name=f"human{k}")
+                got: list = []
+                human.on_corner = got.append
+                await human.join(rid, seat=1)
+                await until(lambda g=got: len(g) >= 10, 10, "the human's CORNERs")
+                stale = [(c.frame, c.hip_seq, c.hip_time) for c in got
+                         if c.hip_seq != 0 or not math.isnan(c.hip_time)]
+                assert not stale, (k, stale[:3])
+                await human.request("leave")
+                await human.close()
+            await owner.close()
+
+    try:
+        run(main())
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()

@@ -1,28 +1,21 @@
-"""The room's simulation thread (how it catches up, the catch-up bound) and the MESH fan-out
-(every spectator served when it is spread over several passes of the event loop)."""
+"""The room's frame loop (how it catches up, the catch-up bound, under a test's clock set
+natively: ``SimPool(manual_clock=True)``), wind gusts stepped by the loop as a lone cloth
+steps them, and the MESH fan-out (every spectator served, the same meshes)."""
 
 from __future__ import annotations
 
 import asyncio
 import time
 
+import numpy as np
 from clothball.game.net.client import NetClient
+from clothball.game.sim.cloth import Cloth
+from clothball.game.sim.scene import Scene
 from clothball.game.wire.protocol import decode_mesh
-from clothball.server import room as room_mod
 from clothball.server.room import RoomSettings
-from clothball.server.sim import RoomSim
+from clothball.server.sim import RoomSim, SimPool
 
 from tests.server.conftest import TINY, run, server
-
-
-class ManualClock:
-    """A clock that moves only when the test moves it (the thread still sleeps for real)."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def wait_for(cond, what: str, timeout: float = 30.0) -> None:
@@ -33,29 +26,64 @@ def wait_for(cond, what: str, timeout: float = 30.0) -> None:
 
 
 def test_a_backlog_is_stepped_a_quarter_at_a_time_and_the_excess_skipped() -> None:
-    clock = ManualClock()
-    sim = RoomSim(TINY, "cpu", clock=clock, epoch=0.0, max_catchup=50)
+    pool = SimPool(manual_clock=True, max_catchup=50)
+    sim = RoomSim(TINY, "cpu", pool=pool)
     sim.start()
     try:
         st = sim.stats
-        clock.t = 10.5 * sim.frame_dt  # ten frames due at once
+        pool.set_clock(10.5 * sim.frame_dt)  # ten frames due at once
         wait_for(lambda: st.frames >= 10, "ten frames")
         # Not one batch: steps of 3, 2, 2, 1, 1, 1 frames, each with the newest HIPs and
         # its own corner state.
         assert (st.frames, st.steps, st.skipped_frames) == (10, 6, 0)
         assert len(st.lateness) == 6
-        clock.t = 210.5 * sim.frame_dt  # 200 more due: 50 are simulated, 150 skipped
+        pool.set_clock(210.5 * sim.frame_dt)  # 200 more due: 50 are simulated, 150 skipped
         wait_for(lambda: st.frames >= 60, "the catch-up")
         time.sleep(0.05)  # nothing more is due: the thread sleeps
         # 50 frames in steps of 13, 10, 7, 6, 4, 3, 2, 2, 1, 1, 1.
         assert (st.frames, st.steps, st.skipped_frames) == (60, 17, 150)
         assert sim.frame == 60
+        assert sim.now() == 210.5 * sim.frame_dt
     finally:
         sim.stop()
+        pool.close()
 
 
-def test_every_spectator_gets_the_mesh_when_the_fan_out_takes_several_passes(tmp_path) -> None:
-    n_spec = 3 * room_mod.MESH_FANOUT_CHUNK + 1
+def test_wind_gusts_are_blown_by_the_loop_as_a_lone_cloth_blows_them() -> None:
+    """The windy scene's gusts (the wind changes every frame) on the native loop, under a
+    test's clock, a frame a pass: after the same frames, with the hands at their anchors,
+    the room's cloth is the lone ``Cloth``'s (CPU, one thread, the same frames), bit for
+    bit, and not the cloth a steady wind blows."""
+    windy = Scene.load("windy").with_changes({"cloth": {"n": 12}})
+    assert windy["wind"]["gust_amplitude"] > 0
+    got: list = []
+    pool = SimPool(manual_clock=True, max_catchup=400)
+    sim = RoomSim(windy, "cpu", pool=pool, deliver=got.append)
+    frames = 300
+    try:
+        sim.start()
+        dt = sim.frame_dt
+        for k in range(1, frames + 1):  # a frame a pass: each the newest hands'
+            pool.set_clock((k + 0.5) * dt)
+            wait_for(lambda k=k: sim.frame >= k, f"frame {k}")
+        nodes = sim.worker.batch.positions(sim.slot)
+    finally:
+        sim.stop()
+        pool.close()
+    lone = Cloth(windy, backend="cpu", threads=1)
+    lone.step(frames)
+    np.testing.assert_array_equal(nodes, lone.positions())
+    still = Cloth(windy.with_changes({"wind": {"gust_amplitude": 0.0}}), backend="cpu",
+                  threads=1)
+    still.step(frames)
+    assert np.abs(still.positions() - nodes).max() > 1e-4
+
+
+def test_every_spectator_gets_the_same_meshes(tmp_path) -> None:
+    """25 spectators of one room: each gets the room's MESH at its rate, the same frames
+    (their lanes send each newer MESH from the room's board on one look for all of them:
+    server.lanes)."""
+    n_spec = 25
 
     async def main() -> None:
         async with server(tmp_path, settings=RoomSettings()) as srv:
