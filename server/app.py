@@ -18,6 +18,7 @@ import time
 import urllib.parse
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,56 +50,76 @@ LOBBY_PUSH_S = 0.5  # how often lobby clients' room list is checked for changes
 PRUNE_PAUSE_S = 0.05  # s between batches of a pruning backlog (saves and checks go between)
 SHOW_ROOM_TRIES = 8  # ids the show room's claim tries (main, main-<host>, then random ones)
 
-class GameServer:
-    """The clothball server. ``await start()``, then ``await stop()`` (or ``run_forever``)."""
+@dataclass(frozen=True)
+class ServerConfig:
+    """What a ``GameServer`` is made with: ``clothball host``'s options, and what the tests
+    and benches set."""
 
-    def __init__(self, data_dir: Path | str, *, scenes: dict[str, Scene] | None = None,
-                 backend: str = "auto", host: str = "127.0.0.1", port: int = 8765,
-                 bots: int = 0, room_settings: RoomSettings | None = None,
-                 default_room: bool = True, web_dir: Path | None = None,
-                 bot_factory: Callable[..., Any] | None = None,
-                 hello_timeout: float | None = None, limits: Limits | None = None,
-                 origins: tuple[str, ...] | None = None, host_token: str | None = None,
-                 trusted_proxies: tuple[Any, ...] = (),
-                 directory: Directory | None = None, public_port: int | None = None,
-                 engine_socket: Path | None = None,
-                 advertise: str | None = None, host_id: str | None = None,
-                 db: str | None = None) -> None:
-        if scenes is None:
-            scenes = {"classic": Scene.load("classic")}
+    data_dir: Path | str
+    scenes: dict[str, Scene] | None = None  # None: the classic scene alone
+    backend: str = "auto"
+    host: str = "127.0.0.1"
+    port: int = 8765
+    bots: int = 0  # in the host's own room (0..4)
+    room_settings: RoomSettings | None = None  # of the host's own room
+    default_room: bool = True  # the host's own room, "main"
+    web_dir: Path | None = None
+    hello_timeout: float | None = None  # overrides limits.hello_timeout
+    limits: Limits | None = None
+    origins: tuple[str, ...] | None = None  # websocket Origin allow-list (None: any)
+    host_token: str | None = None  # the host's credential (None: a new one, kept on disk)
+    trusted_proxies: tuple[Any, ...] = ()  # peers whose X-Forwarded-For names the client
+    # The engine of a host of several processes (`clothball host --workers`,
+    # docs/architecture.md): its gateways listen on the public port (the port players are
+    # given) and bring every connection here through the Unix socket ``engine_socket``.
+    public_port: int | None = None
+    engine_socket: Path | None = None
+    # One of several hosts of a cluster: the address this host is reached at, its id, and
+    # the replay index in PostgreSQL (its rows name this host by its HTTP address).
+    advertise: str | None = None
+    host_id: str | None = None
+    db: str | None = None
+
+
+class GameServer:
+    """The clothball server. ``await start()``, then ``await stop()`` (or ``run_forever``).
+    ``directory``: the rooms' directory it shares with other processes or hosts;
+    ``bot_factory``: how its bots are made (tests)."""
+
+    def __init__(self, config: ServerConfig, *, directory: Directory | None = None,
+                 bot_factory: Callable[..., Any] | None = None) -> None:
+        c = config
+        self.config = c
+        scenes = c.scenes if c.scenes is not None else {"classic": Scene.load("classic")}
+        backend = c.backend
         self.scenes = scenes
         self.backend = backend
-        self.host = host
-        self.port = port
-        self.bots = max(0, min(4, bots))
-        self.room_settings = room_settings
-        self.default_room = default_room
-        self.web_dir = web_dir or WEB_DIR
-        self.data_dir = Path(data_dir)
+        self.host = c.host
+        self.port = c.port
+        self.bots = max(0, min(4, c.bots))
+        self.room_settings = c.room_settings
+        self.default_room = c.default_room
+        self.web_dir = c.web_dir or WEB_DIR
+        self.data_dir = Path(c.data_dir)
         self.epoch = time.perf_counter()
-        # The engine of a host of several processes (`clothball host --workers`,
-        # docs/architecture.md): its gateways listen on the public port (the port
-        # players are given) and bring every connection here through the Unix socket
-        # ``engine_socket``. One of several hosts of a cluster: the rooms' directory they
-        # share and the address this host is reached at.
         self.directory = directory
-        self.public_port = public_port
-        self.engine_socket = engine_socket
-        self.advertise = advertise
-        self.host_id = host_id or secrets.token_hex(6)
+        self.public_port = c.public_port
+        self.engine_socket = c.engine_socket
+        self.advertise = c.advertise
+        self.host_id = c.host_id or secrets.token_hex(6)
         self._gateways: Server | None = None
         self._control: GatewayControl | None = None  # the gateways' control socket
-        self.limits = limits or DEFAULT
-        if hello_timeout is not None:
-            self.limits = self.limits.replace(hello_timeout=hello_timeout)
-        self.origins = origins  # websocket Origin allow-list (None: any)
+        self.limits = c.limits or DEFAULT
+        if c.hello_timeout is not None:
+            self.limits = self.limits.replace(hello_timeout=c.hello_timeout)
+        self.origins = c.origins
         # The host's own credential (/api/stats?reset=1), kept in DATA/host-token, which
         # only the host's account can read (see _share_host_token).
-        self.host_token = host_token or secrets.token_urlsafe(24)
-        self._token_given = host_token is not None
+        self.host_token = c.host_token or secrets.token_urlsafe(24)
+        self._token_given = c.host_token is not None
         # Peers whose X-Forwarded-For names the client (limits.parse_trusted_proxies), and
         # the key in the URL of the server's own bots (their connections take no slot).
-        self.trusted_proxies = trusted_proxies
+        self.trusted_proxies = c.trusted_proxies
         self.house_key = secrets.token_urlsafe(16)
         # A data directory that cannot be written does not stop the game: matches go on
         # without recording, stored rounds are served if they can be read, every place
@@ -107,8 +128,8 @@ class GameServer:
         # ``db``: the replay index in PostgreSQL, shared by a cluster's hosts; its rows name
         # this host by its HTTP address, known once it listens (``start``).
         self.storage = Storage(self.data_dir, retention=Retention.from_limits(lim),
-                               min_free_bytes=int(lim.storage_min_free_mib * 2**20), db=db)
-        if db is None:
+                               min_free_bytes=int(lim.storage_min_free_mib * 2**20), db=c.db)
+        if c.db is None:
             self.storage.check_now()
         # Every room of a scene is a slot of that scene's worker: one call steps them all.
         self.sims = SimPool(epoch=self.epoch, spool_dir=spool_dir_for(self.data_dir))
@@ -116,23 +137,17 @@ class GameServer:
         # and MESH, by the lane code its gateways run.
         self.lane_links = LocalLinks(self.sims.local_shares, self.sims.set_wake)
         self._share_host_token()
-        self.lobby = Lobby(scenes, self, backend=backend,
-                           max_rooms=self.limits.max_rooms, sims=self.sims)
+        self.lobby = Lobby(scenes, self, backend=backend, max_rooms=self.limits.max_rooms,
+                           sims=self.sims, hooks=_LobbyHooks(self))
         # Admission control: the server's own measure of what more it can run.
         self.headroom = Headroom(self.sims, lim.admit_lateness_ms, load=lim.admit_load,
                                  cores=lim.admit_cores, backend=backend)
-        self.lobby.busy = lambda: self.headroom.busy
-        self.lobby.admit = lambda scene: self.headroom.refusal(
-            scene, [r.scene for r in self.lobby.rooms.values()])
         # Every directory call runs on these threads, bounded by IO_TIMEOUT_S: a hung store
         # never holds the event loop (joins wait for a read made for all of them at once).
         self._dir_pool = ThreadPoolExecutor(3, thread_name_prefix="directory",
                                             initializer=name_os_thread)
         self._reads = OnDemand(self._read_directory, MIN_READ_GAP_S)
         self._publications = OnDemand(self._publish_rooms)
-        self.lobby.fresh_view = lambda: self._reads.after_now(IO_TIMEOUT_S)
-        self.lobby.publish_now = self._publish_now
-        self.lobby.index_error = lambda: self.storage.index_error
         self.clients: set[Conn] = set()
         self.per_address: collections.Counter[str] = collections.Counter()
         self._server: Server | None = None
@@ -617,3 +632,26 @@ def default_data_dir() -> Path:
 
 
 __all__ = ["GameServer", "default_data_dir"]
+
+
+class _LobbyHooks:
+    """The server's answers to its lobby (``server.lobby.LobbyHooks``)."""
+
+    def __init__(self, srv: GameServer) -> None:
+        self._srv = srv
+
+    def busy(self) -> str | None:
+        return self._srv.headroom.busy
+
+    def admit(self, scene: Scene) -> str | None:
+        return self._srv.headroom.refusal(scene,
+                                          [r.scene for r in self._srv.lobby.rooms.values()])
+
+    def fresh_view(self) -> Awaitable[bool]:
+        return self._srv._reads.after_now(IO_TIMEOUT_S)
+
+    def publish_now(self) -> Awaitable[bool] | None:
+        return self._srv._publish_now()
+
+    def index_error(self) -> str | None:
+        return self._srv.storage.index_error

@@ -2,7 +2,7 @@
 
 ``docs/security.md`` documents each one (what it bounds, its default, how a client is
 told). A host changes them with ``clothball host --limit NAME=VALUE`` (repeatable) and
-restricts browser origins with ``--origin URL``; in Python, ``GameServer(limits=...)``.
+restricts browser origins with ``--origin URL``; in Python, ``ServerConfig(limits=...)``.
 """
 
 from __future__ import annotations

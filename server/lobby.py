@@ -7,7 +7,7 @@ import contextlib
 import logging
 import secrets
 from collections.abc import Awaitable, Callable, Iterator
-from typing import Any
+from typing import Any, Protocol
 
 from ..game.sim.scene import Scene
 from ..game.wire import protocol as P
@@ -21,10 +21,59 @@ log = logging.getLogger("clothball.server")
 MAX_ROOMS = 32  # the default of Limits.max_rooms
 
 
+class LobbyHooks(Protocol):
+    """What a lobby asks of its server (``server.app.GameServer``'s), besides a room's
+    ``RoomHost`` calls."""
+
+    def busy(self) -> str | None:
+        """Why no room more fits on this server now (``server.headroom``); None: room to
+        spare."""
+        ...
+
+    def admit(self, scene: Scene) -> str | None:
+        """Why a new room of ``scene`` would not fit beside the open ones (and what it
+        would cost); None: it fits."""
+        ...
+
+    def fresh_view(self) -> Awaitable[bool]:
+        """A read of the shared directory begun after now, shared by every join waiting for
+        one (a room made elsewhere since the last read): True once read, False timed
+        out."""
+        ...
+
+    def publish_now(self) -> Awaitable[bool] | None:
+        """This process's rooms published soon; a new room's reply waits for it, so the room
+        is in the directory before anyone is told its id. None: nothing to wait for."""
+        ...
+
+    def index_error(self) -> str | None:
+        """Why the shared replay index cannot be written now (rounds wait as files)."""
+        ...
+
+
+class AlwaysRoom:
+    """``LobbyHooks`` of a lobby that is the whole service and never full."""
+
+    def busy(self) -> str | None:
+        return None
+
+    def admit(self, scene: Scene) -> str | None:
+        return None
+
+    async def fresh_view(self) -> bool:
+        return True
+
+    def publish_now(self) -> Awaitable[bool] | None:
+        return None
+
+    def index_error(self) -> str | None:
+        return None
+
+
 class Lobby:
     def __init__(self, scenes: dict[str, Scene], host: RoomHost, backend: str = "auto",
                  max_rooms: int = MAX_ROOMS, room_factory: Callable[..., Room] = Room,
-                 sims: SimPool | None = None) -> None:
+                 sims: SimPool | None = None, hooks: LobbyHooks | None = None) -> None:
         if not scenes:
             raise ValueError("scenes: at least one scene is needed")
         self.scenes = scenes
@@ -41,21 +90,8 @@ class Lobby:
         self.me: HostEntry | None = None
         self.peers: Snapshot | None = None
         self.directory_error: str | None = None  # why the others' rooms are not listed
-        # A read of the directory begun after now, shared by every join waiting for one
-        # (a room made elsewhere since the last read): True once read, False timed out.
-        self.fresh_view: Callable[[], Awaitable[bool]] | None = None
+        self.hooks: LobbyHooks = hooks or AlwaysRoom()
         self._fresh = False  # lookups now are answered from a view read after they came
-        # Publishes this process's rooms soon; a new room's reply waits for it, so the room
-        # is in the directory before anyone is told its id (else another process could
-        # answer a join with unknown_room). None: nothing to wait for.
-        self.publish_now: Callable[[], Awaitable[bool] | None] = lambda: None
-        # Why no room more fits on this server now (server.headroom); None: room to spare.
-        self.busy: Callable[[], str | None] = lambda: None
-        # Why a new room of this scene would not fit beside the open ones (the same, and
-        # what the room would cost); None: it fits.
-        self.admit: Callable[[Scene], str | None] = lambda scene: None
-        # Why the shared replay index cannot be written now (rounds wait as files), or None.
-        self.index_error: Callable[[], str | None] = lambda: None
 
     def create(self, name: str, scene: str | None = None, *, public: bool = True,
                settings: RoomSettings | None = None, owner: str | None = None,
@@ -66,7 +102,7 @@ class Lobby:
         scene_name = self.scene_name(scene)
         if len(self.rooms) >= self.max_rooms:
             raise ProtocolError("server_busy", f"this server already runs {self.max_rooms} rooms")
-        why = None if permanent else self.admit(self.scenes[scene_name])
+        why = None if permanent else self.hooks.admit(self.scenes[scene_name])
         if why is not None:
             raise ProtocolError("server_busy", why)
         if room_id is None:
@@ -83,7 +119,7 @@ class Lobby:
         if self.me is not None:
             self.me.rooms = len(self.rooms)  # placement sees this room before it is published
         room.start()
-        room.published = self.publish_now()
+        room.published = self.hooks.publish_now()
         log.info("room %s (%s) created: scene %s, %s", room_id, name, scene_name,
                  "public" if public else "private")
         return room
@@ -105,7 +141,7 @@ class Lobby:
             return self.rooms[room_id]
         if isinstance(room_id, str) and self.peers is not None and self.me is not None:
             there = self.peers.locate(room_id)
-            if there is None and not self._fresh and self.fresh_view is not None:
+            if there is None and not self._fresh:
                 raise NotInView(room_id)  # perhaps made elsewhere since the last read
             if there is not None and there.host_id != self.me.host_id:
                 raise Moved(there.address, f"room {room_id} lives at {there.address}")
@@ -128,7 +164,7 @@ class Lobby:
         if self.peers is None or self.me is None:
             return
         self.me.rooms, self.me.clients = len(self.rooms), clients
-        self.me.busy = self.admit(self.scenes[self.default_scene]) is not None
+        self.me.busy = self.hooks.admit(self.scenes[self.default_scene]) is not None
         hosts = dict(self.peers.hosts)
         hosts[self.me.host_id] = self.me  # this process's own load as of now
         best = min(hosts.values(), key=lambda h: (h.load, h.host_id != self.me.host_id))
@@ -168,7 +204,7 @@ class Lobby:
         msg: dict[str, Any] = {"type": "rooms", "rooms": self.listing()}
         if self.directory_error is not None:
             msg["directory_error"] = self.directory_error
-        index_error = self.index_error()
+        index_error = self.hooks.index_error()
         if index_error is not None:
             msg["replay_index_error"] = index_error
         return msg

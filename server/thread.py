@@ -10,12 +10,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .app import GameServer
+from .app import GameServer, ServerConfig
 
 
 class ServerThread:
-    """``GameServer(data_dir, **kw)`` (loopback and a free port unless ``kw`` says
-    otherwise) on its own event loop thread. ``start()`` returns once it listens; use it as
+    """``GameServer(ServerConfig(data_dir, **kw))`` (loopback and a free port unless ``kw``
+    says otherwise; ``directory`` and ``bot_factory`` go to the server) on its own event
+    loop thread. ``start()`` returns once it listens; use it as
     a context manager to stop it on the way out."""
 
     def __init__(self, data_dir: Path | str, **kw: Any) -> None:
@@ -44,7 +45,9 @@ class ServerThread:
         loop = asyncio.new_event_loop()
         asyncio.set_event_loop(loop)
         self.loop = loop
-        srv = GameServer(self.data_dir, **self.kw)
+        kw = dict(self.kw)
+        collaborators = {k: kw.pop(k) for k in ("directory", "bot_factory") if k in kw}
+        srv = GameServer(ServerConfig(self.data_dir, **kw), **collaborators)
         try:
             loop.run_until_complete(srv.start())
         except BaseException as e:  # noqa: BLE001 - reported by start()

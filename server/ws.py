@@ -362,8 +362,8 @@ class WsEndpoint:
             if isinstance(reply, Later):
                 return self._answer_later(conn, re, reply.wait, reply.reply, fresh=False)
         except NotInView:  # a room made elsewhere since the last read: asked once it is read
-            assert self.srv.lobby.fresh_view is not None
-            return self._answer_later(conn, re, self.srv.lobby.fresh_view(), call, fresh=True)
+            return self._answer_later(conn, re, self.srv.lobby.hooks.fresh_view(), call,
+                                      fresh=True)
         except ProtocolError as e:
             self.srv.stats["bad_messages"] += 1
             conn.error(e, re=re)
@@ -471,7 +471,7 @@ class WsEndpoint:
         room = self.srv.lobby.get(room_id)
         code = P.field_str(msg, "code", None, max_len=64)
         if room.sim.asleep:  # waking a room costs what a new one does
-            why = self.srv.lobby.busy()
+            why = self.srv.lobby.hooks.busy()
             if why is not None:
                 raise ProtocolError("server_busy", why)
         if role == "player":

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from ...server import loops
-from ...server.app import GameServer, default_data_dir
+from ...server.app import GameServer, ServerConfig, default_data_dir
 from ...server.directory import Directory, RedisDirectory
 from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
@@ -129,14 +129,15 @@ async def serve(args: argparse.Namespace) -> int:
                   "standalone (--cluster-optional)", flush=True)
     # The engine listens on a loopback port of its own (its bots connect there) and on
     # the gateways' socket; players are given the public port.
-    server = GameServer(data, scenes=scenes, backend=args.backend,
-                        host="127.0.0.1" if engine else args.host,
-                        port=0 if engine else args.port,
-                        bots=args.bots, room_settings=settings, limits=limits,
-                        origins=origins, trusted_proxies=trusted, directory=directory,
-                        public_port=args.public_port, engine_socket=args.engine_socket,
-                        advertise=args.advertise or (_public_url(args) if engine else None),
-                        host_id=f"{socket.gethostname()}-{os.getpid()}", db=args.db)
+    config = ServerConfig(data, scenes=scenes, backend=args.backend,
+                          host="127.0.0.1" if engine else args.host,
+                          port=0 if engine else args.port, bots=args.bots,
+                          room_settings=settings, limits=limits, origins=origins,
+                          trusted_proxies=trusted, public_port=args.public_port,
+                          engine_socket=args.engine_socket,
+                          advertise=args.advertise or (_public_url(args) if engine else None),
+                          host_id=f"{socket.gethostname()}-{os.getpid()}", db=args.db)
+    server = GameServer(config, directory=directory)
     try:
         await server.start()
     except OSError as e:

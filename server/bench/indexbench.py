@@ -95,7 +95,7 @@ def _header(i: int, room: str, seats: list[str]) -> dict[str, Any]:
 def serve(data: Path, limits: list[str]) -> None:
     """The server process: prints its port, serves until killed."""
     from ...game.sim.scene import Scene
-    from ..app import GameServer
+    from ..app import GameServer, ServerConfig
     from ..limits import Limits
 
     lim = Limits(replays_max_days=1e6)  # the bench's rounds are dated 2023: keep them
@@ -103,8 +103,8 @@ def serve(data: Path, limits: list[str]) -> None:
         lim = lim.with_setting(text)
 
     async def main() -> None:
-        srv = GameServer(data, scenes={"classic": Scene.load("classic")}, port=0,
-                         default_room=False, limits=lim)
+        srv = GameServer(ServerConfig(data, scenes={"classic": Scene.load("classic")}, port=0,
+                                      default_room=False, limits=lim))
         await srv.start()
         print(srv.port, flush=True)
         await asyncio.Event().wait()

@@ -157,7 +157,7 @@ def bench_scene(args: argparse.Namespace) -> Any:
 
 
 async def _serve(args: argparse.Namespace) -> None:
-    from ..app import GameServer
+    from ..app import GameServer, ServerConfig
     from ..limits import Limits
     from ..room import RoomSettings
 
@@ -176,11 +176,10 @@ async def _serve(args: argparse.Namespace) -> None:
         # Nor may admission control refuse rooms: the bench finds where the server stops.
         limits = Limits(conns_per_address=100_000, rooms_per_address=100_000, max_rooms=100_000,
                         max_clients=1_000_000, spectators_per_room=100_000, admit_lateness_ms=0)
-        srv = GameServer(data, scenes={"bench": scene}, backend=args.server_backend,
-                         host="127.0.0.1", port=0, default_room=not args.no_room,
-                         room_settings=RoomSettings(first_to=99, bots_allowed=False,
-                                                    unguarded=True),
-                         limits=limits, **cluster)
+        srv = GameServer(ServerConfig(data, scenes={"bench": scene}, backend=args.server_backend,
+                                      host="127.0.0.1", port=0, default_room=not args.no_room,
+                                      room_settings=RoomSettings(first_to=99, bots_allowed=False,
+                                                    unguarded=True), limits=limits, **cluster))
         await srv.start()
         room = srv.main_room
         probe = room.sim if room is not None else None

@@ -19,7 +19,7 @@ from typing import Any, TypeVar
 
 import pytest
 from clothball.game.sim.scene import Scene
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 from clothball.server.sim import RoomSim, SimPool
@@ -52,8 +52,9 @@ async def _one_process_server(data: Path, *, bots: int = 0,
     """A started server (scene TINY, CPU, port 0) in this process; ``server`` (below) is
     the tests' entry, with a second process when asked for."""
     kw["limits"] = no_admission(kw.get("limits"))
-    srv = GameServer(data, scenes={"tiny": TINY}, backend=BACKEND, host="127.0.0.1", port=0,
-                     bots=bots, room_settings=settings or RoomSettings(), **kw)
+    srv = GameServer(ServerConfig(data, scenes={"tiny": TINY}, backend=BACKEND, host="127.0.0.1",
+                                  port=0, bots=bots, room_settings=settings or RoomSettings(),
+                                  **kw))
     await srv.start()
     try:
         yield srv

@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from clothball.server.app import GameServer  # noqa: E402
+from clothball.server.app import GameServer, ServerConfig  # noqa: E402
 from clothball.server.room import RoomSettings  # noqa: E402
 
 from tests.server.conftest import BACKEND, FAST, TINY  # noqa: E402
@@ -34,8 +34,8 @@ async def main(data: str, engine_socket: Path | None, public_port: int | None) -
     settings = RoomSettings(**{**FAST, "first_to": 99}, autoplay=True)
     together = {} if engine_socket is None else {"engine_socket": engine_socket,
                                                  "public_port": public_port}
-    srv = GameServer(data, scenes={"tiny": TINY}, backend=BACKEND, port=0, bots=4,
-                     room_settings=settings, **together)
+    srv = GameServer(ServerConfig(data, scenes={"tiny": TINY}, backend=BACKEND, port=0, bots=4,
+                                  room_settings=settings, **together))
     await srv.start()
     print(json.dumps({"port": srv.port, "recording": srv.recording_error or "on"}), flush=True)
     await asyncio.Event().wait()

@@ -8,7 +8,7 @@ import asyncio
 
 from clothball.game.net.client import NetClient, ServerError
 from clothball.game.sim.scene import Scene
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 
@@ -22,13 +22,10 @@ HEAVY.name = "heavy"
 
 def test_rooms_are_refused_once_the_server_measures_itself_at_capacity(tmp_path) -> None:
     async def main() -> None:
-        srv = GameServer(tmp_path, scenes={"heavy": HEAVY, "tiny": TINY}, backend="cpu",
-                         port=0, default_room=False,
-                         # The measured signal alone (the cost model refuses the second
-                         # heavy room at once: test_hostile_load.py).
-                         limits=Limits().replace(rooms_per_address=16, max_rooms=16,
-                                                 admit_load=0),
-                         room_settings=RoomSettings())
+        srv = GameServer(ServerConfig(tmp_path, scenes={"heavy": HEAVY, "tiny": TINY},
+                                      backend="cpu", port=0, default_room=False,
+                                      limits=Limits().replace(rooms_per_address=16, max_rooms=16,
+                                                 admit_load=0), room_settings=RoomSettings()))
         await srv.start()
         clients = []
         try:

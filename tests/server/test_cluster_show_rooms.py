@@ -11,7 +11,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from clothball.game.net.client import NetClient
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 from clothball.server.directory import RedisDirectory, SqliteDirectory
 from clothball.server.room import RoomSettings
 
@@ -31,10 +31,10 @@ def test_two_hosts_started_together_both_list_two_show_rooms(tmp_path: Path) -> 
     async def main() -> None:
         with redis_server(tmp_path) as redis:
             dirs = [RedisDirectory(redis.url) for _ in range(2)]
-            servers = [GameServer(tmp_path / f"data-{k}", scenes={"tiny": TINY},
-                                  backend="cpu", port=0, limits=no_admission(None),
-                                  room_settings=RoomSettings(autoplay=True),
-                                  directory=d, host_id=f"host-{k}-ab{k}c")
+            servers = [GameServer(ServerConfig(tmp_path / f"data-{k}", scenes={"tiny": TINY},
+                                               backend="cpu", port=0, limits=no_admission(None),
+                                               room_settings=RoomSettings(autoplay=True),
+                                               host_id=f"host-{k}-ab{k}c"), directory=d)
                        for k, d in enumerate(dirs)]
             await asyncio.gather(*(s.start() for s in servers))
             try:

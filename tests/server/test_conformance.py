@@ -464,10 +464,11 @@ async def edge_scenario(tmp: Path) -> Edge:
 async def _edge_server(data: Path, limits: Limits, settings: RoomSettings
                        ) -> AsyncIterator[Any]:
     """One process, whatever the session's kind: what it shows is the same in both."""
-    from clothball.server.app import GameServer
+    from clothball.server.app import GameServer, ServerConfig
 
-    srv = GameServer(data, scenes={"tiny": TINY, "unstable": unstable_scene()}, backend="cpu",
-                     host="127.0.0.1", port=0, bots=4, room_settings=settings, limits=limits)
+    srv = GameServer(ServerConfig(data, scenes={"tiny": TINY, "unstable": unstable_scene()},
+                                  backend="cpu", host="127.0.0.1", port=0, bots=4,
+                                  room_settings=settings, limits=limits))
     await srv.start()
     try:
         yield srv

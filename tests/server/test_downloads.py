@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 from clothball.game.wire.replay import new_round_id
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 from clothball.server.http import DOWNLOAD_CHUNK, RangeError, parse_range
 from clothball.server.limits import Limits
 from clothball.server.storage.sqlite import SqliteIndex
@@ -212,8 +212,8 @@ def test_stopping_the_server_cuts_a_stalled_download(tmp_path: Path) -> None:
     rid, whole = save_round(tmp_path, os.urandom(8_000_000), 32)
 
     async def main() -> None:
-        srv = GameServer(tmp_path, port=0, default_room=False,
-                         limits=Limits(download_stall_s=600))
+        srv = GameServer(ServerConfig(tmp_path, port=0, default_room=False,
+                                      limits=Limits(download_stall_s=600)))
         await srv.start()
         s = await asyncio.to_thread(request, srv.port, rid)
         with s:
@@ -234,10 +234,10 @@ def test_stopping_the_server_cuts_a_stalled_download(tmp_path: Path) -> None:
 
 SERVER = """
 import asyncio, json, sys
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 
 async def main():
-    srv = GameServer(sys.argv[1], port=0, default_room=False)
+    srv = GameServer(ServerConfig(sys.argv[1], port=0, default_room=False))
     await srv.start()
     print(json.dumps({"port": srv.port}), flush=True)
     await asyncio.Event().wait()

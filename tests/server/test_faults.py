@@ -27,7 +27,7 @@ import pytest
 from clothball.game.net.client import NetClient
 from clothball.game.sim.scene import Scene
 from clothball.game.wire.replay import read_replay
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 from clothball.server.storage.sqlite import SqliteIndex
@@ -369,8 +369,8 @@ def test_an_unusable_data_directory_turns_recording_off_and_play_goes_on(tmp_pat
 
     async def main() -> None:
         settings = RoomSettings(**{**FAST, "first_to": 99}, autoplay=True)
-        srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", port=0, bots=4,
-                         room_settings=settings)
+        srv = GameServer(ServerConfig(data, scenes={"tiny": TINY}, backend="cpu", port=0, bots=4,
+                                      room_settings=settings))
         await srv.start()
         try:
             assert srv.store is None and srv.recording_error

@@ -30,7 +30,7 @@ import pytest
 from clothball.game.net.client import NetClient, ServerError
 from clothball.game.wire import protocol as P
 from clothball.server import headroom
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 from clothball.server.directory import OnDemand
 from clothball.server.headroom import OWN_LOAD_CORES, SUSTAINED, Headroom, room_cost
 from clothball.server.hostproc import free_port, http_base
@@ -276,8 +276,9 @@ def test_keep_alive_pings_do_not_hold_a_slot_and_a_newcomer_gets_in(tmp_path) ->
 @contextlib.asynccontextmanager
 async def server_of(data: Path, limits: Limits, **kw: Any) -> Any:
     """A one-process server of TINY with these limits as given (admission included)."""
-    srv = GameServer(data, scenes={"tiny": TINY}, backend="cpu", port=0, limits=limits,
-                     room_settings=kw.pop("room_settings", RoomSettings(autoplay=True)), **kw)
+    settings = kw.pop("room_settings", RoomSettings(autoplay=True))
+    srv = GameServer(ServerConfig(data, scenes={"tiny": TINY}, backend="cpu", port=0,
+                                  limits=limits, room_settings=settings, **kw))
     await srv.start()
     try:
         yield srv

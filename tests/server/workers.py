@@ -199,14 +199,14 @@ def pair(data: Path, kw: dict[str, Any], expected_errors: tuple[str, ...] = ()
 @contextlib.asynccontextmanager
 async def started(data: Path, expected_errors: tuple[str, ...] = (),
                   **kw: Any) -> AsyncIterator[Any]:
-    """``GameServer(data, **kw)`` started (and stopped at the end), as the engine of an
-    engine and a gateway when ``current()`` is 2, for a test that gives the server
-    arguments the conftest's ``server()`` does not take. ``expected_errors``: regular
+    """``GameServer(ServerConfig(data, **kw))`` started (and stopped at the end), as the
+    engine of an engine and a gateway when ``current()`` is 2, for a test that gives the
+    server arguments the conftest's ``server()`` does not take. ``expected_errors``: regular
     expressions of the errors the gateway may log (a test that provokes them)."""
-    from clothball.server.app import GameServer
+    from clothball.server.app import GameServer, ServerConfig
 
     if current() == 1:
-        srv = GameServer(data, **kw)
+        srv = GameServer(ServerConfig(data, **kw))
         await srv.start()
         try:
             yield srv
@@ -214,7 +214,7 @@ async def started(data: Path, expected_errors: tuple[str, ...] = (),
             await srv.stop()
         return
     with pair(data, kw, expected_errors) as (gateway, extra):
-        srv = GameServer(data, **kw, **extra)
+        srv = GameServer(ServerConfig(data, **kw, **extra))
         await srv.start()
         try:
             await ready(srv, gateway)
