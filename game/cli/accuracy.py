@@ -16,7 +16,7 @@ import platform
 import sys
 from pathlib import Path
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from ..sim.cloth import cuda_unavailable_reason
 from ..sim.scene import Scene, SceneError
 from ..study import grid

@@ -10,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from ...server.bench import admitbench, emptybench, indexbench, loadbench, soakbench
 from ...server.room import RoomSettings
 from ...server.thread import ServerThread

@@ -32,8 +32,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from .base import CornerState, Reach
 
 log = logging.getLogger(__name__)
@@ -99,7 +100,7 @@ class FalconMapping:
         """World metres per device metre, per axis."""
         return np.asarray(self.reach.half_extent, dtype=np.float64) / CUBE_HALF
 
-    def to_world(self, p_device: np.ndarray) -> np.ndarray:
+    def to_world(self, p_device: npt.ArrayLike) -> np.ndarray:
         u = (np.asarray(p_device, dtype=np.float64) - CUBE_CENTRE) / CUBE_HALF * self.signs
         return self.reach.from_unit(u)
 
@@ -131,7 +132,7 @@ class FalconSettings:
     axis_signs: tuple[float, float, float] = (1.0, 1.0, 1.0)
     extra: dict[str, Any] = field(default_factory=dict)
 
-    def driver_config(self) -> Any:
+    def driver_config(self) -> _f.DriverConfig:
         cfg = _f.DriverConfig()
         c = cfg.coupling
         c.max_stiffness = self.max_stiffness
@@ -149,9 +150,9 @@ class FalconDevice:
 
     def __init__(
         self,
-        driver: Any,
+        driver: _f.Driver,
         *,
-        emulator: Any | None = None,
+        emulator: _f.EmulatorTransport | None = None,
         settings: FalconSettings | None = None,
         clock: Callable[[], float] = time.monotonic,
         status: Callable[[str], None] | None = None,
@@ -265,8 +266,8 @@ def open_falcon(
     emulator: bool = False,
     index: int = 0,
     settings: FalconSettings | None = None,
-    emulator_options: Any | None = None,
-    firmware_options: Any | None = None,
+    emulator_options: _f.EmulatorOptions | None = None,
+    firmware_options: _f.FirmwareOptions | None = None,
     status: Callable[[str], None] | None = None,
 ) -> FalconDevice:
     """Open a Falcon (USB, or the emulator) with its firmware running, not yet homed.
@@ -280,6 +281,7 @@ def open_falcon(
     settings = settings or FalconSettings()
     path = os.fspath(firmware) if firmware is not None else configured_firmware()
     emu = None
+    transport: _f.Transport
     if emulator:
         opts = emulator_options or _f.EmulatorOptions()
         if emulator_options is None:

@@ -16,7 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from .cloth import (
     _as_finite,
     check_fixed_dt,
@@ -160,7 +160,7 @@ class ClothBatch:
         return int(self._slot_substeps[live].max())
 
     @property
-    def native_engine(self) -> object:
+    def native_engine(self) -> _native.BatchEngine:
         """The native batch, for a native driver that steps it without Python (the server's
         frame loop, ``_native.FrameLoop``). While one runs, this facade's calls are made
         only under the driver's lock, and its frame counts and substeps go stale."""

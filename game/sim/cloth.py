@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from .config import effect_names, native_config
 from .scene import Scene, SceneError
 from .stability import auto_substeps, stable_dt, substeps_for_speeds

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from .scene import EFFECTS, Scene
 
 

@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from .cloth import corners_of, rest_positions
 from .scene import Scene
 

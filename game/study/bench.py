@@ -16,7 +16,7 @@ import time
 import warnings
 from typing import Any
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 from ..sim.cloth import Cloth, cuda_unavailable_reason
 from ..sim.scene import Scene
 from ..sim.stability import auto_substeps

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import threading
 
-from ... import _native  # type: ignore[attr-defined]
+from ... import _native
 
 
 def name_os_thread() -> None:

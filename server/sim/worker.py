@@ -181,7 +181,7 @@ class LoopSettings:
 
 
 def loop_config(scene: Scene, arena: Arena, settings: LoopSettings, frame_dt: float,
-                mesh_every: int, track_every: int) -> Any:
+                mesh_every: int, track_every: int) -> _native.FrameLoopConfig:
     """The frame loop's settings for a worker's scene (those of its rooms)."""
     c = _native.FrameLoopConfig()
     c.frame_dt = frame_dt

@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from clothball import _native  # type: ignore[attr-defined]
+from clothball import _native
 from clothball.game import Cloth, ReferenceCloth, Scene
 
 FRAMES = 40  # x substeps (8-12 here): hundreds of substeps per case

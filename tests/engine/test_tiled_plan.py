@@ -4,7 +4,7 @@ without a GPU: the plan is plain C++ that the bindings expose."""
 from __future__ import annotations
 
 import pytest
-from clothball import _native  # type: ignore[attr-defined]
+from clothball import _native
 from clothball.game import Scene
 from clothball.game.sim.cloth import native_config
 
