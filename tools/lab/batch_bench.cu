@@ -17,6 +17,7 @@
 #include "../../native/cuda/cloth.cu"
 #include "../../native/cuda/batch.cu"
 #include "../../native/cuda/device.cu"
+#include "../../native/cuda/tiled.cu"  // the tiled frame, which cloth.cu's CudaCloth names
 
 #include <chrono>
 #include <cstdlib>

@@ -15,6 +15,7 @@
 #include "../../native/cuda/cloth.cu"
 #include "../../native/cuda/batch.cu"  // the batch's kernels, which cloth.cu's CudaBatch names
 #include "../../native/cuda/device.cu"
+#include "../../native/cuda/tiled.cu"  // the tiled frame, which cloth.cu's CudaCloth names
 
 #include <chrono>
 #include <fstream>
