@@ -27,8 +27,9 @@ if [ "$PHASE" = 1 ]; then
   source "$(dirname "$0")/gpu_build.sh"
   wait $lab_pid; echo "lab build rc $?" | tee -a "$OUT/gpu.txt"
   cd /tmp
+  xdist=(-n 8); python3 -c "import xdist" 2>/dev/null || xdist=()
   OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout "${TESTS_S:-200}" python3 -m pytest -q \
-    -p no:cacheprovider -p no:benchmark -n 8 -c "$root/setup.cfg" --rootdir "$root" \
+    -p no:cacheprovider -p no:benchmark "${xdist[@]}" -c "$root/setup.cfg" --rootdir "$root" \
     "$root/tests/engine" -k "cuda or batch" 2>&1 | tee "$OUT/tests.txt" | tail -3
   cd "$root"
   python3 tools/lab/classic_configs.py 256 512 768 1024 > /tmp/lone.cfg
