@@ -1,22 +1,28 @@
 #!/usr/bin/env bash
 # Issue 41's GPU run: the kernels against their roofline, and what changed, A/B in one run.
-# Usage (on a GPU machine): OUT=results PHASE=1 bash tools/gpu_roofline.sh, then, the
-# machine still warm (the package installed), PHASE=2.
-# PHASE=1: build with CUDA (the lab programs beside it, each in two variants: the springs'
-#   reciprocal square root on and off, CB_SPRING_RSQRT), the CUDA oracle tests
-#   (CLOTHBALL_REQUIRE_GPU=1), the lab A/B alternated (lone cloth: launches a substep and
-#   the tiled frame; the batch), tools/gpu_roofline.py, and Nsight Compute where it runs.
-# PHASE=2: the rooms' fused frame with its block chosen against 1 024 threads
-#   (CLOTHBALL_CUDA_FUSED_THREADS), alternated; `bench --largest --repeats 3`; Table 1's
-#   quick rows and `bench --rooms` at n = 60 (no regression).
+# Usage (on a GPU machine): OUT=results bash tools/gpu_roofline.sh; STEPS="..." runs some
+# of its steps (a later call on the machine still warm, the package installed, skips build):
+#  build: the package with CUDA, and the lab programs beside it in two variants each (the
+#    springs' reciprocal square root on and off, CB_SPRING_RSQRT);
+#  tests: the CUDA oracle tests (CLOTHBALL_REQUIRE_GPU=1);
+#  lab: the lab A/B alternated (lone cloth: launches a substep and the tiled frame; batch);
+#  roofline: tools/gpu_roofline.py;
+#  rooms: the rooms' fused frame, its block chosen against 1 024 threads
+#    (CLOTHBALL_CUDA_FUSED_THREADS), alternated;
+#  largest: `bench --largest --repeats 3`;
+#  regress: Table 1's quick rows and `bench --rooms` at n = 60 (no regression);
+#  ncu: Nsight Compute on the tiled and fused frames, where it runs.
 OUT=${OUT:-gpu-results}
-PHASE=${PHASE:-1}
+STEPS=${STEPS:-build tests lab roofline rooms largest regress ncu}
 mkdir -p "$OUT"
 root=$PWD
 export PYTHONUNBUFFERED=1
 lab_nvcc=(nvcc -O3 -std=c++17 --expt-relaxed-constexpr -arch=sm_90 -Inative -prec-div=false
           -prec-sqrt=false)
-if [ "$PHASE" = 1 ]; then
+bench=(python3 -m clothball.game.cli bench --backends cuda)
+want() { [[ " $STEPS " == *" $1 "* ]]; }
+
+if want build; then
   # The lab programs build on one core each while the package takes the rest.
   ( for v in 0 1; do
       "${lab_nvcc[@]}" -DCB_SPRING_RSQRT=$v tools/lab/substep_bench.cu -o /tmp/substep_rsqrt$v
@@ -26,12 +32,16 @@ if [ "$PHASE" = 1 ]; then
   lab_pid=$!
   source "$(dirname "$0")/gpu_build.sh"
   wait $lab_pid; echo "lab build rc $?" | tee -a "$OUT/gpu.txt"
+fi
+if want tests; then
   cd /tmp
   xdist=(-n 8); python3 -c "import xdist" 2>/dev/null || xdist=()
   OMP_NUM_THREADS=2 CLOTHBALL_REQUIRE_GPU=1 timeout "${TESTS_S:-200}" python3 -m pytest -q \
     -p no:cacheprovider -p no:benchmark "${xdist[@]}" -c "$root/setup.cfg" --rootdir "$root" \
     "$root/tests/engine" -k "cuda or batch" 2>&1 | tee "$OUT/tests.txt" | tail -3
   cd "$root"
+fi
+if want lab; then  # the springs' rsqrt against sqrt and division, alternated, one build each
   python3 tools/lab/classic_configs.py 256 512 768 1024 > /tmp/lone.cfg
   python3 tools/lab/classic_configs.py 60 > /tmp/rooms.cfg
   for r in 1 2; do
@@ -41,59 +51,63 @@ if [ "$PHASE" = 1 ]; then
       timeout 60 /tmp/batch_rsqrt$v /tmp/rooms.cfg 60 1024 1536 >>"$OUT/lab_ab.txt" 2>&1
     done
   done
+  echo "--- lab A/B (lone: us a substep; batch: frame us)"; grep -v fingerprint "$OUT/lab_ab.txt"
+fi
+if want roofline; then
   timeout 150 python3 tools/gpu_roofline.py --json "$OUT/roofline.json" >"$OUT/roofline.txt" \
     2>"$OUT/roofline.err"
-  echo "--- lab A/B (us a substep; batch: frame us)"; grep -v fingerprint "$OUT/lab_ab.txt" | tail -40
   cat "$OUT/roofline.txt"; tail -3 "$OUT/roofline.err"
-  grep -E "passed|failed" "$OUT/tests.txt" | tail -3
-  tar czf /tmp/all.tgz -C "$OUT" . && find "$OUT" -type f -delete && mv /tmp/all.tgz "$OUT/p1.tgz"
-  exit 0
 fi
-# PHASE=2: the package PHASE=1 installed.
-bench=(python3 -m clothball.game.cli bench --backends cuda)
-for r in 1 2; do
-  for t in 1024 auto; do
-    if [ $t = auto ]; then unset CLOTHBALL_CUDA_FUSED_THREADS; else export CLOTHBALL_CUDA_FUSED_THREADS=$t; fi
-    timeout 75 "${bench[@]}" --rooms --scene default --sizes 48 --rooms-frames 300 --max-rooms 2048 \
-      --json "$OUT/rooms_default_${t}_$r.json" >"$OUT/rooms_default_${t}_$r.txt" 2>>"$OUT/bench.err"
-    tail -2 "$OUT/rooms_default_${t}_$r.txt"
+if want rooms; then  # the fused frame's block: chosen against 1 024 threads, alternated
+  for r in 1 2; do
+    for t in 1024 auto; do
+      if [ $t = auto ]; then unset CLOTHBALL_CUDA_FUSED_THREADS; else export CLOTHBALL_CUDA_FUSED_THREADS=$t; fi
+      timeout 75 "${bench[@]}" --rooms --scene default --sizes 48 --rooms-frames 300 --max-rooms 2048 \
+        --json "$OUT/rooms_default_${t}_$r.json" >"$OUT/rooms_default_${t}_$r.txt" 2>>"$OUT/bench.err"
+      echo "default n=48 threads=$t run $r: $(tail -1 "$OUT/rooms_default_${t}_$r.txt")"
+    done
   done
-done
-unset CLOTHBALL_CUDA_FUSED_THREADS
-timeout 90 "${bench[@]}" --rooms --sizes 60 --rooms-frames 300 --json "$OUT/rooms_classic.json" \
-  >"$OUT/rooms_classic.txt" 2>>"$OUT/bench.err"
-tail -2 "$OUT/rooms_classic.txt"
-timeout 200 "${bench[@]}" --largest --repeats 3 --json "$OUT/largest.json" >"$OUT/largest.txt" \
-  2>>"$OUT/bench.err"
-timeout 60 "${bench[@]}" --quick --precisions float32 --json "$OUT/table1_quick.json" \
-  >"$OUT/table1_quick.txt" 2>>"$OUT/bench.err"
-cat "$OUT/largest.txt" | tail -30
-tail -8 "$OUT/table1_quick.txt"
-tail -5 "$OUT/bench.err"
-# Nsight Compute on one launch of each hot kernel (where the machine lets it read the
-# counters): instructions issued, pipe use, shared-memory traffic.
-cat >/tmp/ncu_cases.py <<'PY'
-import os, sys
+  unset CLOTHBALL_CUDA_FUSED_THREADS
+fi
+if want largest; then
+  timeout 200 "${bench[@]}" --largest --repeats 3 --json "$OUT/largest.json" >"$OUT/largest.txt" \
+    2>>"$OUT/bench.err"
+  tail -30 "$OUT/largest.txt"
+fi
+if want regress; then  # Table 1's quick rows and the classic rooms, against the record
+  timeout 90 "${bench[@]}" --rooms --sizes 60 --rooms-frames 300 --json "$OUT/rooms_classic.json" \
+    >"$OUT/rooms_classic.txt" 2>>"$OUT/bench.err"
+  tail -3 "$OUT/rooms_classic.txt"
+  timeout 60 "${bench[@]}" --quick --precisions float32 --json "$OUT/table1_quick.json" \
+    >"$OUT/table1_quick.txt" 2>>"$OUT/bench.err"
+  tail -8 "$OUT/table1_quick.txt"
+fi
+if want ncu; then
+  # Nsight Compute on one launch of each hot kernel (where the machine lets it read the
+  # counters): instructions issued, pipe use, occupancy.
+  cat >/tmp/ncu_cases.py <<'PY'
+import os
 from clothball.game.sim.batch import ClothBatch
 from clothball.game.sim.cloth import Cloth
 from clothball.game.sim.scene import Scene
 from clothball.game.study.rooms import room_scene
 os.environ["CLOTHBALL_CUDA_TILED"] = "1"
 for name, n in (("classic", 768), ("default", 512)):
-  c = Cloth(room_scene(Scene.load(name), n), backend="cuda", precision="float32")
-  c.step(1)
+    Cloth(room_scene(Scene.load(name), n), backend="cuda", precision="float32").step(1)
 os.environ.pop("CLOTHBALL_CUDA_TILED")
 for name, n in (("classic", 60), ("default", 48)):
-  b = ClothBatch(room_scene(Scene.load(name), n), capacity=264, backend="cuda",
-                 precision="float32")
-  for _ in range(264):
-      b.add()
-  b.step(1)
+    b = ClothBatch(room_scene(Scene.load(name), n), capacity=264, backend="cuda",
+                   precision="float32")
+    for _ in range(264):
+        b.add()
+    b.step(1)
 PY
-timeout 100 ncu --clock-control none -k regex:"tiled_frame|batch_frame" -c 4 \
-  --section SpeedOfLight --section ComputeWorkloadAnalysis --section InstructionStats \
-  --section Occupancy --section LaunchStats \
-  python3 /tmp/ncu_cases.py >"$OUT/ncu.txt" 2>&1
-echo "ncu rc $?" >>"$OUT/ncu.txt"
-grep -E "Duration|Executed Ipc A|Issue Slots Busy|SM Busy|Registers Per|Achieved Occ|Block Size|ncu rc|==ERR" "$OUT/ncu.txt" | head -60
-tar czf /tmp/all.tgz -C "$OUT" . && find "$OUT" -type f -delete && mv /tmp/all.tgz "$OUT/p2.tgz"
+  timeout 100 ncu --clock-control none -k regex:"tiled_frame|batch_frame" -c 4 \
+    --section SpeedOfLight --section ComputeWorkloadAnalysis --section InstructionStats \
+    --section Occupancy --section LaunchStats python3 /tmp/ncu_cases.py >"$OUT/ncu.txt" 2>&1
+  echo "ncu rc $?" >>"$OUT/ncu.txt"
+  grep -E "tiled_frame|batch_frame|Duration|Executed Ipc A|Issue Slots Busy|SM Busy|Registers Per|Achieved Occ|Block Size|ncu rc|==ERR" "$OUT/ncu.txt" | head -70
+fi
+tail -5 "$OUT/bench.err" 2>/dev/null
+# What comes back is at most 8 files: everything in one archive.
+tar czf /tmp/all.tgz -C "$OUT" . && find "$OUT" -type f -delete && mv /tmp/all.tgz "$OUT/${TAG:-run}.tgz"
