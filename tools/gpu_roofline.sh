@@ -14,8 +14,19 @@
 #  ncu: Nsight Compute on the tiled and fused frames, where it runs.
 OUT=${OUT:-gpu-results}
 STEPS=${STEPS:-build tests lab roofline rooms largest regress ncu}
-mkdir -p "$OUT"
+# Steps write under a work folder, archived into $OUT after each step: what comes back
+# from the machine is a few files, and a step cut off by the call's limit loses only itself.
+FINAL=$OUT
+OUT=/tmp/gpu-roofline-work
+mkdir -p "$OUT" "$FINAL"
+snap() { tar czf "$FINAL/${TAG:-run}.tgz" -C "$OUT" .; }
 root=$PWD
+# Pure-Python wheels the machine lacks (websockets, redis, ...) from .whl/, when no build
+# step installs them (gpu_build.sh does).
+if ! [[ " $STEPS " == *" build "* ]] && compgen -G ".whl/*.whl" >/dev/null; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
+  export PYTHONPATH=/tmp/site
+fi
 export PYTHONUNBUFFERED=1
 lab_nvcc=(nvcc -O3 -std=c++17 --expt-relaxed-constexpr -arch=sm_90 -Inative -prec-div=false
           -prec-sqrt=false)
@@ -24,14 +35,15 @@ want() { [[ " $STEPS " == *" $1 "* ]]; }
 
 if want build; then
   # The lab programs build on one core each while the package takes the rest.
-  ( for v in 0 1; do
+  want lab && ( for v in 0 1; do
       "${lab_nvcc[@]}" -DCB_SPRING_RSQRT=$v tools/lab/substep_bench.cu -o /tmp/substep_rsqrt$v
       "${lab_nvcc[@]}" -DCB_SPRING_RSQRT=$v -Xcompiler -fopenmp tools/lab/batch_bench.cu -lgomp \
         -o /tmp/batch_rsqrt$v
     done ) >"$OUT/lab_build.log" 2>&1 &
   lab_pid=$!
   source "$(dirname "$0")/gpu_build.sh"
-  wait $lab_pid; echo "lab build rc $?" | tee -a "$OUT/gpu.txt"
+  wait $lab_pid; want lab && echo "lab build rc $?" | tee -a "$OUT/gpu.txt"
+  snap
 fi
 if want tests; then
   cd /tmp
@@ -40,6 +52,7 @@ if want tests; then
     -p no:cacheprovider -p no:benchmark "${xdist[@]}" -c "$root/setup.cfg" --rootdir "$root" \
     "$root/tests/engine" -k "cuda or batch" 2>&1 | tee "$OUT/tests.txt" | tail -3
   cd "$root"
+  snap
 fi
 if want lab; then  # the springs' rsqrt against sqrt and division, alternated, one build each
   python3 tools/lab/classic_configs.py 256 512 768 1024 > /tmp/lone.cfg
@@ -52,27 +65,31 @@ if want lab; then  # the springs' rsqrt against sqrt and division, alternated, o
     done
   done
   echo "--- lab A/B (lone: us a substep; batch: frame us)"; grep -v fingerprint "$OUT/lab_ab.txt"
+  snap
 fi
 if want roofline; then
   timeout 150 python3 tools/gpu_roofline.py --json "$OUT/roofline.json" >"$OUT/roofline.txt" \
     2>"$OUT/roofline.err"
   cat "$OUT/roofline.txt"; tail -3 "$OUT/roofline.err"
+  snap
 fi
 if want rooms; then  # the fused frame's block: chosen against 1 024 threads, alternated
   for r in 1 2; do
     for t in 1024 auto; do
       if [ $t = auto ]; then unset CLOTHBALL_CUDA_FUSED_THREADS; else export CLOTHBALL_CUDA_FUSED_THREADS=$t; fi
-      timeout 75 "${bench[@]}" --rooms --scene default --sizes 48 --rooms-frames 300 --max-rooms 2048 \
+      timeout "${ROOMS_S:-75}" "${bench[@]}" --rooms --scene default --sizes 48 --rooms-frames 300 --max-rooms 2048 \
         --json "$OUT/rooms_default_${t}_$r.json" >"$OUT/rooms_default_${t}_$r.txt" 2>>"$OUT/bench.err"
       echo "default n=48 threads=$t run $r: $(tail -1 "$OUT/rooms_default_${t}_$r.txt")"
     done
   done
   unset CLOTHBALL_CUDA_FUSED_THREADS
+  snap
 fi
 if want largest; then
-  timeout 200 "${bench[@]}" --largest --repeats 3 --json "$OUT/largest.json" >"$OUT/largest.txt" \
+  timeout "${LARGEST_S:-200}" "${bench[@]}" --largest --repeats 3 --json "$OUT/largest.json" >"$OUT/largest.txt" \
     2>>"$OUT/bench.err"
   tail -30 "$OUT/largest.txt"
+  snap
 fi
 if want regress; then  # Table 1's quick rows and the classic rooms, against the record
   timeout 90 "${bench[@]}" --rooms --sizes 60 --rooms-frames 300 --json "$OUT/rooms_classic.json" \
@@ -81,6 +98,7 @@ if want regress; then  # Table 1's quick rows and the classic rooms, against the
   timeout 60 "${bench[@]}" --quick --precisions float32 --json "$OUT/table1_quick.json" \
     >"$OUT/table1_quick.txt" 2>>"$OUT/bench.err"
   tail -8 "$OUT/table1_quick.txt"
+  snap
 fi
 if want ncu; then
   # Nsight Compute on one launch of each hot kernel (where the machine lets it read the
@@ -102,12 +120,12 @@ for name, n in (("classic", 60), ("default", 48)):
         b.add()
     b.step(1)
 PY
-  timeout 100 ncu --clock-control none -k regex:"tiled_frame|batch_frame" -c 4 \
+  timeout "${NCU_S:-100}" ncu --clock-control none -k regex:"tiled_frame|batch_frame" -c 4 \
     --section SpeedOfLight --section ComputeWorkloadAnalysis --section InstructionStats \
     --section Occupancy --section LaunchStats python3 /tmp/ncu_cases.py >"$OUT/ncu.txt" 2>&1
   echo "ncu rc $?" >>"$OUT/ncu.txt"
   grep -E "tiled_frame|batch_frame|Duration|Executed Ipc A|Issue Slots Busy|SM Busy|Registers Per|Achieved Occ|Block Size|ncu rc|==ERR" "$OUT/ncu.txt" | head -70
+  snap
 fi
 tail -5 "$OUT/bench.err" 2>/dev/null
-# What comes back is at most 8 files: everything in one archive.
-tar czf /tmp/all.tgz -C "$OUT" . && find "$OUT" -type f -delete && mv /tmp/all.tgz "$OUT/${TAG:-run}.tgz"
+snap
