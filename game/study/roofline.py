@@ -18,6 +18,10 @@ per node), ``dram`` the fewest bytes the launch-a-substep path moves through dev
 kernel is the largest of the times these take at peak; the roofline fraction of a measured
 time is that bound over the time.
 
+Beside these counts, the instructions a node's substep issues where Nsight Compute counted
+them (``INSTRUCTIONS``, measured, not counted from the code): at 4 warp instructions a
+clock a multiprocessor, issue is the bound the kernels meet first (``issue``).
+
 The peaks are the datasheet's for an H100/H200 SXM (132 multiprocessors at 1.98 GHz;
 leads, not measurements), except device-memory bandwidth, which the bench measures (a
 device-to-device copy).
@@ -83,6 +87,22 @@ PLATE_FLOPS = 4 * 9 + 4 * 6 + 4 * 9 + 6
 NODE_FLOPS = 3 + 6 + 7 + 6 + 8 + 9
 # A double square root or division: a 64-bit reciprocal-root seed, then Newton steps.
 SFU_F64_FLOPS = 16
+
+
+# Instructions a node's substep issues, per thread, as Nsight Compute counted them (warp
+# instructions executed x 32 over the node-substeps of one launch; H200, the kernels of
+# a9ee57b, tools/gpu_roofline.sh's ncu step): the bound these kernels meet first. Their
+# flops are 40 % (classic) to 45 % (default) of them: the rest is the neighbours' shared
+# loads, the bounds tests of the border code every node runs (node_force<Interior =
+# false>: the grip's, the springs', the plate's coefficient flags), index arithmetic, the
+# two passes of the tiled frame, the finite check and the ball's tracking.
+# (path, scene, precision) -> instructions a node-substep.
+INSTRUCTIONS = {
+    ("tiled", "classic", "float32"): 342.4,       # n = 768, 100 substeps
+    ("tiled", "default", "float32"): 864.7,       # n = 512, 86 substeps
+    ("batch_fused", "classic", "float32"): 310.6,  # n = 60, 264 slots, 8 substeps
+    ("batch_fused", "default", "float32"): 769.3,  # n = 48, 264 slots, 9 substeps
+}
 
 
 @dataclass(frozen=True)
@@ -166,11 +186,15 @@ def roofline(scene: Scene, precision: str, path: str, nodes: int, substeps: int,
     fused = path in ("tiled", "batch_fused")
     once = 12.0 * size * nodes * slots if fused and frame_io else 0.0
     times = bound_us(cost, node_substeps, precision, peaks, once)
+    instructions = INSTRUCTIONS.get((path, scene.name, precision))
+    if instructions is not None:  # measured, where Nsight Compute counted this kernel
+        times["issue"] = instructions * node_substeps / peaks.issue * 1e6
     bound = max(times, key=lambda k: times[k])
     return {"flops_per_node_substep": cost.flops, "sfu_per_node_substep": cost.sfu,
+            "instructions_per_node_substep": instructions,
             "shared_bytes_per_node_substep": cost.shared_bytes,
             "dram_bytes_per_node_substep": cost.dram_bytes,
-            "bound_us": {k: round(v, 3) for k, v in times.items()}, "bound": bound,
+            "bound_us": times, "bound": bound,
             "roofline_fraction": times[bound] / measured_us if measured_us > 0 else 0.0,
             "peaks": peaks.name,
             "achieved_gflops": (cost.flops * node_substeps / (measured_us * 1e-6) / 1e9

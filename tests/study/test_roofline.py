@@ -38,3 +38,15 @@ def test_the_bound_is_the_slowest_resource_and_scales_with_the_work() -> None:
     assert two["roofline_fraction"] == pytest.approx(2 * one["roofline_fraction"], rel=1e-2)
     # At peak every FP32 lane does an FMA a clock: 132 x 128 x 2 x 1.98 GHz.
     assert rl.HOPPER_SXM.fp32_flops == pytest.approx(66.9e12, rel=1e-3)
+
+
+def test_where_nsight_counted_the_instructions_issue_is_the_bound() -> None:
+    # The tiled frame, classic n = 768, 100 substeps: Nsight Compute saw its issue slots
+    # 70 % busy over 862.6 us, so 604 us of issue at 100 %: what the count gives back.
+    roof = rl.roofline(Scene.load("classic"), "float32", "tiled", 768 * 768, 100, 862.6)
+    assert roof["bound"] == "issue"
+    assert roof["bound_us"]["issue"] == pytest.approx(0.7005 * 862.6, rel=5e-3)
+    assert roof["roofline_fraction"] == pytest.approx(0.7005, rel=5e-3)
+    # No count for float64: the bound is then one of the counted resources.
+    f64 = rl.roofline(Scene.load("classic"), "float64", "tiled", 512 * 512, 67, 540.0)
+    assert "issue" not in f64["bound_us"] and f64["instructions_per_node_substep"] is None
