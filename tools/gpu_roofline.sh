@@ -11,6 +11,8 @@
 #    (CLOTHBALL_CUDA_FUSED_THREADS), alternated;
 #  largest: `bench --largest --repeats 3`;
 #  regress: Table 1's quick rows and `bench --rooms` at n = 60 (no regression);
+#  plan: the tiled plan's compact tiles against the fewest nodes alone
+#    (CLOTHBALL_CUDA_TILED_PLAN=work), alternated: its tests, Table 1 rows, --largest classic;
 #  ncu: Nsight Compute on the tiled and fused frames, where it runs.
 OUT=${OUT:-gpu-results}
 STEPS=${STEPS:-build tests lab roofline rooms largest regress ncu}
@@ -98,6 +100,25 @@ if want regress; then  # Table 1's quick rows and the classic rooms, against the
   timeout 60 "${bench[@]}" --quick --precisions float32 --json "$OUT/table1_quick.json" \
     >"$OUT/table1_quick.txt" 2>>"$OUT/bench.err"
   tail -8 "$OUT/table1_quick.txt"
+  snap
+fi
+if want plan; then  # the tiled plan: compact tiles against the fewest nodes alone, alternated
+  cd /tmp
+  CLOTHBALL_REQUIRE_GPU=1 timeout 150 python3 -m pytest -q -p no:cacheprovider -p no:benchmark \
+    -c "$root/setup.cfg" --rootdir "$root" "$root/tests/engine/test_engine_vs_oracle.py" \
+    "$root/tests/engine/test_tiled_plan.py" -k "tiled" 2>&1 | tee "$OUT/plan_tests.txt" | tail -2
+  cd "$root"
+  for r in 1 2; do
+    for mode in work compact; do
+      CLOTHBALL_CUDA_TILED_PLAN=$mode timeout 60 "${bench[@]}" --scene classic --precisions float32 \
+        --sizes 680,688,704,832,1024 --repeats 5 --json "$OUT/plan_table_${mode}_$r.json" \
+        >"$OUT/plan_table_${mode}_$r.txt" 2>>"$OUT/bench.err"
+      CLOTHBALL_CUDA_TILED_PLAN=$mode timeout 80 "${bench[@]}" --largest --scene classic --repeats 3 \
+        --json "$OUT/plan_largest_${mode}_$r.json" >"$OUT/plan_largest_${mode}_$r.txt" 2>>"$OUT/bench.err"
+      echo "plan=$mode run $r:"; grep -E "^ +[0-9]+ +cuda" "$OUT/plan_table_${mode}_$r.txt"
+      grep -A3 "largest n held" "$OUT/plan_largest_${mode}_$r.txt" | cut -c1-110
+    done
+  done
   snap
 fi
 if want ncu; then
