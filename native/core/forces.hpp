@@ -10,15 +10,37 @@ namespace cb {
 // shorter than its rest length: 0 gives the paper's tension-only spring (eq. 2), 1 a
 // two-sided linear spring. Coincident nodes have no direction, so they exert no force
 // instead of dividing by zero.
+//
+// On the GPU (CB_SPRING_RSQRT, on unless a lab build sets it 0) one reciprocal square root
+// gives both the length (d2 r) and the division (k ext r): in float32 one special-function
+// op where the square root and the division were two, in float64 one Newton sequence where
+// there were two (issue 41). The CPU keeps the IEEE square root and division: its loops
+// vectorise them at the same cost, and its results stay what they were.
+#ifndef CB_SPRING_RSQRT
+#define CB_SPRING_RSQRT 1
+#endif
+#if defined(__CUDA_ARCH__)
+__device__ __forceinline__ float spring_rsqrt(float x) { return rsqrtf(x); }
+__device__ __forceinline__ double spring_rsqrt(double x) { return ::rsqrt(x); }
+#endif
 template <class R>
 CB_HD V3<R> spring_force(V3<R> pi, V3<R> pj, R k, R rest, R compress) {
   V3<R> d = pj - pi;
+#if defined(__CUDA_ARCH__) && CB_SPRING_RSQRT
+  const R d2 = dot(d, d);
+  const bool has_dir = d2 > R(1e-24);  // |d| > 1e-12, as below
+  const R r = spring_rsqrt(has_dir ? d2 : R(1));
+  R ext = d2 * r - rest;
+  ext *= ext > R(0) ? R(1) : compress;
+  const R s = has_dir ? k * ext * r : R(0);
+#else
   R len = length(d);
   R ext = len - rest;
   ext *= ext > R(0) ? R(1) : compress;
   // Selects, not branches, and a division that is always safe: the CPU loops vectorise.
   const bool has_dir = len > R(1e-12);
   R s = (has_dir ? k * ext : R(0)) / (has_dir ? len : R(1));
+#endif
   return d * s;
 }
 

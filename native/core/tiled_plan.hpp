@@ -13,6 +13,7 @@
 #include <cstddef>
 #include <cstdlib>
 #include <string>
+#include <vector>
 
 #include "params.hpp"
 
@@ -51,11 +52,23 @@ inline bool tiled_capable(const Config& c) {
 
 // Tiles for the n x n cloth on at most `blocks` blocks of at most `shared_max` bytes of
 // shared memory each: the fewest nodes in the largest tile (a substep's critical path),
-// then the fewest cells with its halo. ok() is false when no tiling fits.
+// then the fewest cells with its halo. ok() is false when no tiling fits. `compact`: among
+// the tilings within kWorkSlack of those fewest nodes, the one of the smallest perimeter
+// (th + tw), then the fewest nodes: a tall thin tile's side halo is a column of the cloth,
+// read from L2 a sector a row after every grid barrier, and its border a column written
+// so. On an H200 (issue 41) classic n = 688 took 4 x 33 tiles of 172 x 21 (3 612 nodes)
+// over 11 x 12 of 63 x 58 (3 654), and its frame's p50 was 17 % over n = 680's (11 x 12).
+// CLOTHBALL_CUDA_TILED_PLAN=work (tiled_plan_for) takes the fewest nodes alone, to measure.
+constexpr double kWorkSlack = 0.03;
+
 inline TiledPlan tiled_plan(int n, int reach, size_t real_bytes, int blocks,
-                            size_t shared_max) {
-  TiledPlan best;
-  long best_work = 0, best_cells = 0;
+                            size_t shared_max, bool compact = true) {
+  struct Cand {
+    TiledPlan plan;
+    long work, cells;
+  };
+  std::vector<Cand> fits;
+  long best_work = 0;
   for (int ty = 1; ty <= std::min(blocks, n); ++ty) {
     const int th = (n + ty - 1) / ty;
     const int rows = (n + th - 1) / th;  // tiles actually used down the cloth
@@ -67,10 +80,27 @@ inline TiledPlan tiled_plan(int n, int reach, size_t real_bytes, int blocks,
     const long cells = long(th + 2 * reach) * (tw + 2 * reach);
     const size_t bytes = size_t(cells) * 6 * real_bytes;
     if (bytes > shared_max) continue;
-    if (!best.ok() || work < best_work || (work == best_work && cells < best_cells)) {
-      best = {rows, cols, th, tw, reach, bytes};
-      best_work = work;
-      best_cells = cells;
+    fits.push_back({{rows, cols, th, tw, reach, bytes}, work, cells});
+    if (fits.size() == 1 || work < best_work) best_work = work;
+  }
+  TiledPlan best;
+  long bw = 0, bc = 0, bp = 0;
+  for (const Cand& f : fits) {
+    const long per = long(f.plan.th) + f.plan.tw;
+    bool better;
+    if (!best.ok()) {
+      better = !compact || double(f.work) <= double(best_work) * (1.0 + kWorkSlack);
+    } else if (compact) {
+      if (double(f.work) > double(best_work) * (1.0 + kWorkSlack)) continue;
+      better = per < bp || (per == bp && (f.work < bw || (f.work == bw && f.cells < bc)));
+    } else {
+      better = f.work < bw || (f.work == bw && f.cells < bc);
+    }
+    if (better) {
+      best = f.plan;
+      bw = f.work;
+      bc = f.cells;
+      bp = per;
     }
   }
   return best;
@@ -81,7 +111,9 @@ inline TiledPlan tiled_plan(int n, int reach, size_t real_bytes, int blocks,
 inline TiledPlan tiled_plan_for(const Config& c, size_t real_bytes, int blocks,
                                 size_t shared_max) {
   if (!tiled_capable(c)) return {};
-  return tiled_plan(c.n, tiled_reach(c.effects), real_bytes, blocks, shared_max);
+  const char* env = std::getenv("CLOTHBALL_CUDA_TILED_PLAN");
+  const bool compact = !(env && std::string(env) == "work");
+  return tiled_plan(c.n, tiled_reach(c.effects), real_bytes, blocks, shared_max, compact);
 }
 
 // Whether to take the tiled frame: it must fit, and then CLOTHBALL_CUDA_TILED decides

@@ -506,9 +506,11 @@ class CudaBatch final : public BatchStepper {
         fused_bytes_(fused_bytes(first.N_)),
         cloths_(size_t(capacity), nullptr) {
     const size_t cap = size_t(capacity);
-    if (fused_bytes_ > 0)
+    if (fused_bytes_ > 0) {
       CB_CUDA(cudaFuncSetAttribute(kernels_.frame, cudaFuncAttributeMaxDynamicSharedMemorySize,
                                    int(fused_bytes_)));
+      fused_threads_ = fused_threads(kernels_.frame, N_, fused_bytes_);
+    }
     if (blocking_wait())  // first: a bad value throws before anything is allocated
       CB_CUDA(cudaEventCreateWithFlags(&done_, cudaEventBlockingSync | cudaEventDisableTiming));
     CB_CUDA(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
@@ -643,7 +645,7 @@ class CudaBatch final : public BatchStepper {
                   unsigned(kBlock), t, m);
     if (fused_bytes_ > 0) {  // the whole frame in one launch, a block a slot
       launch_kernel_shared(stream_, overlap_, fused_bytes_, kernels_.frame, unsigned(m),
-                           unsigned(kFusedBlock), p_, t, substeps, b0, dt);
+                           unsigned(fused_threads_), p_, t, substeps, b0, dt);
     } else {
       const int group = group_ > 0 ? group_ : m;
       for (int g0 = 0; g0 < m; g0 += group) {
@@ -725,6 +727,38 @@ class CudaBatch final : public BatchStepper {
     return bytes <= size_t(optin) ? bytes : 0;
   }
 
+  // The fused frame's block: the fewest idle lanes in a substep's last round of nodes
+  // (a slot's N nodes go in ceil(N / T) rounds of T threads) among the sizes that keep as
+  // many threads on a multiprocessor as one block of kFusedBlock does (where a slot's
+  // state leaves room for two blocks), so latency hiding is no worse. Default n = 48:
+  // 2 304 nodes take 3 rounds of 1 024 (75 % of the lanes busy) or 5 of 512 (90 %), two
+  // slots a multiprocessor, the one's barriers covered by the other's work.
+  // CLOTHBALL_CUDA_FUSED_THREADS=T takes T (a multiple of 32 up to kFusedBlock), to measure.
+  static int fused_threads(void (*frame)(Params<R>, const SlotDev<R>*, int, int, R), int N,
+                           size_t bytes) {
+    if (const char* env = std::getenv("CLOTHBALL_CUDA_FUSED_THREADS")) {
+      const int t = std::atoi(env);
+      if (t < 32 || t > kFusedBlock || t % 32 != 0)
+        throw std::invalid_argument("CLOTHBALL_CUDA_FUSED_THREADS must be a multiple of 32 "
+                                    "in 32..1024, got '" + std::string(env) + "'");
+      return t;
+    }
+    int best = kFusedBlock;
+    double best_busy = 0;
+    for (int t = kFusedBlock; t >= 128; t /= 2) {
+      int per_sm = 0;
+      CB_CUDA(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, frame, t, bytes));
+      if (per_sm * t < kFusedBlock) continue;
+      const int rounds = (N + t - 1) / t;
+      const double busy = double(N) / (double(rounds) * t);
+      if (busy > best_busy + 1e-9) {
+        best = t;
+        best_busy = busy;
+      }
+    }
+    return best;
+  }
+
   static int group_size(const CudaCloth<R>& c) {
     const char* env = std::getenv("CLOTHBALL_CUDA_BATCH_GROUP");
     if (env) return std::max(0, std::atoi(env));
@@ -743,6 +777,7 @@ class CudaBatch final : public BatchStepper {
   const bool overlap_;
   const BatchKernels<R> kernels_;
   const size_t fused_bytes_;  // > 0: the frame in one launch (batch_frame), else a launch a substep
+  int fused_threads_ = kFusedBlock;  // its block (fused_threads)
   std::vector<CudaCloth<R>*> cloths_;  // by slot; null: not attached
   cudaStream_t stream_ = nullptr;
   cudaEvent_t done_ = nullptr;  // CLOTHBALL_CUDA_WAIT=block: a frame's end (wait())

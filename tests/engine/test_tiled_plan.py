@@ -79,3 +79,33 @@ def test_chosen_from_the_threshold_or_the_environment(monkeypatch: pytest.Monkey
     assert plan(config("classic", 14))["chosen"]
     monkeypatch.setenv("CLOTHBALL_CUDA_TILED", "0")  # never
     assert not plan(config("classic", large))["chosen"]
+
+
+@pytest.mark.parametrize("n", [512, 640, 688, 704, 768, 832, 1024])
+def test_tiles_are_compact_within_the_slack_of_the_fewest_nodes(
+    n: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Every tiling the device holds, as tiled_plan enumerates it: its largest tile.
+    shapes = []
+    for ty in range(1, H100_SMS + 1):
+        th = -(-n // ty)
+        rows = -(-n // th)
+        tx = min(H100_SMS // rows, n)
+        if tx >= 1:
+            tw = -(-n // tx)
+            if (th + 2) * (tw + 2) * 6 * 4 <= H100_SHARED:
+                shapes.append((th, tw))
+    fewest = min(th * tw for th, tw in shapes)
+    near = [(th, tw) for th, tw in shapes if th * tw <= fewest * 1.03]
+    t = plan(config("classic", n))
+    assert t["th"] + t["tw"] == min(th + tw for th, tw in near)
+    assert t["th"] * t["tw"] <= fewest * 1.03
+    # CLOTHBALL_CUDA_TILED_PLAN=work takes the fewest nodes alone (the plan before).
+    monkeypatch.setenv("CLOTHBALL_CUDA_TILED_PLAN", "work")
+    assert plan(config("classic", n))["th"] * plan(config("classic", n))["tw"] == fewest
+
+
+def test_a_tall_thin_tile_is_not_taken_for_a_few_nodes_less() -> None:
+    # n = 688: 4 x 33 tiles of 172 x 21 (3 612 nodes) against 11 x 12 of 63 x 58 (3 654).
+    t = plan(config("classic", 688))
+    assert (t["tiles_y"], t["tiles_x"], t["th"], t["tw"]) == (11, 12, 63, 58)

@@ -17,6 +17,7 @@
 #include "../../native/cuda/cloth.cu"
 #include "../../native/cuda/batch.cu"
 #include "../../native/cuda/device.cu"
+#include "../../native/cuda/tiled.cu"  // the tiled frame, which cloth.cu's CudaCloth names
 
 #include <chrono>
 #include <cstdlib>
@@ -88,7 +89,7 @@ static void reset(Backend& b, const Case& k) {
       x[0] = -half + j * L; x[1] = k.height; x[2] = -half + i * L;
     }
   b.set_state(pos.data(), vel.data());
-  const auto corners = corner_nodes(n);
+  const int corners[4] = {corner_node(0, n), corner_node(1, n), corner_node(2, n), corner_node(3, n)};
   for (int c = 0; c < 4; ++c)
     for (int d = 0; d < 3; ++d) hips[3 * c + d] = pos[3 * size_t(corners[c]) + d];
   b.set_hips(hips.data());
