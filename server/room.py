@@ -155,8 +155,8 @@ class Room:
         self.sim = RoomSim(scene, backend, deliver=self._on_frame, loop=self.loop,
                            mesh_hz=mesh_hz, track_hz=track_hz, pool=sims)
         self.sim.corner_interval = math.inf  # its frames are wanted for exits and failures
-        self.anchors = self.sim.anchors
-        self.size = self.sim.size
+        self.anchors = self.sim.arena.anchors
+        self.size = self.sim.arena.size
         self.half_extent = np.full(3, REACH_FRACTION * self.size)
         self._reach_lo = [tuple((a - self.half_extent - 1e-6).tolist()) for a in self.anchors]
         self._reach_hi = [tuple((a + self.half_extent + 1e-6).tolist()) for a in self.anchors]
@@ -242,8 +242,8 @@ class Room:
             "n": sc.n,
             "size": self.size,
             "height": float(sc["cloth"]["height"]),
-            "ball_radius": self.sim.ball_radius,
-            "stiffness": self.sim.stiffness,
+            "ball_radius": self.sim.arena.ball_radius,
+            "stiffness": self.sim.arena.stiffness,
             "frame_dt": self.sim.frame_dt,
             "mesh_hz": self.mesh_hz,
             "anchors": self.anchors.tolist(),

@@ -70,13 +70,7 @@ class RoomSim:
         self.error: str | None = None
         self.worker: FrameWorker = self.pool.worker_for(scene, backend, self.mesh_every,
                                                         self.track_every)
-        arena = self.worker.arena
-        self.anchors = arena.anchors
-        self.size = arena.size
-        self.floor_y = arena.floor_y
-        self.has_ball = arena.has_ball
-        self.ball_radius = arena.ball_radius
-        self.stiffness = arena.stiffness
+        self.arena = self.worker.arena  # anchors, floor, ball, coupling: the scene's
         self.backend = self.worker.batch.backend
         self.stats = RoomStats(self.worker, self)
         # The service thread's: the rounds being recorded (they may overlap: a round's tail
@@ -174,7 +168,7 @@ class RoomSim:
         ``Recording``, or None, on the service thread). Recordings may overlap (a round's
         tail and the next round's start); each spools to disk as it goes."""
         if name == "reset_ball":
-            if self.has_ball and self.slot is not None:
+            if self.arena.has_ball and self.slot is not None:
                 self.worker.set_ball(self.slot, arg[0], arg[1])
         elif name in ("arm", "disarm"):
             if self.slot is not None:

@@ -67,8 +67,8 @@ def test_a_live_loops_corner_bytes_encode_its_own_record() -> None:
     try:
         sim = RoomSim(TINY, "cpu", pool=pool)
         sim.start()
-        sim.set_hip(1, (float(sim.anchors[1][0]), float(sim.anchors[1][1]) + 0.01,
-                        float(sim.anchors[1][2])), 77, 1.5)
+        sim.set_hip(1, (float(sim.arena.anchors[1][0]), float(sim.arena.anchors[1][1]) + 0.01,
+                        float(sim.arena.anchors[1][2])), 77, 1.5)
         worker = sim.worker
         dtype = sim_worker._dtype([f for f in sim_worker.LAYOUT["room"]
                                    if f[1] < sim_worker.LAYOUT["room_out_bytes"]],
@@ -83,7 +83,7 @@ def test_a_live_loops_corner_bytes_encode_its_own_record() -> None:
                                strict=True))
             ref = P.encode_corners(int(rec["frame"]), float(rec["server_time"]),
                                    rec["corner_pos"].tolist(), rec["corner_vel"].tolist(),
-                                   rec["force"].tolist(), sim.stiffness,
+                                   rec["force"].tolist(), sim.arena.stiffness,
                                    rec["ball"][:3].tolist(), rec["ball"][3:].tolist(), applied)
             got = [bytes(rec["corner_msg"][s]) for s in range(4)]
             assert got == ref
@@ -119,7 +119,7 @@ def test_a_corners_position_is_its_hands_grip_point_which_the_same_frames_mesh_g
     try:
         sim.start()
         w = sim.worker
-        sim.set_hip(2, sim.anchors[2] + [0.0, 0.06, 0.02], 5, 1.0)  # a hand that pulls
+        sim.set_hip(2, sim.arena.anchors[2] + [0.0, 0.06, 0.02], 5, 1.0)  # a hand that pulls
         matched = 0
         end = time.monotonic() + 60
         while matched < 3 and time.monotonic() < end:

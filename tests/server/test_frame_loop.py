@@ -107,7 +107,7 @@ def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backe
         try:
             assert sim.backend == backend
             sim.start()
-            hand = sim.anchors[1] + np.array([0.0, 0.05, 0.0])
+            hand = sim.arena.anchors[1] + np.array([0.0, 0.05, 0.0])
             sim.set_hip(1, hand, 7, 12.5)
             await until(lambda: sim.frame > 200, 10, "frames")
             await until(lambda: any(r.corners for r in got), 5, "a delivery")
@@ -115,7 +115,7 @@ def test_rooms_step_on_the_native_loop_and_publish_corners_forces_and_ball(backe
             c = P.decode_corner(r.corners[1])
             assert c.hip_seq == 7 and c.hip_time == 12.5  # the HIP applied, echoed
             # -K (h - c), from the corner the message reports
-            assert np.allclose(c.force, -sim.stiffness * (hand - c.position), atol=1e-3)
+            assert np.allclose(c.force, -sim.arena.stiffness * (hand - c.position), atol=1e-3)
             c0 = P.decode_corner(r.corners[0])
             assert c0.hip_seq == 0 and math.isnan(c0.hip_time)
             assert sim.stats.steps > 0 and sim.stats.skipped_frames >= 0
@@ -197,7 +197,7 @@ def test_a_stalled_event_loop_loses_no_frames_and_gets_the_newest_late() -> None
             delivered0 = max(r.frame for r in got if r.corners)
             # a ball below the floor and far off the cloth, armed: it exits at once, while
             # the event loop is stalled
-            off = np.array([10.0 * sim.size, sim.floor_y - 1.0, 0.0])
+            off = np.array([10.0 * sim.arena.size, sim.arena.floor_y - 1.0, 0.0])
             sim.command("reset_ball", (off, np.zeros(3)))
             sim.command("arm")
             time.sleep(0.2)  # the event loop is blocked: no delivery can happen
@@ -210,7 +210,7 @@ def test_a_stalled_event_loop_loses_no_frames_and_gets_the_newest_late() -> None
             exits = [r.exit for r in got if r.exit]
             assert len(exits) == 1
             edge, frame, ball = exits[0]
-            assert delivered0 < frame < f1 and edge in range(4) and ball[1] < sim.floor_y
+            assert delivered0 < frame < f1 and edge in range(4) and ball[1] < sim.arena.floor_y
             # ~200 frames went by during the stall, none dropped
             assert f1 - f0 >= 150, (f0, f1)
             assert sim.stats.skipped_frames == skipped0
@@ -280,7 +280,7 @@ def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() 
             with open(f"/proc/self/fd/{fd}", "r+b") as f:
                 view = _native.BlockView(mmap.mmap(f.fileno(), size))
             assert view.rooms >= 1
-            hand = sim.anchors[2] + np.array([0.02, 0.04, 0.0])
+            hand = sim.arena.anchors[2] + np.array([0.02, 0.04, 0.0])
             assert view.write_hip(slot, 2, occupant, *hand, 41, 3.5)
             await until(lambda: view.read_corner(slot, 2)[0] > 100, 10, "frames")
 
@@ -290,7 +290,7 @@ def test_a_gateways_view_of_the_block_writes_hands_of_the_seats_occupant_only() 
             await until(lambda: corner().hip_seq == 41, 5, "the hand applied")
             c = corner()
             assert c.hip_time == 3.5 and c.seat == 2
-            assert np.allclose(c.force, -sim.stiffness * (hand - c.position), atol=1e-3)
+            assert np.allclose(c.force, -sim.arena.stiffness * (hand - c.position), atol=1e-3)
             frame, raw, occ = view.read_corner(slot, 2)
             assert occ == occupant
             assert raw[:1] == bytes([P.CORNER]) and P.decode_corner(raw).frame == frame

@@ -27,7 +27,7 @@ def test_a_corner_of_the_former_occupants_hand_is_not_sent_to_the_new_one() -> N
             view = links.block(w.block_id)
             slot, seat = sim.slot, 2
             old = sim.occupant[seat]
-            assert view.write_hip(slot, seat, old, *sim.anchors[seat], 41, 3.5)
+            assert view.write_hip(slot, seat, old, *sim.arena.anchors[seat], 41, 3.5)
             await until(lambda: view.read_corner(slot, seat)[2] == old and
                         P.decode_corner(view.read_corner(slot, seat)[1]).hip_seq == 41, 10,
                         "the former occupant's HIP echoed")

@@ -83,7 +83,7 @@ def test_a_live_loops_meshes_are_on_its_board() -> None:
                 assert raw == mesh
             assert m.positions.shape == (16, 16, 3)
             assert np.isfinite(m.positions).all()
-            assert m.ball_radius == pytest.approx(sim.ball_radius, rel=1e-6)
+            assert m.ball_radius == pytest.approx(sim.arena.ball_radius, rel=1e-6)
 
     run(main())
 
