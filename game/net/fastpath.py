@@ -26,11 +26,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from websockets.frames import Frame, Opcode, apply_mask
+from websockets.frames import Frame, Opcode
 from websockets.protocol import OPEN, SERVER
 from websockets.streams import StreamReader
 
-from ..wire.wsframe import SHORT_BINARY, binary_frame_header
+from ..wire.wsframe import FIN, OP_BINARY, SHORT_BINARY, binary_frame_header, header_at, unmask
 
 _AT_EOF = StreamReader.at_eof.__code__
 
@@ -92,30 +92,20 @@ def _take_binary_frames(conn: Any, data: bytes) -> bytes:
         limit = protocol.max_fragment_size if limit is None else min(limit,
                                                                      protocol.max_fragment_size)
     at, end = 0, len(data)
-    while end - at >= 2:
-        b1 = data[at + 1]
-        # FIN, no RSV bit, opcode 2 (binary); the mask bit as the side requires
-        if data[at] != 0x82 or (b1 >= 0x80) is not masked:
+    while True:
+        head = header_at(data, at)
+        if head is None:
             break
-        n, h = b1 & 0x7F, at + 2
-        if n == 126:
-            if end - h < 2:
-                break
-            n, h = (data[h] << 8) | data[h + 1], h + 2
-        elif n == 127:  # 64 KiB or more: websockets' parser
+        b0, is_masked, n, hl = head
+        # FIN, no RSV bit, opcode 2 (binary); the mask bit as the side requires; under
+        # 64 KiB (larger ones: websockets' parser), within the size limit, whole
+        if b0 != FIN | OP_BINARY or is_masked is not masked or n >= 65536:
             break
-        if limit is not None and n > limit:
+        if (limit is not None and n > limit) or end - at < hl + n:
             break
-        if masked:
-            if end - h < 4 + n:
-                break
-            payload = apply_mask(data[h + 4:h + 4 + n], data[h:h + 4])
-            at = h + 4 + n
-        else:
-            if end - h < n:
-                break
-            payload = data[h:h + n]
-            at = h + n
+        body = data[at + hl:at + hl + n]
+        payload = unmask(body, data[at + hl - 4:at + hl]) if masked else body
+        at += hl + n
         conn.on_binary(payload)
         # The callback may have closed the connection, or unset itself: the rest goes to
         # websockets (as does everything while a message waits for the reader).

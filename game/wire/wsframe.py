@@ -1,6 +1,7 @@
-"""Websocket frame headers (RFC 6455 5.2), the one place they are read and written by
-hand: the fast paths of a connection (``game.net.fastpath``) and a gateway following and
-writing streams it relays (``server.gateway``)."""
+"""Websocket frames (RFC 6455 5.2), the one place they are read and written by hand: their
+headers and a masked payload's bytes, for the fast paths of a connection
+(``game.net.fastpath``) and a gateway following and writing the streams it relays
+(``server.gateway``)."""
 
 from __future__ import annotations
 
@@ -46,3 +47,14 @@ def header_at(buf: bytes | bytearray, i: int) -> tuple[int, bool, int, int] | No
     if n >= 126:
         n = int.from_bytes(buf[i + 2:i + (4 if n == 126 else 10)], "big")
     return b0, masked, n, hl
+
+
+def unmask(payload: bytes | bytearray | memoryview, key: bytes | bytearray | memoryview
+           ) -> bytes:
+    """A masked frame's payload with its 4-byte masking ``key`` applied (RFC 6455 5.3)."""
+    n = len(payload)
+    if n == 0:
+        return b""
+    reps = -(-n // 4)
+    mask = int.from_bytes((bytes(key) * reps)[:n], "little")
+    return (int.from_bytes(payload, "little") ^ mask).to_bytes(n, "little")

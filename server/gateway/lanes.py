@@ -22,7 +22,7 @@ from typing import Any
 
 from ... import _native
 from ...game.wire import protocol as P
-from ...game.wire.wsframe import FIN, OP_BINARY, header_at
+from ...game.wire.wsframe import FIN, OP_BINARY, header_at, unmask
 from ..lanes.lane import Links
 from ..shared import lanes
 
@@ -68,9 +68,7 @@ class ClientFrames:
             if b0 == FIN | OP_BINARY and masked and n == P.HIP_SIZE and not self._fragmented:
                 if end - i < hl + n:
                     break  # held until whole
-                mask = int.from_bytes(buf[i + hl - 4:i + hl] * 7, "little")
-                payload = (int.from_bytes(buf[i + hl:i + hl + n], "little") ^ mask).to_bytes(
-                    n, "little")
+                payload = unmask(buf[i + hl:i + hl + n], buf[i + hl - 4:i + hl])
                 if not self.take(payload):
                     out += buf[i:i + hl + n]
                 i += hl + n
