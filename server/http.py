@@ -2,7 +2,8 @@
 
 * ``/`` the spectator page (``assets/web/index.html``, or a placeholder until it exists)
 * ``/static/<path>`` files under ``assets/web/`` (no path traversal)
-* ``/healthz`` ``ok``
+* ``/healthz`` ``ok`` once the rooms the server starts with can be joined; before (and
+  while stopping) 503 ``starting``
 * ``/api/rooms`` public rooms as JSON
 * ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=&player=&code=``)
 * ``/api/replays/<id>`` one replay file (``game.wire.replay``; a private room's: ``?code=``),
@@ -178,6 +179,7 @@ class HttpHost(Protocol):
     lobby: Lobby
     origins: tuple[str, ...] | None
     port: int  # this process's own port
+    ready: bool  # the rooms it starts with are open (GameServer.ready)
     store: ReplayIndex | None
     recording_error: str | None
     host_token: str
@@ -318,6 +320,8 @@ class HttpSurface:
                 return self._error(503, full)
             return None
         if path == "/healthz":  # on the loop: never behind files or index queries
+            if not self.srv.ready:  # listening already, its show room not yet open
+                return self._response(503, b"starting\n", "text/plain; charset=utf-8")
             return self._response(200, b"ok\n", "text/plain; charset=utf-8")
         if path == "/api/rooms":  # live state: read on the loop that changes it
             self.srv.lobby.shown()

@@ -147,7 +147,9 @@ async def serve(args: argparse.Namespace) -> int:
         print(json.dumps({"engine": os.getpid(), "url": server.own_url,
                           "backend": server.main_room.sim.backend if server.main_room
                           else args.backend,
-                          "recording": server.recording_error}), flush=True)
+                          "recording": server.recording_error,
+                          "host_token_file": None if server.host_token_file is None
+                          else str(server.host_token_file.resolve())}), flush=True)
         await _until_stopped(args.lifeline)
         await server.stop()
         if directory is not None:
@@ -161,7 +163,7 @@ async def serve(args: argparse.Namespace) -> int:
         print(f"NOT recording rounds: {server.recording_error}")
     else:
         print(f"recorded rounds in {Path(data).resolve()}  ({server.http_url}api/replays)")
-        print(f"host token (resets /api/stats) in {Path(data).resolve() / 'host-token'}")
+    _say_host_token(server.host_token_file)
     if args.host in ("127.0.0.1", "localhost", "::1"):
         print("(only this machine can connect; --host 0.0.0.0 to let others in)")
     if args.db:
@@ -332,7 +334,8 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         else:
             print(f"recorded rounds in {data.resolve()}  (http://{_shown(args.host)}:{port}"
                   "/api/replays)")
-            print(f"host token (resets /api/stats) in {data.resolve() / 'host-token'}")
+        token_file = first.get("host_token_file")
+        _say_host_token(Path(token_file) if isinstance(token_file, str) else None)
         if args.host in ("127.0.0.1", "localhost", "::1"):
             print("(only this machine can connect; --host 0.0.0.0 to let others in)")
         while not stopping.wait(0.2):
@@ -360,6 +363,14 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         shutil.rmtree(private, ignore_errors=True)
     print("stopped")
     return 0
+
+
+def _say_host_token(path: Path | None) -> None:
+    """Where the host token is, only where it was kept (the server logged why not)."""
+    if path is not None:
+        print(f"host token (resets /api/stats) in {path.resolve()}")
+    else:
+        print("NO host token file (see the warning above): /api/stats?reset=1 is refused")
 
 
 def _public_url(args: argparse.Namespace) -> str:
