@@ -102,8 +102,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"clothball bench: --server-backend cuda: {why}", file=sys.stderr)
             return 2
         return loadbench.run_load(args) if args.load else loadbench.run(args)
-    if args.scene is None:
-        args.scene = "classic"
+    if args.scene is None:  # the burst is issue 40's: `clothball host`'s own scene
+        args.scene = "default" if args.admit_burst else "classic"
     if args.empty_rooms is not None:
         return emptybench.run_empty(args)
     if args.soak:
