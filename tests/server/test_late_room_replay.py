@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 from clothball.game.sim.scene import Scene
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay
@@ -23,6 +24,7 @@ HEAVY = Scene.load("classic").with_changes({"cloth": {"n": 192}})
 HEAVY.name = "heavy"
 
 
+@pytest.mark.slow
 def test_a_late_rooms_records_keep_their_spacing_in_frames(tmp_path) -> None:
     async def main() -> None:
         srv = GameServer(tmp_path, scenes={"heavy": HEAVY}, backend=BACKEND, port=0, bots=4,
