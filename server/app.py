@@ -592,7 +592,9 @@ class GameServer:
             "headroom": {**vars(self.headroom.last), "busy": self.headroom.busy,
                          "outside": self.headroom.outside, "cores": self.headroom.cores,
                          "load": self.headroom.load,
-                         "room_cost": {n: self.headroom.cost(s) for n, s in self.scenes.items()}},
+                         "room_cost": {n: self.headroom.cost(s) for n, s in self.scenes.items()},
+                         "thread_cost": {n: self.headroom.thread_cost(s)
+                                         for n, s in self.scenes.items()}},
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             "rooms": rooms,
