@@ -558,15 +558,21 @@ def started_and_stopped(cmd: list[str]) -> str:
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     assert proc.stdout is not None
     out = []
-    for line in proc.stdout:
-        out.append(line)
-        if line.startswith("(only this machine can connect"):  # the last status line
-            break
-    time.sleep(1.0)  # its stop handler is set just after the status lines
-    proc.send_signal(signal.SIGTERM)
-    with proc.stdout:
-        rest = proc.stdout.read()  # (not communicate: lines read ahead are in this buffer)
-    proc.wait(60)
+    try:
+        for line in proc.stdout:
+            out.append(line)
+            if line.startswith("(only this machine can connect"):  # the last status line
+                break
+        time.sleep(1.0)  # its stop handler is set just after the status lines
+        proc.send_signal(signal.SIGTERM)
+        with proc.stdout:
+            rest = proc.stdout.read()  # (not communicate: lines read ahead are in this buffer)
+        proc.wait(60)
+    finally:  # never left running, its pipe never left open, whatever happened above
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
     text = "".join(out) + rest
     assert proc.returncode == 0 and "Traceback" not in text, text
     return text
