@@ -32,36 +32,43 @@ RETRY_MAX_S = 300.0
 
 
 class Backoff:
-    """Failures in a row of one thing, and when it is tried next (doubling waits)."""
+    """Failures in a row of one thing, and when it is tried next (doubling waits). Its
+    state is one tuple, replaced whole: the event loop reads it while the writer thread
+    changes it."""
 
     def __init__(self, first_s: float, max_s: float = RETRY_MAX_S) -> None:
         self.first_s, self.max_s = first_s, max_s
-        self.error: str | None = None  # the last failure's reason; None: it works
-        self.failures = 0
-        self.wait_s = 0.0
-        self.retry_at = 0.0  # time.monotonic()
+        # (last failure's reason or None, failures in a row, wait after it, retry_at)
+        self._st: tuple[str | None, int, float, float] = (None, 0, 0.0, 0.0)
+
+    @property
+    def error(self) -> str | None:
+        return self._st[0]
+
+    @property
+    def wait_s(self) -> float:
+        return self._st[2]
 
     def due(self) -> bool:
-        return time.monotonic() >= self.retry_at
+        return time.monotonic() >= self._st[3]
 
     def failed(self, why: str) -> bool:
         """One more failure; True for the first of a run (the one to say)."""
-        first = self.error is None
-        self.failures += 1
-        self.wait_s = min(self.first_s * 2 ** (self.failures - 1), self.max_s)
-        self.retry_at = time.monotonic() + self.wait_s
-        self.error = why
-        return first
+        error, failures, _, _ = self._st
+        wait = min(self.first_s * 2 ** failures, self.max_s)
+        self._st = (why, failures + 1, wait, time.monotonic() + wait)
+        return error is None
 
     def worked(self) -> bool:
         """It worked; True where it had been failing (the recovery to say)."""
-        was = self.error is not None
-        self.error, self.failures, self.wait_s, self.retry_at = None, 0, 0.0, 0.0
+        was = self._st[0] is not None
+        self._st = (None, 0, 0.0, 0.0)
         return was
 
     def state(self) -> dict[str, Any]:
-        return {"error": self.error, "failures": self.failures, "wait_s": self.wait_s,
-                "retry_in_s": max(0.0, self.retry_at - time.monotonic())}
+        error, failures, wait, retry_at = self._st
+        return {"error": error, "failures": failures, "wait_s": wait,
+                "retry_in_s": max(0.0, retry_at - time.monotonic())}
 
 
 class StorageOff(Exception):
