@@ -142,6 +142,9 @@ async def serve(args: argparse.Namespace) -> int:
     except OSError as e:
         print(f"clothball host: cannot listen on {args.host}:{args.port}: {e.strerror}")
         return 1
+    # Ctrl-C and SIGTERM stop it cleanly from before its first line: whoever reads the
+    # lines (a supervisor, a test) may stop it at once.
+    stop = _stop_on_signals(args.lifeline if engine else None)
     if engine:
         # One line for the supervisor, then this process runs quietly until stopped.
         print(json.dumps({"engine": os.getpid(), "url": server.own_url,
@@ -150,7 +153,7 @@ async def serve(args: argparse.Namespace) -> int:
                           "recording": server.recording_error,
                           "host_token_file": None if server.host_token_file is None
                           else str(server.host_token_file.resolve())}), flush=True)
-        await _until_stopped(args.lifeline)
+        await stop.wait()
         await server.stop()
         if directory is not None:
             directory.close()
@@ -173,7 +176,7 @@ async def serve(args: argparse.Namespace) -> int:
     if clustered:
         print(f"in the cluster at {_without_password(args.cluster)} as "
               f"{server.advertised_url}")
-    await _until_stopped()
+    await stop.wait()
     print("stopping: finishing the writes in progress...")
     await server.stop()
     if directory is not None:
@@ -210,9 +213,9 @@ def _check(args: argparse.Namespace) -> tuple[dict[str, Scene], Limits, Any, Any
         return None
 
 
-async def _until_stopped(lifeline_fd: int | None = None) -> None:
-    """Until SIGINT or SIGTERM, or (a child of the supervisor) until the supervisor is
-    gone."""
+def _stop_on_signals(lifeline_fd: int | None = None) -> asyncio.Event:
+    """An event set on SIGINT or SIGTERM, or (a child of the supervisor) once the
+    supervisor is gone; the handlers are in place when it returns."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -222,7 +225,7 @@ async def _until_stopped(lifeline_fd: int | None = None) -> None:
             pass
     if lifeline_fd is not None:
         lifeline.watch(lifeline_fd, stop.set)
-    await stop.wait()
+    return stop
 
 
 RESTART_S = 1.0  # a process that died is started again after this long

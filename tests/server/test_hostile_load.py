@@ -563,8 +563,7 @@ def started_and_stopped(cmd: list[str]) -> str:
             out.append(line)
             if line.startswith("(only this machine can connect"):  # the last status line
                 break
-        time.sleep(1.0)  # its stop handler is set just after the status lines
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGTERM)  # (its stop handler is set before its first line)
         with proc.stdout:
             rest = proc.stdout.read()  # (not communicate: lines read ahead are in this buffer)
         proc.wait(60)
