@@ -128,7 +128,8 @@ class GameServer:
         # ``db``: the replay index in PostgreSQL, shared by a cluster's hosts; its rows name
         # this host by its HTTP address, known once it listens (``start``).
         self.storage = Storage(self.data_dir, retention=Retention.from_limits(lim),
-                               min_free_bytes=int(lim.storage_min_free_mib * 2**20), db=c.db)
+                               min_free_bytes=int(lim.storage_min_free_mib * 2**20), db=c.db,
+                               retry_s=lim.storage_check_s)
         if c.db is None:
             self.storage.check_now()
         # Every room of a scene is a slot of that scene's worker: one call steps them all.
@@ -155,6 +156,10 @@ class GameServer:
         self._saves: set[asyncio.Task[Any]] = set()
         self._bot_factory = bot_factory
         self.main_room: Room | None = None
+        # /healthz answers 200 only while this is set: from the end of ``start`` (every
+        # room the host starts with open and joinable) to the start of ``stop``. It listens
+        # earlier (its bots need the port), so a probe must not take listening for ready.
+        self.ready = False
         self.stats = {"messages_in": 0, "messages_out": 0, "lane_messages_in": 0,
                       "lane_messages_out": 0, "bad_messages": 0, "rounds_saved": 0,
                       "rounds_not_saved": 0, "refused_connections": 0, "rooms_stopped": 0}
@@ -209,6 +214,7 @@ class GameServer:
         self._spawn(self._watch_storage())
         self._spawn(self._watch_headroom())
         self._spawn(self.ws.sweep_idle())
+        self.ready = True
         return self.host, self.port
 
     async def _claim_show_room(self) -> str:
@@ -371,6 +377,7 @@ class GameServer:
 
     async def stop(self) -> None:
         """Stop accepting, close every connection and room, finish the writes under way."""
+        self.ready = False
         self.http.abort_downloads()
         for srv in (self._gateways, self._server):
             if srv is not None:
@@ -411,14 +418,17 @@ class GameServer:
         token works whichever process answers; a token given to this server replaces it.
         Delete the file for a new token at the next start."""
         path = self.data_dir / "host-token"
+        self.host_token_file: Path | None = None  # where the token is kept, once it is
         if not self._token_given:
             with contextlib.suppress(OSError, UnicodeError):
                 found = path.read_text().strip()
                 if len(found) >= 32:
-                    self.host_token = found
+                    self.host_token, self.host_token_file = found, path
                     return
         tmp = path.with_name(f".host-token-{os.getpid()}")
         try:
+            # With --db nothing else has made the data directory yet (SQLite's check does).
+            self.data_dir.mkdir(parents=True, exist_ok=True)
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
             with os.fdopen(fd, "w") as f:
                 os.fchmod(f.fileno(), 0o600)
@@ -434,6 +444,7 @@ class GameServer:
                         self.host_token = found
                     else:  # damaged: ours replaces it
                         os.replace(tmp, path)
+            self.host_token_file = path
         except (OSError, UnicodeError) as e:
             log.warning("the host token could not be kept in %s (%s): statistics can be "
                         "reset only by a GameServer given host_token", path,
@@ -592,7 +603,9 @@ class GameServer:
             "headroom": {**vars(self.headroom.last), "busy": self.headroom.busy,
                          "outside": self.headroom.outside, "cores": self.headroom.cores,
                          "load": self.headroom.load,
-                         "room_cost": {n: self.headroom.cost(s) for n, s in self.scenes.items()}},
+                         "room_cost": {n: self.headroom.cost(s) for n, s in self.scenes.items()},
+                         "thread_cost": {n: self.headroom.thread_cost(s)
+                                         for n, s in self.scenes.items()}},
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
             # the lanes' part: its gateways' (reported) and the engine's own
@@ -610,7 +623,8 @@ class GameServer:
         r = Retention.from_limits(self.limits)
         out: dict[str, Any] = {"max_bytes": r.max_bytes, "max_days": r.max_age_s / 86400,
                                "state": self.storage.kind or "ok",
-                               "free_bytes": self.storage.free_bytes}
+                               "free_bytes": self.storage.free_bytes,
+                               "index_retry": self.storage.retry.state()}
         if self.store is not None:
             out.update(rounds=self.store.rounds, bytes=self.store.bytes)
         return out

@@ -3,11 +3,13 @@
 A new room is admitted or refused *before it exists*, from what it will cost: each scene's
 room costs the cores ``room_cost`` measured for it on this machine and backend (once per
 process, at start-up). On the CPU backend the native frame loop (``server.sim.worker``)
-itself runs 16 rooms at real time and a room costs its share of the loop thread's CPU time
-(its pacing included), so the cost is what the loop really spends and CPU stolen by
-neighbours does not inflate it. On a GPU four rooms are stepped, one ``ClothBatch`` call a
-frame, and 64 rooms, so that the launch all of a worker's rooms share counts once per
-thread. Every open room
+runs one room, then ``CALIBRATE_ROOMS_NATIVE``, and its thread's CPU time over the frames it
+*stepped* gives what a frame of each costs: a room the difference, the thread the rest (its
+pacing and publishing, once a thread). Frames it skipped, falling behind, cost nothing and
+are not counted, so a loop that cannot keep up measures a room at its true price, and CPU
+stolen by neighbours does not inflate it. On a GPU four rooms are stepped, one
+``ClothBatch`` call a frame, and 64 rooms, so that the launch all of a worker's rooms share
+counts once per thread. Every open room
 counts, asleep or awake (a sleeping room wakes the moment someone joins it). A room fits
 while the rooms' cost stays within ``admit_load`` of the cores the process may use, and
 within ``admit_load`` of one core for the rooms one simulation thread steps (one per scene,
@@ -18,12 +20,12 @@ Besides the model, every ``WINDOW_S`` the server looks at what its rooms did sin
 look: the frame lateness of its simulation workers (p99 of every pass), frames they had to
 skip, the CPU the process used and the machine's stolen CPU (``/proc/stat``). It is *busy*
 while each of the last ``SUSTAINED`` windows had a lateness p99 past ``admit_lateness_ms``
-or skipped frames *and* the server carried load of its own: it used at least
-``OWN_LOAD_CORES``, or its awake rooms cost that much by the model. Late frames of a server
-that is doing little are not its load (CPU steal, neighbours), and refusing rooms would
-not help them. While busy, a new room or the waking of a sleeping one is
-refused with ``server_busy`` and the reason, and a host that is busy takes no new rooms
-from the others (``docs/cluster.md``).
+or skipped frames: they are its own rooms' frames, and another room would be late too,
+whatever the CPU figure. Where the process itself used little CPU (under
+``OWN_LOAD_CORES``, its rooms costing less by the model) the refusal also names the cause,
+CPU taken from outside (``outside``: neighbours, steal), but refuses all the same. While
+busy, a new room or the waking of a sleeping one is refused with ``server_busy`` and the
+reason, and a host that is busy takes no new rooms from the others (``docs/cluster.md``).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from .sim import WORKER_CAPACITY, RoomSim, SimPool
 WINDOW_S = 1.0
 SUSTAINED = 3  # windows in a row over the limit that make the server busy
 # The process used at least this many cores in a late window: the lateness is its own
-# load. Less: something else took the CPU (steal, neighbours).
+# load. Less: something else took the CPU (steal, neighbours), which the refusal names.
 OWN_LOAD_CORES = 0.5
 CALIBRATE_S = 0.15  # s of stepping that measure one scene's room cost
 CALIBRATE_ROOMS = 4
@@ -55,13 +57,16 @@ CALIBRATE_ROOMS = 4
 # a room only its share beyond it (at 4 rooms alone the launch made a room look ~20 times
 # dearer on an H100: 20 rooms a thread instead of the hundreds it steps).
 CALIBRATE_ROOMS_GPU = 64
-# The native loop on the CPU: this many rooms run (after a warm-up of its first passes)
-# and a room costs their share of the loop thread's CPU, its pacing included: a little
-# dearer than it is past that many rooms a thread, cheaper below, where a thread is far
-# from full. Timed through ClothBatch's per-frame Python call, which this loop no longer
-# makes, a room looked several times dearer (8 rooms a thread admitted on the 2-core VM).
-CALIBRATE_ROOMS_NATIVE = 16
+# The native loop on the CPU: its thread's CPU time over the frames it *stepped*, with one
+# room and with CALIBRATE_ROOMS_NATIVE, so that a room costs what its frames cost and the
+# loop's own work a pass (pacing, publishing) counts once a thread. Shared out over wall
+# time instead, a thread that could not keep up (16 rooms of the default scene need ~5.5
+# cores on the 2-core VM) made a room look 0.06 cores where it costs 0.34, and admission
+# took 11-31 rooms that ran at 0.03-0.25x real time (issue 40).
+CALIBRATE_ROOMS_NATIVE = 8
 CALIBRATE_WARM_S = 0.05
+CALIBRATE_MIN_FRAMES = 20  # frames a native measure waits for past CALIBRATE_S ...
+CALIBRATE_MAX_S = 5.0  # ... for at most this long
 
 # key -> (cores the stepping thread costs whatever its rooms, cores a room adds)
 _costs: dict[tuple[str, str, str], tuple[float, float]] = {}
@@ -91,8 +96,9 @@ def _frame_cost(scene: Scene, key: tuple[str, str, str], rooms: int) -> float:
 
 
 def _native_cost(scene: Scene, backend: str, rooms: int) -> float:
-    """Cores the native frame loop's thread spends on ``rooms`` awake rooms of ``scene``
-    at real time (its thread's CPU time over wall time)."""
+    """Cores the native frame loop's thread would spend on ``rooms`` awake rooms of
+    ``scene`` at real time: its CPU time over the frames it stepped (frames skipped because
+    it fell behind cost nothing and are not counted)."""
     pool = SimPool()
     sims: list[RoomSim] = []
     try:
@@ -101,9 +107,16 @@ def _native_cost(scene: Scene, backend: str, rooms: int) -> float:
             sims[-1].start()
         worker = sims[0].worker
         time.sleep(CALIBRATE_WARM_S)
-        cpu0, wall0 = worker.cpu_seconds(), time.perf_counter()
-        time.sleep(CALIBRATE_S)
-        return (worker.cpu_seconds() - cpu0) / (time.perf_counter() - wall0)
+        cpu0, frames0 = worker.cpu_seconds(), sims[0].stats.frames
+        wall0 = time.perf_counter()
+        # At least a few frames, however slow the machine (every room steps each frame).
+        while time.perf_counter() - wall0 < CALIBRATE_S or \
+                sims[0].stats.frames - frames0 < CALIBRATE_MIN_FRAMES:
+            if time.perf_counter() - wall0 > CALIBRATE_MAX_S:
+                break
+            time.sleep(0.01)
+        cpu, frames = worker.cpu_seconds() - cpu0, sims[0].stats.frames - frames0
+        return cpu / (max(frames, 1) * sims[0].frame_dt)
     finally:
         for s in sims:
             s.stop()
@@ -115,9 +128,13 @@ def _measure(scene: Scene, backend: str) -> tuple[float, float]:
     with _costs_lock:
         if key in _costs:
             return _costs[key]
-    if key[1] == "cpu":  # the loop's pacing shared by the rooms a thread holds
-        native = _native_cost(scene, backend, CALIBRATE_ROOMS_NATIVE)
-        cost = (0.0, native / CALIBRATE_ROOMS_NATIVE)
+    if key[1] == "cpu":  # per room from the difference; the rest is the thread's own
+        one = _native_cost(scene, backend, 1)
+        many = _native_cost(scene, backend, CALIBRATE_ROOMS_NATIVE)
+        per_room = (many - one) / (CALIBRATE_ROOMS_NATIVE - 1)
+        if per_room <= 0.0:  # noise swamped the difference: the whole share, dearer
+            per_room = many / CALIBRATE_ROOMS_NATIVE
+        cost = (max(one - per_room, 0.0), per_room)
     else:
         small = _frame_cost(scene, key, CALIBRATE_ROOMS)
         large = _frame_cost(scene, key, CALIBRATE_ROOMS_GPU)
@@ -132,6 +149,12 @@ def room_cost(scene: Scene, backend: str) -> float:
     """Cores one room of ``scene`` adds on ``backend`` at real time (measured once per
     process; blocking: call it off the event loop)."""
     return _measure(scene, backend)[1]
+
+
+def thread_cost(scene: Scene, backend: str) -> float:
+    """Cores the thread stepping ``scene``'s rooms costs whatever their number (measured
+    with ``room_cost``)."""
+    return _measure(scene, backend)[0]
 
 
 @dataclass
@@ -253,23 +276,28 @@ class Headroom:
 
     @property
     def outside(self) -> str | None:
-        """Late frames that are not this server's load (it carries little), or None."""
+        """Late frames while this server itself uses little CPU: the cause named (CPU taken
+        by other programs or the hypervisor), or None. Its rooms are late all the same, so
+        it makes the server no less busy (``busy``)."""
         s = self.last
         if self.lateness_ms <= 0 or not self._late(s) or self._own(s):
             return None
-        return (f"frames late (p99 {s.lateness_p99_ms:.1f} ms) while this server used "
-                f"{s.cpu_cores:.2f} cores and its rooms cost {s.carried_cores:.2f}: CPU "
-                f"taken from outside ({s.steal:.0%} stolen)")
+        return (f"frames late (p99 {s.lateness_p99_ms:.1f} ms, {s.skipped_frames} skipped) "
+                f"while this server used {s.cpu_cores:.2f} cores and its rooms cost "
+                f"{s.carried_cores:.2f}: CPU taken from outside ({s.steal:.0%} stolen)")
 
     @property
     def busy(self) -> str | None:
-        """Why no more rooms fit now by the measured signal (None: there is room)."""
+        """Why no more rooms fit now by the measured signal (None: there is room): frames
+        of this server's own rooms late or skipped in each of the last ``SUSTAINED``
+        windows, whatever CPU it used (another room would be late too)."""
         if self.lateness_ms <= 0 or len(self.recent) < SUSTAINED:
             return None
-        if not all(self._late(s) and self._own(s) for s in self.recent):
+        if not all(self._late(s) for s in self.recent):
             return None
         s = self.last
+        why = self.outside
         return (f"this server is at capacity: for {SUSTAINED} s its frames were late (p99 "
                 f"{s.lateness_p99_ms:.1f} ms, limit {self.lateness_ms:g} ms) or skipped "
-                f"({s.skipped_frames} in the last second) at {s.cpu_cores:.2f} CPU cores; try "
-                "again later or another server")
+                f"({s.skipped_frames} in the last second) at {s.cpu_cores:.2f} CPU cores"
+                + (f"; {why}" if why else "") + "; try again later or another server")

@@ -30,6 +30,7 @@ def start_host(data: Path, *extra: str, port: int = 0, workers: int = 1
         if m:
             return proc, m.group(1)
     proc.wait()
+    proc.stdout.close()  # ended: nothing more to read, and nothing left open
     return proc, None
 
 
@@ -94,7 +95,14 @@ def start_redis(redis_server: str, port: int, workdir: Path | str) -> subprocess
 
 
 def stop_host(proc: subprocess.Popen[str]) -> None:
-    proc.terminate()
-    proc.wait(timeout=60)
-    if proc.stdout is not None:
-        proc.stdout.close()
+    """SIGTERM, then SIGKILL if it has not ended within a minute; its pipe closed."""
+    try:
+        proc.terminate()
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    finally:
+        if proc.stdout is not None:
+            proc.stdout.close()

@@ -2,7 +2,8 @@
 
 * ``/`` the spectator page (``assets/web/index.html``, or a placeholder until it exists)
 * ``/static/<path>`` files under ``assets/web/`` (no path traversal)
-* ``/healthz`` ``ok``
+* ``/healthz`` ``ok`` once the rooms the server starts with can be joined; before (and
+  while stopping) 503 ``starting``
 * ``/api/rooms`` public rooms as JSON
 * ``/api/replays`` recorded rounds as JSON (``?limit=&offset=&room=&player=&code=``)
 * ``/api/replays/<id>`` one replay file (``game.wire.replay``; a private room's: ``?code=``),
@@ -13,7 +14,9 @@
   (``Authorization: Bearer TOKEN``, the token in the data directory's ``host-token``)
 * ``/metrics`` the same figures in the Prometheus text format (``server.metrics``)
 
-and the admission of websocket upgrades on ``/ws`` (origin policy, connection limit).
+and the admission of websocket upgrades on ``/ws`` (origin policy, connection limit). On a
+host's engine (``clothball host --workers N``) its own loopback TCP port answers only its
+bots' upgrades (``?house=``): everything else, 403 naming the public port.
 
 A malformed request (a header that must come once given twice, or one that is not ASCII)
 gets a 400 and one log line per address and minute
@@ -178,6 +181,9 @@ class HttpHost(Protocol):
     lobby: Lobby
     origins: tuple[str, ...] | None
     port: int  # this process's own port
+    public_port: int | None  # the gateways' port, where there are gateways
+    engine_socket: Path | None  # the gateways' way in, where this is a host's engine
+    ready: bool  # the rooms it starts with are open (GameServer.ready)
     store: ReplayIndex | None
     recording_error: str | None
     host_token: str
@@ -270,6 +276,21 @@ class HttpSurface:
                 return f"the {name} header must be ASCII"
         return None
 
+    def _house(self, query: str) -> bool:
+        """The query carries the key of this server's own bots (compared in constant time)."""
+        return hmac.compare_digest(
+            urllib.parse.parse_qs(query).get("house", [""])[0].encode(),
+            self.srv.house_key.encode())
+
+    def _private(self, connection: ServerConnection) -> bool:
+        """Whether ``connection`` came to a host engine's own TCP port rather than through
+        its gateways' Unix socket (a path there, an address here)."""
+        if self.srv.engine_socket is None:
+            return False
+        transport = getattr(connection, "transport", None)
+        return transport is not None and isinstance(transport.get_extra_info("sockname"),
+                                                    tuple)
+
     def _is_host(self, request: Request) -> bool:
         """The request carries the host's token (compared in constant time)."""
         scheme, _, token = request.headers.get("Authorization", "").partition(" ")
@@ -295,6 +316,12 @@ class HttpSurface:
             return self._error(400, problem)
         # Split by hand: urlsplit reads "//host" as an authority and raises on "//[".
         path, _, query = request.path.partition("#")[0].partition("?")
+        if self._private(connection) and not (path == "/ws" and self._house(query)):
+            # An engine's own TCP port is its bots' way in, nobody else's: a client there
+            # would pass the gateways and their per-address limits (issue 40).
+            return self._error(403, "this is a clothball engine's private port, for its "
+                                    "own bots: connect to the host's public port "
+                                    f"{self.srv.public_port}")
         if path == "/ws":
             origin = request.headers.get("Origin")
             # Browsers always send Origin; other clients need not. The policy stops a page
@@ -306,9 +333,7 @@ class HttpSurface:
                                         "host can allow it with --origin)")
             # What the connection handler needs (server.ws): who the client is, and whether
             # it is one of this server's own bots (bounded by rooms x seats, not counted).
-            house = hmac.compare_digest(
-                urllib.parse.parse_qs(query).get("house", [""])[0].encode(),
-                self.srv.house_key.encode())
+            house = self._house(query)
             connection.client_address = address  # type: ignore[attr-defined]
             connection.house = house  # type: ignore[attr-defined]
             full = None if house else self.srv.limits.full_for(
@@ -318,6 +343,8 @@ class HttpSurface:
                 return self._error(503, full)
             return None
         if path == "/healthz":  # on the loop: never behind files or index queries
+            if not self.srv.ready:  # listening already, its show room not yet open
+                return self._response(503, b"starting\n", "text/plain; charset=utf-8")
             return self._response(200, b"ok\n", "text/plain; charset=utf-8")
         if path == "/api/rooms":  # live state: read on the loop that changes it
             self.srv.lobby.shown()

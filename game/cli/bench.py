@@ -17,6 +17,7 @@ from ...server.thread import ServerThread
 from ..rules import EDGE_NAMES
 from ..sim.cloth import cuda_unavailable_reason
 from ..sim.scene import Scene, SceneError
+from ..sim.threads import busy_note
 from ..study import largest, rooms, rounds
 from ..study.bench import (
     csv_list,
@@ -104,8 +105,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"clothball bench: --server-backend cuda: {why}", file=sys.stderr)
             return 2
         return loadbench.run_load(args) if args.load else loadbench.run(args)
-    if args.scene is None:
-        args.scene = "classic"
+    if args.scene is None:  # the burst is issue 40's: `clothball host`'s own scene
+        args.scene = "default" if args.admit_burst else "classic"
     if args.empty_rooms is not None:
         return emptybench.run_empty(args)
     if args.soak:
@@ -114,8 +115,14 @@ def run(args: argparse.Namespace) -> int:
         return admitbench.run_admit(args)
     if args.index:
         return indexbench.run(args)
+    busy = busy_note()  # looked at before the bench's own work starts
+    if busy:
+        print(busy, file=sys.stderr, flush=True)
     if args.rooms:
-        return run_rooms_cmd(args)
+        code = run_rooms_cmd(args)
+        if busy and code == 0:
+            print(busy)
+        return code
     if args.effects:
         try:
             rows = run_effects(args)
@@ -139,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
         copy_gbs = _native.cuda_copy_bandwidth_gbs(1 << 30)
         print(f"device-to-device copy: {copy_gbs:.0f} GB/s (read + write)")
     print_table(rows, copy_gbs)
+    if busy:
+        print(busy)
     verdicts = gpu_target_verdicts(rows, copy_gbs)
     if verdicts:
         print("\nissue 2's GPU targets (stated for an H100):")

@@ -63,14 +63,19 @@ def _reach() -> F.Reach:
 
 def check(args: argparse.Namespace) -> int:
     if not args.emulator:
-        print(f"Falcons on the USB bus: {F._f.count_usb_devices()}")
+        # A build without libusb cannot count the bus: a 0 there would be a false figure.
+        if F._f.usb_transport_available():
+            print(f"Falcons on the USB bus: {F._f.count_usb_devices()}")
+        else:
+            print("Falcons on the USB bus: not known (this build has no USB transport)")
     try:
         dev = _open(args, args.emulator)
     except F.NoDeviceError as e:
+        # A FalconError like the others: status 2, as docs/falcon.md says.
         print(f"clothball falcon check: {e}\n"
               "No Falcon at hand? Try the emulated one: clothball falcon check --emulator",
               file=sys.stderr)
-        return 1
+        return 2
     try:
         dev.start(_reach())
         seconds = args.seconds if args.seconds is not None else (3.0 if args.emulator else None)

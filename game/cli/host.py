@@ -143,13 +143,18 @@ async def serve(args: argparse.Namespace) -> int:
     except OSError as e:
         print(f"clothball host: cannot listen on {args.host}:{args.port}: {e.strerror}")
         return 1
+    # Ctrl-C and SIGTERM stop it cleanly from before its first line: whoever reads the
+    # lines (a supervisor, a test) may stop it at once.
+    stop = _stop_on_signals(args.lifeline if engine else None)
     if engine:
         # One line for the supervisor, then this process runs quietly until stopped.
         print(json.dumps({"engine": os.getpid(), "url": server.own_url,
                           "backend": server.main_room.sim.backend if server.main_room
                           else args.backend,
-                          "recording": server.recording_error}), flush=True)
-        await _until_stopped(args.lifeline)
+                          "recording": server.recording_error,
+                          "host_token_file": None if server.host_token_file is None
+                          else str(server.host_token_file.resolve())}), flush=True)
+        await stop.wait()
         await server.stop()
         if directory is not None:
             directory.close()
@@ -162,7 +167,7 @@ async def serve(args: argparse.Namespace) -> int:
         print(f"NOT recording rounds: {server.recording_error}")
     else:
         print(f"recorded rounds in {Path(data).resolve()}  ({server.http_url}api/replays)")
-        print(f"host token (resets /api/stats) in {Path(data).resolve() / 'host-token'}")
+    _say_host_token(server.host_token_file)
     if args.host in ("127.0.0.1", "localhost", "::1"):
         print("(only this machine can connect; --host 0.0.0.0 to let others in)")
     if args.db:
@@ -172,7 +177,7 @@ async def serve(args: argparse.Namespace) -> int:
     if clustered:
         print(f"in the cluster at {_without_password(args.cluster)} as "
               f"{server.advertised_url}")
-    await _until_stopped()
+    await stop.wait()
     print("stopping: finishing the writes in progress...")
     await server.stop()
     if directory is not None:
@@ -209,9 +214,9 @@ def _check(args: argparse.Namespace) -> tuple[dict[str, Scene], Limits, Any, Any
         return None
 
 
-async def _until_stopped(lifeline_fd: int | None = None) -> None:
-    """Until SIGINT or SIGTERM, or (a child of the supervisor) until the supervisor is
-    gone."""
+def _stop_on_signals(lifeline_fd: int | None = None) -> asyncio.Event:
+    """An event set on SIGINT or SIGTERM, or (a child of the supervisor) once the
+    supervisor is gone; the handlers are in place when it returns."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -221,7 +226,7 @@ async def _until_stopped(lifeline_fd: int | None = None) -> None:
             pass
     if lifeline_fd is not None:
         lifeline.watch(lifeline_fd, stop.set)
-    await stop.wait()
+    return stop
 
 
 RESTART_S = 1.0  # a process that died is started again after this long
@@ -333,7 +338,8 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         else:
             print(f"recorded rounds in {data.resolve()}  (http://{_shown(args.host)}:{port}"
                   "/api/replays)")
-            print(f"host token (resets /api/stats) in {data.resolve() / 'host-token'}")
+        token_file = first.get("host_token_file")
+        _say_host_token(Path(token_file) if isinstance(token_file, str) else None)
         if args.host in ("127.0.0.1", "localhost", "::1"):
             print("(only this machine can connect; --host 0.0.0.0 to let others in)")
         while not stopping.wait(0.2):
@@ -361,6 +367,14 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         shutil.rmtree(private, ignore_errors=True)
     print("stopped")
     return 0
+
+
+def _say_host_token(path: Path | None) -> None:
+    """Where the host token is, only where it was kept (the server logged why not)."""
+    if path is not None:
+        print(f"host token (resets /api/stats) in {path.resolve()}")
+    else:
+        print("NO host token file (see the warning above): /api/stats?reset=1 is refused")
 
 
 def _public_url(args: argparse.Namespace) -> str:

@@ -12,6 +12,7 @@ import argparse
 import sys
 import time
 import urllib.error
+import urllib.parse
 from pathlib import Path
 
 from .display import window_error
@@ -38,6 +39,23 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="close the window after S seconds")
 
 
+def _unreachable(url: str, e: BaseException) -> str:
+    """Why the server at ``url`` could not be asked, in the words ``clothball play`` uses
+    (the address, what to start or check), not urllib's wrapper."""
+    from ..net.client import explain_connect_error
+
+    if isinstance(e, urllib.error.URLError) and not isinstance(e, urllib.error.HTTPError):
+        reason = e.reason
+    elif isinstance(e, TimeoutError):  # an answer that stopped half-way
+        reason = e
+    else:  # a file that cannot be read, a bad URL, a damaged replay: its own words
+        return str(e)
+    if not isinstance(reason, OSError):
+        return str(reason)
+    parts = urllib.parse.urlsplit(url)
+    return explain_connect_error(f"ws://{parts.netloc}/ws", reason)[0]
+
+
 def run(args: argparse.Namespace) -> int:
     from ..client.replay import ReplayData, ReplayError, ReplayPlayer, fetch, list_remote
 
@@ -45,8 +63,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             rows = list_remote(args.server)
         except (OSError, urllib.error.URLError, ValueError) as e:
-            print(f"clothball replay: cannot list the rounds on {args.server}: {e}",
-                  file=sys.stderr)
+            print(f"clothball replay: cannot list the rounds on {args.server}: "
+                  f"{_unreachable(args.server, e)}", file=sys.stderr)
             return 1
         if not rows:
             print("no recorded rounds yet")
@@ -67,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     except (OSError, urllib.error.URLError, ReplayError) as e:
-        print(f"clothball replay: cannot load {args.source}: {e}", file=sys.stderr)
+        where = args.source if args.source.startswith(("http://", "https://")) else args.server
+        print(f"clothball replay: cannot load {args.source}: {_unreachable(where, e)}",
+              file=sys.stderr)
         return 1
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))

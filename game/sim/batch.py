@@ -30,6 +30,7 @@ from .cloth import (
 from .config import native_config
 from .scene import Scene
 from .stability import auto_substeps, substeps_for_speeds
+from .threads import choose as choose_threads
 
 log = logging.getLogger("clothball.sim")
 
@@ -68,10 +69,13 @@ class ClothBatch:
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
                                     or threads < 1):
             raise ValueError(f"threads: must be a whole number >= 1 or None, got {threads!r}")
-        # CPU: the slots are shared among `threads` threads (None: one per core); a slot
-        # is one thread's work.
+        # CPU: the slots are shared among `threads` threads (None: by the slots' nodes and
+        # the cores free now, ``game.sim.threads``); a slot is one thread's work.
+        self.threads = choose_threads(self.capacity * scene.n * scene.n, threads) \
+            if backend == "cpu" else None
         self._engine = _native.BatchEngine(backend, precision == "float64",
-                                           native_config(scene), self.capacity, threads or 0)
+                                           native_config(scene), self.capacity,
+                                           self.threads or 0)
         self._coupled = "coupling" in scene.effects
         self._has_ball = "ball" in scene.effects
         self._k = float(scene["coupling"]["stiffness"]) if self._coupled else 0.0

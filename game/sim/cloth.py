@@ -17,6 +17,7 @@ from ... import _native
 from .config import effect_names, native_config
 from .scene import Scene, SceneError
 from .stability import auto_substeps, stable_dt, substeps_for_speeds
+from .threads import choose as choose_threads
 
 log = logging.getLogger("clothball")
 
@@ -161,7 +162,8 @@ class Cloth:
 
     ``backend="auto"`` picks CUDA when a GPU is present, else the CPU, and logs which
     (``backend_note`` says why). ``precision`` overrides the scene's ``sim.precision``.
-    ``threads`` caps the CPU backend's threads (default: all cores); a server that shares
+    ``threads`` sets the CPU backend's threads (default: by the cloth's size and the cores
+    free now, ``game.sim.threads``; ``self.threads`` says how many); a server that shares
     the cores with its network loop may want 1.
     Not thread-safe: one thread steps it at a time (stepping releases the GIL).
     """
@@ -185,8 +187,11 @@ class Cloth:
         self._frame_dt = float(scene["sim"]["frame_dt"])
         if self._fixed_substeps is not None:
             check_fixed_dt(scene)
+        # The CPU's threads: as asked, else by the nodes between two of their barriers
+        # (a substep's) and the cores free now (``threads``); None on CUDA.
+        self.threads = choose_threads(scene.n * scene.n, threads) if backend == "cpu" else None
         self._engine = _native.Engine(
-            backend, precision == "float64", native_config(scene, threads or 0)
+            backend, precision == "float64", native_config(scene, self.threads or 0)
         )
         self._coupled = "coupling" in scene.effects
         self._has_ball = "ball" in scene.effects

@@ -16,7 +16,6 @@ import time
 import warnings
 from typing import Any
 
-from ... import _native
 from ..sim.cloth import Cloth, cuda_unavailable_reason
 from ..sim.scene import Scene
 from ..sim.stability import auto_substeps
@@ -145,7 +144,7 @@ def run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                 "substeps_per_frame": cloth.substeps,
                 "min_bytes_per_substep": bytes_min,
                 "effective_gbs": bytes_min / sec / 1e9,
-                "cpu_threads": _native.cpu_threads(),
+                "cpu_threads": cloth.threads,
             }
         )
         del cloth
@@ -287,7 +286,8 @@ def print_skip_check(rows: list[dict[str, Any]]) -> None:
 
 
 def print_table(rows: list[dict[str, Any]], copy_gbs: float | None) -> None:
-    print(f"{'n':>6} {'backend':>7} {'precision':>9} {'us/substep':>11} {'GB/s':>7}  paper (ms)")
+    print(f"{'n':>6} {'backend':>7} {'precision':>9} {'threads':>7} {'us/substep':>11} "
+          f"{'GB/s':>7}  paper (ms)")
     for r in rows:
         paper = PAPER_TABLE1.get(r["n"])
         note = ""
@@ -295,12 +295,16 @@ def print_table(rows: list[dict[str, Any]], copy_gbs: float | None) -> None:
             cpu, dp, sp = paper
             ref = cpu if r["backend"] == "cpu" else (sp if r["precision"] == "float32" else dp)
             label = "CPU" if r["backend"] == "cpu" else "GPU " + r["precision"]
-            note = f"{label} {ref:g} ms -> {ref * 1e3 / r['substep_us']:.0f}x faster"
+            speedup = ref * 1e3 / r["substep_us"]
+            # (a busy machine's CPU row can fall below 1x: "0x faster" said nothing)
+            note = (f"{label} {ref:g} ms -> {speedup:.0f}x faster" if speedup >= 1.5 else
+                    f"{label} {ref:g} ms -> {speedup:.2g}x as fast")
         bw = r["effective_gbs"]
         extra = f" ({bw / copy_gbs:.1%} of copy)" if copy_gbs and r["backend"] == "cuda" else ""
+        threads = "-" if r.get("cpu_threads") is None else str(r["cpu_threads"])
         print(
-            f"{r['n']:>6} {r['backend']:>7} {r['precision']:>9} {r['substep_us']:>11.2f} "
-            f"{bw:>7.1f}  {note}{extra}"
+            f"{r['n']:>6} {r['backend']:>7} {r['precision']:>9} {threads:>7} "
+            f"{r['substep_us']:>11.2f} {bw:>7.1f}  {note}{extra}"
         )
 
 

@@ -35,10 +35,10 @@ def room_scene(base: Scene, n: int) -> Scene:
 
 
 def frame_times(scene: Scene, rooms: int, backend: str, precision: str, frames: int,
-                warmup: int = 30) -> tuple[np.ndarray, float]:
+                warmup: int = 30) -> tuple[np.ndarray, float, int | None]:
     """Microseconds of each of ``frames`` frames for ``rooms`` rooms: hands in, one step,
-    corners and balls out; and the median microseconds per room of reading every room's
-    nodes back in one gather (a MESH's copy)."""
+    corners and balls out; the median microseconds per room of reading every room's
+    nodes back in one gather (a MESH's copy); and the CPU threads the batch chose."""
     batch = ClothBatch(scene, capacity=rooms, backend=backend, precision=precision)
     for _ in range(rooms):
         batch.add()
@@ -59,13 +59,14 @@ def frame_times(scene: Scene, rooms: int, backend: str, precision: str, frames: 
         t0 = time.perf_counter()
         batch.gather_positions(slots)
         gathers[k] = (time.perf_counter() - t0) * 1e6 / rooms
-    return out, float(np.median(gathers))
+    return out, float(np.median(gathers)), batch.threads
 
 
 def row(backend: str, precision: str, n: int, rooms: int, times: np.ndarray,
-        substeps: int, mesh_us: float) -> dict[str, Any]:
+        substeps: int, mesh_us: float, threads: int | None = None) -> dict[str, Any]:
     p50, p99 = np.percentile(times, [50, 99])
     return {"backend": backend, "precision": precision, "n": n, "rooms": rooms,
+            "threads": threads,
             "substeps": substeps, "frames": int(times.size), "frame_us_p50": float(p50),
             "frame_us_p99": float(p99), "mesh_us_per_room": mesh_us,
             "held": bool(p99 <= FRAME_BUDGET_US)}
@@ -102,9 +103,9 @@ def run_rooms(base: Scene, cases: list[tuple[str, str, int]], frames: int, max_r
 
         def held(k: int, backend: str = backend, precision: str = precision, n: int = n,
                  scene: Scene = scene, results: dict[int, dict[str, Any]] = results) -> bool:
-            times, mesh_us = frame_times(scene, k, backend, precision, frames)
+            times, mesh_us, threads = frame_times(scene, k, backend, precision, frames)
             results[k] = row(backend, precision, n, k, times, int(scene["sim"]["substeps"]),
-                             mesh_us)
+                             mesh_us, threads)
             progress(f"{backend} {precision} n={n}: {k} rooms, p99 "
                      f"{results[k]['frame_us_p99']:.0f} us")
             return results[k]["held"]
@@ -127,12 +128,14 @@ def held_counts(rows: list[dict[str, Any]]) -> dict[tuple[str, str, int], int]:
 
 
 def print_rooms(rows: list[dict[str, Any]]) -> None:
-    print(f"{'backend':8} {'precision':9} {'n':>5} {'rooms':>6} {'substeps':>8} "
+    print(f"{'backend':8} {'precision':9} {'n':>5} {'rooms':>6} {'threads':>7} {'substeps':>8} "
           f"{'p50 us':>8} {'p99 us':>8} {'mesh us/room':>12}  held")
     for r in rows:
+        threads = "-" if r.get("threads") is None else str(r["threads"])
         print(f"{r['backend']:8} {r['precision']:9} {r['n']:5d} {r['rooms']:6d} "
-              f"{r['substeps']:8d} {r['frame_us_p50']:8.1f} {r['frame_us_p99']:8.1f} "
-              f"{r['mesh_us_per_room']:12.2f}  {'yes' if r['held'] else 'no'}")
+              f"{threads:>7} {r['substeps']:8d} {r['frame_us_p50']:8.1f} "
+              f"{r['frame_us_p99']:8.1f} {r['mesh_us_per_room']:12.2f}  "
+              f"{'yes' if r['held'] else 'no'}")
     best = held_counts(rows)
     print("\nrooms held at 1 kHz (frame p99 <= 1 ms):")
     for (backend, precision, n), k in best.items():

@@ -6,6 +6,10 @@ room runs too, with no bots); rooms of the scene are created one at a time, each
 one spectator (so it runs), ``--admit-settle`` seconds apart, until the server answers
 ``server_busy``. Printed: the rooms admitted, the refusal's reason, and the server's own
 measure (frame lateness, skipped frames, CPU) at each step.
+
+``--admit-burst K``: issue 40's burst instead: ``clothball host --bots 4`` (its default
+scene), K ``create_room`` at once from 8 loopback addresses, each admitted room watched,
+and the show room's pace (frames stepped over wall time) every 2 s.
 """
 
 from __future__ import annotations
@@ -18,7 +22,10 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from websockets.asyncio.client import connect
+
 from ...game.net.client import NetClient, ServerError
+from ...game.wire.protocol import PROTOCOL_VERSION
 from ..hostproc import start_host, stats, stop_host
 
 
@@ -30,6 +37,13 @@ def configure_admit_flags(parser: argparse.ArgumentParser) -> None:
                    help="--admit: seconds between rooms (default %(default)s)")
     g.add_argument("--admit-max", type=int, default=30, metavar="K",
                    help="--admit: stop at K rooms (default %(default)s)")
+    g.add_argument("--admit-burst", type=int, default=0, metavar="K",
+                   help="--admit: instead, K create_room at once from 8 loopback addresses "
+                        "to a host with four bots in its show room (issue 40: 32); printed: "
+                        "rooms admitted and refused, and the show room's pace (frames "
+                        "stepped over real time) every 2 s for --admit-burst-s")
+    g.add_argument("--admit-burst-s", type=float, default=20.0, metavar="S",
+                   help="--admit-burst: seconds the show room is watched (default %(default)s)")
 
 
 async def _admit(url: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -58,7 +72,75 @@ async def _admit(url: str, args: argparse.Namespace) -> dict[str, Any]:
     return {"bench": "admit", "admitted": len(steps), "refused": refused, "steps": steps}
 
 
+BURST_ADDRESSES = 8
+PACE_SAMPLE_S = 2.0
+
+
+async def _burst(url: str, args: argparse.Namespace) -> dict[str, Any]:
+    """``args.admit_burst`` create_room at once from 8 addresses; each admitted room watched;
+    the show room's pace sampled."""
+    # Raw connections: each from an address of its own (the per-address limits).
+    makers = []
+    for k in range(BURST_ADDRESSES):
+        ws = await connect(url, local_addr=(f"127.0.0.{2 + k}", 0), compression=None)
+        await ws.send(json.dumps({"type": "hello", "version": PROTOCOL_VERSION,
+                                  "name": f"maker{k}", "id": 0}))
+        makers.append(ws)
+    clients: list[Any] = []
+    try:
+        for k in range(args.admit_burst):
+            await makers[k % BURST_ADDRESSES].send(json.dumps(
+                {"type": "create_room", "name": f"b{k}", "id": 1 + k}))
+        replies = [await _reply(makers[k % BURST_ADDRESSES], 1 + k)
+                   for k in range(args.admit_burst)]
+        made = [r["room"] for r in replies if r["type"] == "room_created"]
+        refused = [r for r in replies if r["type"] == "error"]
+        codes = sorted({str(e.get("code")) for e in refused})
+        for rid in made:
+            clients.append(await NetClient.connect(url, role="spectator", room=rid,
+                                                   decode_mesh=False))
+        print(f"{len(made)} rooms admitted, {len(refused)} refused ({', '.join(codes)}); "
+              f"{refused[0].get('message') if refused else ''}", file=sys.stderr, flush=True)
+        paces = []
+        loop = asyncio.get_running_loop()
+        st = await asyncio.to_thread(stats, url)
+        frames, t = st["rooms"]["main"]["frames"], loop.time()
+        while len(paces) * PACE_SAMPLE_S < args.admit_burst_s:
+            await asyncio.sleep(PACE_SAMPLE_S)
+            st = await asyncio.to_thread(stats, url)
+            f2, t2 = st["rooms"]["main"]["frames"], loop.time()
+            pace = (f2 - frames) * FRAME_DT / (t2 - t)
+            paces.append(pace)
+            frames, t = f2, t2
+            h = st["headroom"]
+            print(f"show room {pace:5.2f}x real time  skipped {h['skipped_frames']:>5}  "
+                  f"CPU {h['cpu_cores']:.2f} cores  {'busy' if h['busy'] else ''}",
+                  file=sys.stderr, flush=True)
+    finally:
+        for c in clients:
+            await c.close()
+        for ws in makers:
+            await ws.close()
+    return {"bench": "admit-burst", "asked": args.admit_burst, "admitted": len(made),
+            "refused": len(refused), "codes": codes, "paces": paces,
+            "min_pace": min(paces) if paces else None,
+            "room_cost": st["headroom"]["room_cost"]}
+
+
+FRAME_DT = 0.001  # the shipped scenes' frame (1 ms)
+
+
+async def _reply(ws: Any, rid: int) -> dict[str, Any]:
+    """The reply to request ``rid`` (other messages skipped)."""
+    while True:
+        msg = json.loads(await asyncio.wait_for(ws.recv(), 30))
+        if msg.get("re") == rid:
+            return dict(msg)
+
+
 def run_admit(args: argparse.Namespace) -> int:
+    if args.admit_burst:
+        return _run_burst(args)
     scene = args.scene or "classic"
     with tempfile.TemporaryDirectory() as tmp:
         proc, url = start_host(Path(tmp) / "data", "--scene", scene,
@@ -76,6 +158,27 @@ def run_admit(args: argparse.Namespace) -> int:
     print(f"admitted {result['admitted']} rooms of {scene}; then: "
           f"{result['refused'] or 'never refused'}", file=sys.stderr)
     print(json.dumps({k: v for k, v in result.items() if k != "steps"}))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+def _run_burst(args: argparse.Namespace) -> int:
+    scene = args.scene
+    with tempfile.TemporaryDirectory() as tmp:
+        proc, url = start_host(Path(tmp) / "data", "--scene", scene, "--bots", "4")
+        if url is None:
+            print(f"clothball bench: the server did not start (exit {proc.returncode})",
+                  file=sys.stderr)
+            return 1
+        try:
+            result = asyncio.run(_burst(url, args))
+        finally:
+            stop_host(proc)
+    result["scene"] = scene
+    print(f"{result['admitted']} of {result['asked']} rooms of {scene} admitted; the show "
+          f"room's slowest 2 s: {result['min_pace']:.2f}x real time", file=sys.stderr)
+    print(json.dumps(result))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
     return 0

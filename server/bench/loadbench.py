@@ -672,6 +672,9 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
     past = 0  # steps measured after the stop (--steps-past)
     try:
         infos = [_server_info(s) for s in servers]
+        if shared_port is not None:  # an engine's own port is its bots' only
+            infos = [(i, f"http://127.0.0.1:{shared_port}", f"ws://127.0.0.1:{shared_port}/ws")
+                     for i, _, _ in infos]
         entry = infos[0][2] if shared_port is None else f"ws://127.0.0.1:{shared_port}/ws"
         if directory is not None:
             time.sleep(1.5)  # every host has read the others from the directory

@@ -9,6 +9,7 @@ import errno
 import logging
 import os
 import sqlite3
+import time
 import typing
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -21,6 +22,53 @@ from .postgres import PostgresIndex
 from .sqlite import SqliteIndex, locked
 
 log = logging.getLogger("clothball.server")
+
+# The replay index away (a shared PostgreSQL that does not answer): a failed pruning is
+# said once, and the index is tried again (pruning, indexing what waits) after
+# ``Storage.retry_s`` (the server's storage_check_s), the wait doubling at each failure up
+# to RETRY_MAX_S: an index away for hours costs two log lines and a few connection
+# attempts, not a line and a connection timeout every check.
+RETRY_MAX_S = 300.0
+
+
+class Backoff:
+    """Failures in a row of one thing, and when it is tried next (doubling waits). Its
+    state is one tuple, replaced whole: the event loop reads it while the writer thread
+    changes it."""
+
+    def __init__(self, first_s: float, max_s: float = RETRY_MAX_S) -> None:
+        self.first_s, self.max_s = first_s, max_s
+        # (last failure's reason or None, failures in a row, wait after it, retry_at)
+        self._st: tuple[str | None, int, float, float] = (None, 0, 0.0, 0.0)
+
+    @property
+    def error(self) -> str | None:
+        return self._st[0]
+
+    @property
+    def wait_s(self) -> float:
+        return self._st[2]
+
+    def due(self) -> bool:
+        return time.monotonic() >= self._st[3]
+
+    def failed(self, why: str) -> bool:
+        """One more failure; True for the first of a run (the one to say)."""
+        error, failures, _, _ = self._st
+        wait = min(self.first_s * 2 ** failures, self.max_s)
+        self._st = (why, failures + 1, wait, time.monotonic() + wait)
+        return error is None
+
+    def worked(self) -> bool:
+        """It worked; True where it had been failing (the recovery to say)."""
+        was = self._st[0] is not None
+        self._st = (None, 0, 0.0, 0.0)
+        return was
+
+    def state(self) -> dict[str, Any]:
+        error, failures, wait, retry_at = self._st
+        return {"error": error, "failures": failures, "wait_s": wait,
+                "retry_in_s": max(0.0, retry_at - time.monotonic())}
 
 
 class StorageOff(Exception):
@@ -52,7 +100,8 @@ class Storage:
 
     def __init__(self, data_dir: Path | str, *, retention: Retention | None = None,
                  min_free_bytes: int = 64 << 20, lock_wait_s: float = LOCK_WAIT_S,
-                 db: str | None = None, host_url: str | None = None) -> None:
+                 db: str | None = None, host_url: str | None = None,
+                 retry_s: float = 5.0) -> None:
         """``db``: a PostgreSQL URL for an index shared by several hosts
         (``PostgresIndex``; ``host_url``, this host's HTTP address, must be set
         before the first ``check_now``), else the data directory's own SQLite index."""
@@ -67,6 +116,7 @@ class Storage:
         self.problem: str | None = None  # the one line; None while recording
         self.free_bytes: int | None = None
         self.saving = 0  # saves under way (on the writer thread or waiting for it)
+        self.retry = Backoff(retry_s)  # the replay index away: when it is tried again
         self._lock_trouble = False
         self._logged_without_store = False
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="replay-writer",
@@ -104,11 +154,19 @@ class Storage:
         store = self.store
         if store is None or store.read_only or self.retention is None:
             return 0
-        try:
-            return len(store.prune(self.retention))
-        except (OSError, sqlite3.Error, IndexUnavailable) as e:
-            log.warning("pruning the replays failed: %s", e)
+        if not self.retry.due():
             return 0
+        try:
+            pruned = len(store.prune(self.retention))
+        except (OSError, sqlite3.Error, IndexUnavailable) as e:
+            if self.retry.failed(f"pruning the replays failed: {e}"):
+                log.warning("pruning the replays failed: %s; tried again in %g s, then less "
+                            "often (up to every %g s) until it works", e, self.retry.wait_s,
+                            self.retry.max_s)
+            return 0
+        if self.retry.worked():
+            log.warning("the replay index answers again: pruning resumed")
+        return pruned
 
     async def save(self, header: dict[str, Any], records: list[tuple[int, bytes]]
                    ) -> dict[str, Any]:
@@ -156,8 +214,15 @@ class Storage:
             found = self._open_for_recording()
         if found is None:
             self._set(None, None)
-            assert self.store is not None
-            self.store.retry_index()
+            store = self.store
+            assert store is not None
+            if store.index_error is not None and not self.retry.due():
+                return  # away: tried again when its back-off says (``Backoff``)
+            store.retry_index()
+            if store.index_error is not None:
+                self.retry.failed(store.index_error)  # the index said it once itself
+            elif self.retry.worked():
+                log.warning("the replay index answers again")
             return
         kind, what = found
         if self.store is not None and not self.store.read_only and kind != "locked":

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from clothball.game import cuda_unavailable_reason
 from clothball.game.sim.scene import available
+from clothball.server.hostproc import free_port
 
 from tests.conftest import needs_usb_transport
 from tests.server.conftest import local_server
@@ -64,12 +65,24 @@ def test_an_unknown_replay_id_says_how_to_list_them(tmp_path) -> None:
     assert_short_error(r, "no replay 'nosuchround'", "clothball replay --server")
 
 
+@pytest.mark.parametrize("source", [None, "20250101-120000-abcd"])
+def test_replay_with_no_server_says_so_as_play_does(source: str | None) -> None:
+    """Nothing listening at --server: the address and what to do, in play's words, not
+    urllib's ``urlopen error``."""
+    server = f"ws://127.0.0.1:{free_port()}/ws"
+    r = clothball("replay", *([source] if source else []), "--server", server)
+    where = server[len("ws://"):-len("/ws")]
+    assert_short_error(r, f"nothing is listening at {where}", "clothball host", "--server")
+    assert "urlopen" not in r.stderr, r.stderr
+
+
 @needs_usb_transport
 def test_falcon_check_without_a_device_points_to_the_emulator() -> None:
     r = clothball("falcon", "check")
     if "Falcon check: OK" in r.stdout:
         pytest.skip("a Falcon is plugged in here")
     assert_short_error(r, "no Novint Falcon found", "clothball falcon check --emulator")
+    assert r.returncode == 2  # a FalconError's status (docs/falcon.md)
 
 
 def test_a_command_whose_module_fails_to_import_says_what_to_install() -> None:

@@ -164,8 +164,10 @@ class LiveServer:
         return self.st.call(lambda _srv: fn(*args))
 
     def http(self, raw: bytes, timeout: float = 5.0) -> bytes:
-        """Send raw bytes to the HTTP port; the whole answer (until the server closes)."""
-        with socket.create_connection(("127.0.0.1", self.srv.port), timeout=timeout) as s:
+        """Send raw bytes to the HTTP port (the public one: a gateway's with two processes);
+        the whole answer (until the server closes)."""
+        port = self.srv.public_port if self.srv.public_port is not None else self.srv.port
+        with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
             s.sendall(raw)
             return recv_all(s)
 

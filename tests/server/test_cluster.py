@@ -109,7 +109,12 @@ def cluster_host(tmp: Path, name: str, redis: Redis, *args: str,
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=60)
+        try:
+            out, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:  # never left running, whatever the test found
+            proc.kill()
+            out, _ = proc.communicate()
+            out += "\n(killed: it did not stop within 60 s of SIGTERM)"
         host.out = "".join(lines) + out
         if proc.returncode != -signal.SIGKILL:  # a host the test killed says nothing more
             assert proc.returncode == 0 and "Traceback" not in out, out

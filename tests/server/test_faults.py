@@ -189,7 +189,7 @@ class ServerProcs:
 
     procs: list[subprocess.Popen[str]]
     port: int  # where clients connect: the gateway's with two
-    ports: list[int]  # the server's own
+    ports: list[int]  # where each process's statistics are read (the public port)
     recording: str
 
 
@@ -212,8 +212,9 @@ def start_server(data: Path, *args: str) -> ServerProcs:
         stop(ServerProcs(procs, 0, [], ""))
         raise AssertionError("the server process did not start")
     info = json.loads(lines[0])
-    return ServerProcs(procs, int(extra[-1]) if extra else info["port"], [info["port"]],
-                       info["recording"])
+    # (its statistics from the public port too: an engine's own port is its bots' only)
+    port = int(extra[-1]) if extra else info["port"]
+    return ServerProcs(procs, port, [port], info["recording"])
 
 
 def stop(server: ServerProcs) -> None:

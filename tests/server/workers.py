@@ -101,6 +101,9 @@ class Gateway:
         except (IndexError, ValueError, KeyError) as e:
             self.proc.kill()
             self.proc.wait(10)
+            for pipe in (self.proc.stdout, self.proc.stderr):  # none left open on failure
+                with contextlib.suppress(ValueError):
+                    pipe.close()
             raise AssertionError("the gateway process did not start:\n"
                                  + "".join(first + self.stderr)) from e
 
