@@ -79,14 +79,15 @@ def _key(scene: Scene, backend: str) -> tuple[str, str, str]:
 
 
 def _frame_cost(scene: Scene, key: tuple[str, str, str], rooms: int) -> float:
-    """Cores a worker's thread spends stepping ``rooms`` rooms of ``scene`` on a GPU at real
-    time."""
+    """Cores a thread spends stepping ``rooms`` rooms of ``scene`` at real time, one
+    ``ClothBatch`` call a frame (the GPU's measure; on the CPU a reference for the loop's)."""
     batch = ClothBatch(scene, rooms, key[1], key[2], threads=1)
     for _ in range(rooms):
         batch.add()
     batch.step(2)  # first-call costs (allocation, JIT of nothing) out of the measure
-    # A GPU's cost is the wall time of a step, which the thread waits out.
-    clock = time.perf_counter
+    # On the CPU the stepping thread's own CPU time (not inflated by time stolen from it);
+    # a GPU's cost is the wall time of a step, which the thread waits out.
+    clock = time.thread_time if key[1] == "cpu" else time.perf_counter
     wall0, t0, frames = time.perf_counter(), clock(), 0
     while frames < 2000 and time.perf_counter() - wall0 < CALIBRATE_S:
         batch.step(1)
@@ -211,6 +212,12 @@ class Headroom:
         """A room of ``scene``'s cost in cores (as measured; 0 if not measured yet)."""
         with _costs_lock:
             return _costs.get(_key(scene, self.backend), (0.0, 0.0))[1]
+
+    def thread_cost(self, scene: Scene) -> float:
+        """What the thread that steps ``scene``'s rooms costs whatever their number (the CPU
+        loop's pacing and publishing, a GPU's launch; 0 if not measured yet)."""
+        with _costs_lock:
+            return _costs.get(_key(scene, self.backend), (0.0, 0.0))[0]
 
     def refusal(self, scene: Scene, rooms: list[Scene]) -> str | None:
         """Why a new room of ``scene`` would not fit beside the open ``rooms`` (their
