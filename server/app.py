@@ -482,7 +482,7 @@ class GameServer:
             if self.lobby.me is not None:
                 # Busy for the others' placement: no room of its default scene fits here.
                 scene = self.scenes[self.lobby.default_scene]
-                self.lobby.me.busy = self.lobby.admit(scene) is not None
+                self.lobby.me.busy = self.lobby.hooks.admit(scene) is not None
 
     async def _watch_storage(self) -> None:
         """The data directory looked at again and again: problems named as they come,

@@ -165,10 +165,12 @@ async def _serve(args: argparse.Namespace) -> None:
     scene = bench_scene(args)
     scene_name, scene.name = scene.name, "bench"
     cluster: dict[str, Any] = {}
+    directory = None
     if getattr(args, "directory", None):  # a host of --load --cluster
         from ..directory import RedisDirectory
 
-        cluster = {"directory": RedisDirectory(args.directory), "host_id": f"bench-{os.getpid()}"}
+        directory = RedisDirectory(args.directory)
+        cluster = {"host_id": f"bench-{os.getpid()}"}
     if getattr(args, "engine_socket", None) is not None:  # the engine of --workers
         cluster.update(engine_socket=args.engine_socket, public_port=args.public_port)
     with tempfile.TemporaryDirectory() as data:
@@ -179,7 +181,8 @@ async def _serve(args: argparse.Namespace) -> None:
         srv = GameServer(ServerConfig(data, scenes={"bench": scene}, backend=args.server_backend,
                                       host="127.0.0.1", port=0, default_room=not args.no_room,
                                       room_settings=RoomSettings(first_to=99, bots_allowed=False,
-                                                    unguarded=True), limits=limits, **cluster))
+                                                    unguarded=True), limits=limits, **cluster),
+                         directory=directory)
         await srv.start()
         room = srv.main_room
         probe = room.sim if room is not None else None

@@ -15,7 +15,7 @@ import pytest
 from clothball.game.sim.scene import Scene
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay
-from clothball.server.app import GameServer
+from clothball.server.app import GameServer, ServerConfig
 from clothball.server.room import RoomSettings
 
 from tests.server.conftest import BACKEND, FAST, http_get, http_json, no_admission, run
@@ -27,9 +27,10 @@ HEAVY.name = "heavy"
 @pytest.mark.slow
 def test_a_late_rooms_records_keep_their_spacing_in_frames(tmp_path) -> None:
     async def main() -> None:
-        srv = GameServer(tmp_path, scenes={"heavy": HEAVY}, backend=BACKEND, port=0, bots=4,
-                         room_settings=RoomSettings(autoplay=True, **FAST),
-                         limits=no_admission(None))
+        srv = GameServer(ServerConfig(tmp_path, scenes={"heavy": HEAVY}, backend=BACKEND,
+                                      port=0, bots=4,
+                                      room_settings=RoomSettings(autoplay=True, **FAST),
+                                      limits=no_admission(None)))
         await srv.start()
         try:
             room = srv.main_room
@@ -46,7 +47,7 @@ def test_a_late_rooms_records_keep_their_spacing_in_frames(tmp_path) -> None:
             status, body, _ = await http_get(srv, f"/api/replays/{rows[-1]['id']}")
             assert status == 200
             mesh_every, track_every = room.sim.mesh_every, room.sim.track_every
-            max_pass = 1 + srv.sims.max_catchup // 4
+            max_pass = 1 + srv.sims.settings.max_catchup // 4
         finally:
             await srv.stop()
         header, records = read_replay(body)
