@@ -72,7 +72,11 @@ def kinks_far_from_the_corner(scene: Scene, worst: np.ndarray) -> np.ndarray:
 
 
 def test_the_default_scene_folds_smoothly_where_classic_crumples() -> None:
-    default, classic = Scene.load("default"), Scene.load("classic")
+    default = Scene.load("default")
+    # The reference case is the paper's cloth as the paper holds it, by one node a hand:
+    # classic's hands now hold a 10 cm grip (docs/scenes.md), which spreads the push over
+    # the edges (21 % of the far nodes kink with it, 28 % with one node).
+    classic = Scene.load("classic").with_changes({"coupling": {"grip_radius": 0.0}})
     d, c = pushed_in(default), pushed_in(classic)
     # the reference case: the paper's cloth crumples all over (else this shows nothing)
     assert kinks_far_from_the_corner(classic, c).mean() > 0.25, (c > KINK).mean()
