@@ -29,15 +29,16 @@ WITHIN_PLAY = ("default", "silk")
 
 
 @functools.cache
-def start(name: str, n: int) -> StartRun:
-    return trajectory(sized(Scene.load(name), n), backend="cpu", precision="float64",
-                      threads=1, sag=False)
+def start(name: str, n: int, backend: str = "cpu") -> StartRun:
+    return trajectory(sized(Scene.load(name), n), backend=backend, precision="float64",
+                      threads=1 if backend == "cpu" else None, sag=False)
 
 
-def distances(name: str, sizes: tuple[int, ...], record_property) -> list[float]:
+def distances(name: str, sizes: tuple[int, ...], record_property,
+              backend: str = "cpu") -> list[float]:
     """The trajectories' distances (mm) between successive grids of ``sizes``, recorded."""
-    d = [1e3 * distance(start(name, a), start(name, b)) for a, b in zip(sizes, sizes[1:],
-                                                                        strict=False)]
+    d = [1e3 * distance(start(name, a, backend), start(name, b, backend))
+         for a, b in zip(sizes, sizes[1:], strict=False)]
     line = f"{name}: " + ", ".join(f"d({a},{b}) {x:.2f} mm" for a, b, x in zip(
         sizes, sizes[1:], d, strict=False))
     print(line)
@@ -56,3 +57,11 @@ def test_the_game_start_converges(name: str, record_property) -> None:
     assert d[1] < d[0], d
     if name in WITHIN_PLAY:
         assert d[1] <= PLAY_MM, d
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name", BALL_SCENES)
+def test_the_game_start_converges_on_the_gpu(name: str, cuda: str, record_property) -> None:
+    """The larger range on CUDA (float64): the distance keeps shrinking to n = 193."""
+    d = distances(name, (25, 49, 97, 193), record_property, backend=cuda)
+    assert d[2] < d[1] < d[0], d
