@@ -177,7 +177,8 @@ async def _serve(args: argparse.Namespace) -> None:
         # Every client comes from 127.0.0.1: the per-address limits would stop the bench.
         # Nor may admission control refuse rooms: the bench finds where the server stops.
         limits = Limits(conns_per_address=100_000, rooms_per_address=100_000, max_rooms=100_000,
-                        max_clients=1_000_000, spectators_per_room=100_000, admit_lateness_ms=0)
+                        max_clients=1_000_000, spectators_per_room=100_000, admit_lateness_ms=0,
+                        admit_load=0)
         srv = GameServer(ServerConfig(data, scenes={"bench": scene}, backend=args.server_backend,
                                       host="127.0.0.1", port=0, default_room=not args.no_room,
                                       room_settings=RoomSettings(first_to=99, bots_allowed=False,
