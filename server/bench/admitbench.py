@@ -19,6 +19,7 @@ import asyncio
 import json
 import sys
 import tempfile
+from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
@@ -138,22 +139,31 @@ async def _reply(ws: Any, rid: int) -> dict[str, Any]:
             return dict(msg)
 
 
+def _on_a_host(bench: Callable[[str], Coroutine[Any, Any, dict[str, Any]]],
+               *host_args: str) -> dict[str, Any] | None:
+    """``bench(url)`` run against a ``clothball host`` of its own (``host_args``), stopped
+    after; None (said) when the host did not start."""
+    with tempfile.TemporaryDirectory() as tmp:
+        proc, url = start_host(Path(tmp) / "data", *host_args)
+        if url is None:
+            print(f"clothball bench: the server did not start (exit {proc.returncode})",
+                  file=sys.stderr)
+            return None
+        try:
+            return asyncio.run(bench(url))
+        finally:
+            stop_host(proc)
+
+
 def run_admit(args: argparse.Namespace) -> int:
     if args.admit_burst:
         return _run_burst(args)
     scene = args.scene or "classic"
-    with tempfile.TemporaryDirectory() as tmp:
-        proc, url = start_host(Path(tmp) / "data", "--scene", scene,
-                               "--limit", f"rooms_per_address={args.admit_max + 1}",
-                               "--limit", f"max_rooms={args.admit_max + 1}")
-        if url is None:
-            print(f"clothball bench: the server did not start (exit {proc.returncode})",
-                  file=sys.stderr)
-            return 1
-        try:
-            result = asyncio.run(_admit(url, args))
-        finally:
-            stop_host(proc)
+    result = _on_a_host(lambda url: _admit(url, args), "--scene", scene,
+                        "--limit", f"rooms_per_address={args.admit_max + 1}",
+                        "--limit", f"max_rooms={args.admit_max + 1}")
+    if result is None:
+        return 1
     result["scene"] = scene
     print(f"admitted {result['admitted']} rooms of {scene}; then: "
           f"{result['refused'] or 'never refused'}", file=sys.stderr)
@@ -165,16 +175,9 @@ def run_admit(args: argparse.Namespace) -> int:
 
 def _run_burst(args: argparse.Namespace) -> int:
     scene = args.scene
-    with tempfile.TemporaryDirectory() as tmp:
-        proc, url = start_host(Path(tmp) / "data", "--scene", scene, "--bots", "4")
-        if url is None:
-            print(f"clothball bench: the server did not start (exit {proc.returncode})",
-                  file=sys.stderr)
-            return 1
-        try:
-            result = asyncio.run(_burst(url, args))
-        finally:
-            stop_host(proc)
+    result = _on_a_host(lambda url: _burst(url, args), "--scene", scene, "--bots", "4")
+    if result is None:
+        return 1
     result["scene"] = scene
     print(f"{result['admitted']} of {result['asked']} rooms of {scene} admitted; the show "
           f"room's slowest 2 s: {result['min_pace']:.2f}x real time", file=sys.stderr)

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from clothball.game.net.client import NetClient
 from clothball.game.sim.scene import ASSETS
-from clothball.server.hostproc import free_port
+from clothball.server.hostproc import free_port, stop_host
 
 from tests.server.conftest import run
 
@@ -70,9 +70,4 @@ def test_healthz_is_ok_only_once_the_show_room_can_be_joined(tmp_path: Path,
 
             assert run(join())["type"] == "joined"  # not unknown_room
         finally:
-            proc.terminate()
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            stop_host(proc)
