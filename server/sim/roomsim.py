@@ -62,9 +62,6 @@ class RoomSim:
         self._stopped = threading.Event()
         # s between this room's CORNER deliveries (0: every frame; inf: none wanted)
         self.corner_interval = 0.0
-        # server time the room's first player's next CORNER is due (its Room sets it as it
-        # offers them; -inf: not known, the loop then waits corner_interval)
-        self.corner_due = -math.inf
         self.delivered = -1  # the newest frame delivered
         self.slot: int | None = None
         self.error: str | None = None

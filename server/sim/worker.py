@@ -73,7 +73,6 @@ class Stepped(Protocol):
     slot: int | None
     delivered: int  # the newest frame delivered
     corner_interval: float  # s between its CORNER deliveries (0: every frame; inf: none)
-    corner_due: float  # server time its first player's next CORNER is due (-inf: unknown)
     error: str | None
     stats: RoomStats
     wants_meshes: bool  # its MESH messages are handed to the event loop (deliver_mesh)
@@ -455,11 +454,9 @@ class FrameWorker:
         room.delivered = max(room.delivered, frame)
         room.deliver(result)
         if room.slot is not None:
-            # The next wake-up: when the room's players' next CORNER is due (their own
-            # schedules, Conn.offer_corner), else one interval on (inf: none wanted).
-            due = room.corner_due
-            self.frame_loop.set_corner_due(slot, due if due > server_time
-                                           else server_time + room.corner_interval)
+            # The next wake-up for a frame: one interval on (inf: none wanted, only exits
+            # and failures wake it).
+            self.frame_loop.set_corner_due(slot, server_time + room.corner_interval)
 
     # --- the service thread: recordings, tracks, meshes -----------------------------------
     def _serve(self) -> None:
