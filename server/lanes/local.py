@@ -4,7 +4,6 @@ lane code as a gateway's, from the same block and board, mapped in this process.
 
 from __future__ import annotations
 
-import asyncio
 import os
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -50,6 +49,5 @@ class LocalLinks(Links):
     async def _set_armed(self, on: bool) -> bool:
         if self.wake < 0:
             return False
-        self._set_wake(self.wake, on)
-        await asyncio.sleep(0)
+        self._set_wake(self.wake, on)  # (a gateway's arming is a socket round trip; this none)
         return True
