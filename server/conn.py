@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from ..game.net.fastpath import try_send_binary
+from ..game.net.tap import TapConnection
 from ..game.wire import protocol as P
 from .lanes.lane import Lane, Links
 from .limits import DEFAULT, Limits
@@ -83,6 +83,10 @@ class Conn:
         ``links``: the engine's, for the lanes it serves itself."""
         self.id = secrets.token_urlsafe(6)
         self.ws = ws
+        # The engine's connections write binary messages at once where they can
+        # (game.net.tap); its transport, for the backlog checks and a cut.
+        self._tap = ws if isinstance(ws, TapConnection) else None
+        self.transport: Any = ws.stream if isinstance(ws, TapConnection) else None
         self.limits = limits
         addr = ws.remote_address
         self.address: str = address or (str(addr[0]) if addr else "?")
@@ -197,7 +201,7 @@ class Conn:
         sent, a backed-up socket, a closing connection) False: the sender task does it."""
         if not self._idle or self._control or self._corner is not None or self._mesh is not None:
             return False
-        if not try_send_binary(self.ws, data):
+        if self._tap is None or not self._tap.send_now(data):
             return False
         self.sent += 1
         return True
@@ -259,7 +263,7 @@ class Conn:
         self.closed = True
 
     def _check_backlog(self) -> None:
-        transport = self.ws.transport
+        transport = self.transport
         if transport is None:
             return
         if transport.get_write_buffer_size() > self.limits.max_write_buffer:
@@ -300,8 +304,8 @@ class Conn:
         except Exception:
             pass
         finally:
-            if self.ws.transport is not None and not self.ws.transport.is_closing():
-                self.ws.transport.abort()
+            if self.transport is not None and not self.transport.is_closing():
+                self.transport.abort()
 
     async def finish(self) -> None:
         self.open_lane(None, False)

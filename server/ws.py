@@ -22,7 +22,7 @@ from typing import Any, Protocol
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from ..game.net.fastpath import BinaryHook
+from ..game.net.tap import TapConnection
 from ..game.wire import protocol as P
 from ..game.wire.protocol import ProtocolError
 from .conn import Conn
@@ -38,9 +38,9 @@ log = logging.getLogger("clothball.server")
 OPEN_TIMEOUT_S = 10.0  # for the request and its answer (websockets' open_timeout)
 
 
-class Connection(BinaryHook, ServerConnection):
+class Connection(TapConnection, ServerConnection):
     """The server's connection: HIPs go straight to ``on_binary`` once the handler has set
-    it, when it starts its read loop (see ``game.net.fastpath``).
+    it, when it starts its read loop (see ``game.net.tap``).
 
     Its opening handshake (the HTTP request and its answer) has ``OPEN_TIMEOUT_S``, which
     a replay download lifts (``no_handshake_deadline``): it is bounded by its own stall
@@ -83,7 +83,7 @@ class Connection(BinaryHook, ServerConnection):
             self.lanes = proxyline.lanes(bytes(line))
         except proxyline.BadLine as e:
             log.warning("gateway connection refused: %s", e)
-            self.transport.abort()
+            self.stream.abort()
             return
         self._line = None
         if end + 1 < len(data):
@@ -169,7 +169,7 @@ class WsEndpoint:
         conn = Conn(ws, self.srv.limits, address=getattr(ws, "client_address", None),
                     house=getattr(ws, "house", False), links=self.srv.lane_links)
         self.srv.clients.add(conn)
-        sock = ws.transport.get_extra_info("socket") if ws.transport is not None else None
+        sock = conn.transport.get_extra_info("socket") if conn.transport is not None else None
         if sock is not None:
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF,
@@ -189,6 +189,8 @@ class WsEndpoint:
             timeout = self.srv.limits.hello_timeout
             try:
                 first = await asyncio.wait_for(ws.recv(), timeout)
+                if isinstance(ws, Connection):
+                    ws.message_read()
             except TimeoutError:
                 conn.error("bad_message", f"no hello within {timeout:g} s")
                 await asyncio.sleep(0.05)
@@ -199,8 +201,11 @@ class WsEndpoint:
                 await ws.close(1008, "hello refused")
                 return
             if isinstance(ws, Connection):
-                ws.on_binary = lambda data: self._on_binary_now(conn, data)
+                ws.listen(lambda data: self._on_binary_now(conn, data),
+                          self.srv.limits.max_message_bytes)
             async for message in ws:
+                if isinstance(ws, Connection):
+                    ws.message_read()
                 self.srv.stats["messages_in"] += 1
                 conn.received += 1
                 if isinstance(message, bytes):
@@ -215,7 +220,7 @@ class WsEndpoint:
             pass
         finally:
             if isinstance(ws, Connection):
-                ws.on_binary = None
+                ws.listen(None)
             self.srv.clients.discard(conn)
             if counted:
                 self.srv.per_address[conn.address] -= 1

@@ -15,7 +15,7 @@ OUT=${OUT:-gpu-results}
 if [ "${SKIP_BUILD:-0}" = 1 ]; then
   mkdir -p "$OUT"
   export PYTHONUNBUFFERED=1
-  [ -d /tmp/site ] && export PYTHONPATH=/tmp/site
+  [ -d /tmp/site ] && export PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}/tmp/site
 else
   source "$(dirname "$0")/gpu_build.sh"
 fi

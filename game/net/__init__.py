@@ -1,1 +1,2 @@
-"""The asyncio websocket client (``client``) and the websockets fast paths (``fastpath``)."""
+"""The asyncio websocket client (``client``) and the connection it and the server use
+(``tap``: binary messages in and out without websockets' per-message work)."""

@@ -41,7 +41,7 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidSta
 
 from ..devices.base import CornerState, Reach
 from ..wire import protocol as P
-from .fastpath import BinaryHook, try_send_binary
+from .tap import TapConnection
 
 HISTORY = 2000
 MAX_REDIRECTS = 3  # hops a request may be sent on (a room lives on one process or host)
@@ -51,9 +51,9 @@ MAX_REDIRECTS = 3  # hops a request may be sent on (a room lives on one process 
 HOST_GONE_CODES = (None, 1001, 1006)
 
 
-class _Connection(BinaryHook, ClientConnection):
+class _Connection(TapConnection, ClientConnection):
     """The client's connection: CORNER and MESH messages go straight to ``on_binary``
-    (see ``game.net.fastpath``)."""
+    (see ``game.net.tap``)."""
 
 
 class ServerError(RuntimeError):
@@ -311,8 +311,9 @@ class NetClient:
         self._hip_seq = (self._hip_seq + 1) & 0xFFFFFFFF
         data = P.encode_hip(position, self._hip_seq, self.clock())
         # A HIP stream at 1 kHz spent most of its time in ws.send's context manager.
-        if not try_send_binary(self.ws, data):
-            await self.ws.send(data)
+        ws = self.ws
+        if not (isinstance(ws, TapConnection) and ws.send_now(data)):
+            await ws.send(data)
 
     async def join(self, room: str, role: str = "player", **fields: Any) -> dict[str, Any]:
         return await self.request("join", room=room, role=role, **fields)
@@ -321,9 +322,11 @@ class NetClient:
     async def _read(self) -> None:
         ws = self.ws  # this reader's connection (a redirect gives the client a new one)
         if isinstance(ws, _Connection):
-            ws.on_binary = self._on_binary
+            ws.listen(self._on_binary)
         try:
             async for message in ws:
+                if isinstance(ws, _Connection):
+                    ws.message_read()
                 if isinstance(message, bytes):
                     self._on_binary(message)
                 else:
@@ -332,7 +335,7 @@ class NetClient:
             pass
         finally:
             if isinstance(ws, _Connection):
-                ws.on_binary = None
+                ws.listen(None)
             if ws is self.ws:  # else moved on: the client lives on, on its new connection
                 self.close_code, self.close_reason = ws.close_code, ws.close_reason or ""
                 for fut in self._pending.values():

@@ -42,6 +42,17 @@ import urllib.parse
 from typing import Any, cast
 
 from ...game.wire import protocol as P
+from ...game.wire.wsframe import (
+    OP_BINARY,
+    OP_CLOSE,
+    OP_PING,
+    OP_PONG,
+    OP_TEXT,
+    ZERO_KEY,
+    frame_header,
+    header_at,
+    masked_frame,
+)
 
 HIST_BIN_S = 1e-5  # latency histogram: 10 µs bins ...
 HIST_BINS = 100_000  # ... to 1 s; the last bin holds everything later (a quantile there: ≥ 1 s)
@@ -50,15 +61,14 @@ SETUP_TIMEOUT_S = 15.0
 MAX_REDIRECTS = 3
 FAR_BEHIND_S = 0.05  # the pacer this late: it starts again from now rather than burst
 
-# A client's HIP, websocket frame included: FIN + binary, masked length 28, zero mask key.
-_HIP_FRAME = struct.Struct("<BB4x" + P.HIP_MSG.format[1:])
-assert _HIP_FRAME.size == 6 + P.HIP_SIZE
+# A client's HIP, websocket frame included (the header and zero key, then the message),
+# packed in one call.
+_HIP_HEAD = frame_header(OP_BINARY, P.HIP_SIZE, masked=True) + ZERO_KEY
+_HIP_FRAME = struct.Struct(f"<{len(_HIP_HEAD)}s" + P.HIP_MSG.format[1:])
 # What a CORNER is read for: its frame, and the seq and client time of the HIP it echoes.
 _CORNER_ECHO = struct.Struct(f"<{P.HEADER.size}xq{P.CORNER_SIZE - 12 - P.HEADER.size - 8}xId")
 _U16 = struct.Struct(">H")
-_U64 = struct.Struct(">Q")
 _MESH, _CORNER = P.MESH, P.CORNER
-_OP_TEXT, _OP_BINARY, _OP_CLOSE, _OP_PING = 1, 2, 8, 9
 
 
 class SetupError(Exception):
@@ -67,15 +77,7 @@ class SetupError(Exception):
 
 def _frame(opcode: int, payload: bytes) -> bytes:
     """A masked client frame (zero key: the payload goes as it is)."""
-    n = len(payload)
-    head = bytes((0x80 | opcode,))
-    if n < 126:
-        head += bytes((0x80 | n,))
-    elif n < 65536:
-        head += bytes((0x80 | 126,)) + _U16.pack(n)
-    else:
-        head += bytes((0x80 | 127,)) + _U64.pack(n)
-    return head + b"\0\0\0\0" + payload
+    return masked_frame(opcode, payload, ZERO_KEY)
 
 
 class Conn(asyncio.Protocol):
@@ -146,21 +148,14 @@ class Conn(asyncio.Protocol):
             data = self._buf + data
             self._buf = b""
         pos, end = 0, len(data)
-        while end - pos >= 2:
-            ln = data[pos + 1] & 0x7F
-            if ln < 126:
-                start = pos + 2
-            elif ln == 126:
-                if end - pos < 4:
-                    break
-                ln, start = _U16.unpack_from(data, pos + 2)[0], pos + 4
-            else:
-                if end - pos < 10:
-                    break
-                ln, start = _U64.unpack_from(data, pos + 2)[0], pos + 10
-            op = data[pos] & 0x0F
+        while True:
+            head = header_at(data, pos)
+            if head is None:
+                break
+            b0, _, ln, hl = head
+            op, start = b0 & 0x0F, pos + hl
             stop = start + ln
-            if op == _OP_BINARY and start < end and data[start] == _MESH:
+            if op == OP_BINARY and start < end and data[start] == _MESH:
                 self.meshes += 1  # counted, never decoded: its bytes are skipped
                 if stop > end:
                     self._skip = stop - end
@@ -169,14 +164,14 @@ class Conn(asyncio.Protocol):
                 continue
             if stop > end:
                 break
-            if op == _OP_BINARY:
+            if op == OP_BINARY:
                 if data[start] == _CORNER and ln == P.CORNER_SIZE:
                     self._corner(data, start)
-            elif op == _OP_TEXT:
+            elif op == OP_TEXT:
                 self._text(data[start:stop])
-            elif op == _OP_PING:
-                self._write(_frame(0xA, data[start:stop]))
-            elif op == _OP_CLOSE:
+            elif op == OP_PING:
+                self._write(_frame(OP_PONG, data[start:stop]))
+            elif op == OP_CLOSE:
                 self.lost = True
                 if self.transport is not None:
                     self.transport.close()
@@ -235,14 +230,14 @@ class Conn(asyncio.Protocol):
         fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._waiter = (want, fut)
         try:
-            self._write(_frame(_OP_TEXT, json.dumps(msg).encode()))
+            self._write(_frame(OP_TEXT, json.dumps(msg).encode()))
             return await asyncio.wait_for(fut, SETUP_TIMEOUT_S)
         finally:
             self._waiter = None
 
     def close(self) -> None:
         if self.transport is not None and not self.transport.is_closing():
-            self.transport.write(_frame(_OP_CLOSE, _U16.pack(1000)))
+            self.transport.write(_frame(OP_CLOSE, _U16.pack(1000)))
             self.transport.close()
 
     # --- players ----------------------------------------------------------------------
@@ -252,7 +247,7 @@ class Conn(asyncio.Protocol):
         seq = self.seq = (self.seq + 1) & 0xFFFFFFFF
         self.sent[seq & (SENT_RING - 1)] = now
         y = cy + 0.3 * math.sin(math.pi * now + phase) * hy
-        self._write(_HIP_FRAME.pack(0x82, 0x80 | P.HIP_SIZE, P.HIP, P.PROTOCOL_VERSION, 0,
+        self._write(_HIP_FRAME.pack(_HIP_HEAD, P.HIP, P.PROTOCOL_VERSION, 0,
                                     seq, now, cx, y, cz))
         self.hips += 1
 

@@ -1,8 +1,9 @@
 """A gateway's side of its clients' lanes (``server.lanes``): the lanes themselves are the
 one lane code the engine runs too; here are what only a gateway needs.
 
-* ``ClientFrames`` follows a client's websocket frames (masked, RFC 6455) and takes out the
-  HIPs its lane takes; every other byte goes on to the engine unchanged.
+* ``client_frames`` follows a client's websocket frames (masked, RFC 6455) and takes out the
+  HIPs its lane takes (``game.wire.wsframe.FrameTap``); every other byte goes on to the
+  engine unchanged.
 * ``SocketLinks`` is the gateway's link to the engine's control socket: the blocks and mesh
   boards (memfds passed over it, mapped here), the frame wake-up (an eventfd passed the
   same way) and the counts reported to the engine for the host's figures.
@@ -22,7 +23,7 @@ from typing import Any
 
 from ... import _native
 from ...game.wire import protocol as P
-from ...game.wire.wsframe import FIN, OP_BINARY, header_at, unmask
+from ...game.wire.wsframe import FrameTap
 from ..lanes.lane import Links
 from ..shared import lanes
 
@@ -38,48 +39,10 @@ def lanes_wanted() -> bool:
     return os.environ.get(LANES_ENV, "1").strip() != "0"
 
 
-class ClientFrames:
-    """Follows one client-to-server stream from the first frame after the handshake:
-    ``feed`` returns what goes on to the engine; a whole, unfragmented binary frame of a
-    HIP's size is offered to ``take`` (its unmasked payload) first, and dropped if taken."""
-
-    def __init__(self, take: Callable[[bytes], bool]) -> None:
-        self.take = take
-        self._partial = b""  # a frame header, or a HIP-sized frame, not yet whole
-        self._skip = 0  # payload bytes of a passing frame still to come
-        self._fragmented = False
-
-    def feed(self, data: bytes) -> bytes:
-        out = bytearray()
-        buf, i = self._partial + data if self._partial else data, 0
-        end = len(buf)
-        while i < end:
-            if self._skip:
-                take = min(self._skip, end - i)
-                out += buf[i:i + take]
-                self._skip -= take
-                i += take
-                continue
-            head = header_at(buf, i)
-            if head is None:
-                break
-            b0, masked, n, hl = head
-            op = b0 & 0x0F
-            if b0 == FIN | OP_BINARY and masked and n == P.HIP_SIZE and not self._fragmented:
-                if end - i < hl + n:
-                    break  # held until whole
-                payload = unmask(buf[i + hl:i + hl + n], buf[i + hl - 4:i + hl])
-                if not self.take(payload):
-                    out += buf[i:i + hl + n]
-                i += hl + n
-                continue
-            if op < 0x8:  # a data frame: FIN ends its message
-                self._fragmented = not b0 & 0x80
-            out += buf[i:i + hl]
-            i += hl
-            self._skip = n
-        self._partial = bytes(buf[i:])
-        return bytes(out)
+def client_frames(take: Callable[[bytes], bool]) -> FrameTap:
+    """A client's stream from the first frame after the handshake: each whole HIP-sized
+    binary frame is offered to ``take`` (unmasked), and dropped if taken."""
+    return FrameTap(take, masked=True, max_take=P.HIP_SIZE)
 
 
 class SocketLinks(Links):

@@ -28,11 +28,12 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
+from ...game.wire.wsframe import FrameTap
 from ..lanes.lane import Lane
 from ..shared import proxyline
 from ..shared.lanes import ctl_path, parse_lane
 from .frames import ServerFrames, close_frame, text_frame
-from .lanes import WRITE_SKIP, ClientFrames, SocketLinks, lanes_wanted
+from .lanes import WRITE_SKIP, SocketLinks, client_frames, lanes_wanted
 
 CHUNK = 1 << 16  # bytes read at a time, each way
 WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
@@ -105,7 +106,7 @@ class _Client(asyncio.Protocol):
         self.early: bytearray | None = bytearray()  # read before the engine answered
         self.head = asyncio.Event()  # a request's head is in ``early`` (or the client ended)
         self.eof = False
-        self.frames: ClientFrames | None = None  # its websocket frames, once upgraded
+        self.frames: FrameTap | None = None  # its websocket frames, once upgraded
         self.lane: Lane | None = None  # its open lane (server.lanes)
         # lane messages waiting for a message boundary (header, payload), the newest of each
         self.pending: dict[str, tuple[bytes, bytes]] = {}
@@ -146,7 +147,7 @@ class _Client(asyncio.Protocol):
         if self.engine is not None:
             assert self.engine.t is not None
             if self.frames is None and self.gw.lanes is not None and self.engine.frames.websocket:
-                self.frames = ClientFrames(self._take)  # the handshake is done: frames follow
+                self.frames = client_frames(self._take)  # the handshake is done: frames follow
             if self.frames is not None:
                 data = self.frames.feed(data)
             if data:

@@ -104,7 +104,7 @@ def test_a_clients_hips_are_offered_whole_and_the_rest_passes() -> None:
     """A client's stream (masked frames, as websockets' client writes them): each whole
     HIP-sized binary frame is offered unmasked; one taken is dropped, one refused passes
     as it came, and every other frame passes byte for byte, however the stream is cut."""
-    from clothball.server.gateway.lanes import ClientFrames
+    from clothball.server.gateway.lanes import client_frames
     rng = random.Random(5)
     hips = [P.encode_hip((0.1 * k, 1.0, -0.2), k, 0.5 * k) for k in range(1, 41)]
     frames = []  # a HIP, then a text message, each time
@@ -122,7 +122,7 @@ def test_a_clients_hips_are_offered_whole_and_the_rest_passes() -> None:
             offered.append(payload)
             return (len(offered) - 1) % 5 != 4
 
-        cf, out, i = ClientFrames(take), bytearray(), 0
+        cf, out, i = client_frames(take), bytearray(), 0
         while i < len(data):
             out += cf.feed(data[i:i + cut])
             i += cut

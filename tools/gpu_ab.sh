@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# A/B on the GPU machine, the same machine in one lease: this tree ("head") against a base
+# commit's source carried in .base/ (`rm -rf .base && mkdir .base && git archive BASE | tar -x
+# -C .base`, then carry .base and .whl), both built with CUDA for sm_90.
+#   TWO_CORE="base head base head"  each: one process on 2 cores (taskset -c 2,3), the CPU
+#       engine, `bench --load --workers 1 --scene default --server-n 16 --rooms-step 2`, the
+#       2-core machine's no-regression check on a quiet machine
+#   HOST="base head"  each: one host on the GPU, `bench --load --workers $W --rooms-step 64
+#       --load-max-rooms 128 --client-procs 6`
+#   GPU_TESTS / TESTS  as in tools/gpu_host.sh, on head, first
+#   SKIP_BUILD=1  a warm machine that has both builds (a second call within its warm time)
+# A label "head:VAR=value" runs head with that environment variable set (an experiment).
+# Usage: OUT=results TWO_CORE="..." HOST="..." bash tools/gpu_ab.sh
+OUT=${OUT:-gpu-results}
+root=$PWD
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+if [ "${SKIP_BUILD:-0}" != 1 ]; then
+  # Both builds into directories of their own, side by side (16 cores): the clothball
+  # package has no __init__.py, so two installs on one path would mix.
+  if compgen -G ".whl/*.whl" >/dev/null; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
+  fi
+  nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv \
+    | tee "$OUT/gpu.txt"
+  start=$SECONDS
+  for t in head base; do
+    src=.; [ $t = base ] && src=./.base
+    python3 -m pip install -q --no-build-isolation --no-deps --target /tmp/$t-site \
+      -Cbuild-dir=/tmp/cb-build-$t -Ccmake.define.CLOTHBALL_CUDA=ON \
+      -Ccmake.define.CMAKE_CUDA_ARCHITECTURES=90 $src >"$OUT/build_$t.log" 2>&1 &
+  done
+  wait
+  echo "builds (CPU + CUDA sm_90, both at once): $((SECONDS - start)) s" | tee -a "$OUT/gpu.txt"
+fi
+for t in head base; do
+  [ -d /tmp/$t-site/clothball ] || { echo "$t build failed"; tail -20 "$OUT/build_$t.log"; }
+done
+cd "$root" || exit 1
+PYTHONPATH=/tmp/head-site SKIP_BUILD=1 RATES="" OUT=$OUT bash "$(dirname "$0")/gpu_host.sh"  # GPU_TESTS, TESTS (head)
+cd /tmp || exit 1  # the installed packages are imported, not the source tree
+as() {  # $1: label (base, head, head:VAR=value); the rest: the command
+  local label=$1; shift
+  case $label in
+    base) env PYTHONPATH=/tmp/base-site:/tmp/site "$@" ;;
+    head:*) env PYTHONPATH=/tmp/head-site:/tmp/site "${label#head:}" "$@" ;;
+    *) env PYTHONPATH=/tmp/head-site:/tmp/site "$@" ;;
+  esac
+}
+i=0
+for label in ${TWO_CORE:-}; do
+  i=$((i + 1)); name="2core_${i}_${label%%:*}"
+  echo "== $name ($label) $(uptime)"
+  as "$label" timeout 150 taskset -c 2,3 python3 -m clothball.game.cli bench --load \
+    --server-backend cpu --workers 1 --scene default --server-n 16 --rooms-step 2 \
+    --load-max-rooms 20 --load-seconds 5 --steps-past 1 --client-procs 1 --json "$OUT/$name.json" \
+    2>>"$OUT/bench.err" | tail -2
+done
+W=${W:-16}
+i=0
+for label in ${HOST:-}; do
+  i=$((i + 1)); name="host_${i}_${label%%:*}"
+  echo "== $name ($label) $(uptime)"
+  as "$label" timeout "${RUN_S:-120}" python3 -m clothball.game.cli bench --load \
+    --server-backend cuda --workers "$W" --scene default --rooms-step "${STEP:-64}" --load-max-rooms 128 \
+    --load-seconds 5 --steps-past 1 --client-procs 6 --json "$OUT/$name.json" \
+    2>>"$OUT/bench.err" | tail -2
+done
