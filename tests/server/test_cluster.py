@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 from clothball.game.net.client import NetClient
 from clothball.game.sim.scene import ASSETS
+from clothball.server.directory import RedisDirectory
 from clothball.server.hostproc import free_port, start_redis
 
 from tests.server.conftest import run, until
@@ -125,6 +126,23 @@ async def hosts_of(c: NetClient) -> dict[str, str]:
     return {r["id"]: r["host"] for r in reply["rooms"]}
 
 
+async def wait_published(redis: Redis, pred, what: str, timeout: float = 15.0) -> None:
+    """Until the hosts' entries in the directory (address -> HostEntry, as every host reads
+    them: ``RedisDirectory.read``) satisfy ``pred``: a wait for the loads placement reads,
+    not a fixed time for their publication."""
+    d = RedisDirectory(redis.url)
+    try:
+        end = time.monotonic() + timeout
+        while True:
+            hosts = {h.address: h for h in (await asyncio.to_thread(d.read)).hosts.values()}
+            if pred(hosts):
+                return
+            assert time.monotonic() < end, f"timed out waiting for {what}: {hosts}"
+            await asyncio.sleep(0.1)
+    finally:
+        d.close()
+
+
 async def wait_listing(c: NetClient, pred, what: str, timeout: float = 15.0) -> dict[str, str]:
     end = time.monotonic() + timeout
     while True:
@@ -152,13 +170,15 @@ def test_three_hosts_one_lobby_placement_redirects_and_failures(tmp_path) -> Non
             # every host the first goes to one with the fewest clients; the second, asked of
             # that one (the client followed the redirect, if any), goes to another, since
             # that one now has two rooms. (Each host republishes its load every 0.5 s: the
-            # waits let every view catch up.)
+            # test waits until the directory holds the loads placement reads.)
             maker = await NetClient.connect(a.url, name="maker")
-            await asyncio.sleep(1.2)
+            await wait_published(redis, lambda hs: set(hs) == {h.url for h in hosts} and all(
+                e.rooms == 1 for e in hs.values()), "every host's one room published")
             r1 = (await maker.request("create_room", name="r1", bots_allowed=False,
                                       unguarded=True))["room"]
             first = maker.url
-            await asyncio.sleep(1.2)
+            await wait_published(redis, lambda hs: first in hs and hs[first].rooms == 2,
+                                 "r1's host's load")
             r2 = (await maker.request("create_room", name="r2", bots_allowed=False,
                                       unguarded=True))["room"]
             listing = await wait_listing(la, lambda h: r1 in h and r2 in h, "the new rooms")
@@ -183,8 +203,16 @@ def test_three_hosts_one_lobby_placement_redirects_and_failures(tmp_path) -> Non
             await until(lambda: watcher_b.counts["mesh"] > n0 + 10, 10, "b's room runs on")
             # Redis stops: hosts keep their rooms, the lobby says the directory is away.
             redis.stop()
-            await asyncio.sleep(1.5)
-            reply = await la.request("list_rooms")
+
+            async def directory_away() -> dict:
+                end = time.monotonic() + 10
+                while True:
+                    reply = await la.request("list_rooms")
+                    if "directory_error" in reply or time.monotonic() > end:
+                        return reply
+                    await asyncio.sleep(0.1)
+
+            reply = await directory_away()
             assert "unavailable" in reply.get("directory_error", "")
             assert {r["host"] for r in reply["rooms"]} <= {a.url}
             n1 = watcher_b.counts["mesh"]

@@ -25,7 +25,7 @@ from websockets.exceptions import InvalidStatus
 
 from tests.server.conftest import run, until
 from tests.server.postgres import MISSING, postgres_server
-from tests.server.test_cluster import REDIS, cluster_host, redis_server
+from tests.server.test_cluster import REDIS, cluster_host, redis_server, wait_published
 
 pytestmark = [
     pytest.mark.skipif(REDIS is None, reason="needs redis-server (apt: redis-server)"),
@@ -75,7 +75,7 @@ def test_replays_shared_through_postgresql_across_hosts_and_failures(tmp_path) -
         async def main() -> None:
             # A room of four bots throwing fast rounds, on whichever host placement picks.
             owner = await NetClient.connect(hosts[0].url, name="owner")
-            await asyncio.sleep(1.2)  # every host's load published
+            await wait_published(redis, lambda hs: len(hs) == 3, "every host's load")
             made = await owner.request("create_room", name="rounds", first_to=99,
                                        countdown=0.2, reset_speed=3.0, autoplay=True,
                                        restart_delay=30)

@@ -160,7 +160,7 @@ def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_
         conn = conn_of(ls, 1)
         peak_buffer, peak_queue = 0, 0
         while conn_of(ls, 1) is conn:  # never read: CORNER at 1 kHz and MESH pile up
-            tr = conn.ws.transport
+            tr = conn.transport
             if tr is not None:
                 peak_buffer = max(peak_buffer, ls.call(tr.get_write_buffer_size))
             peak_queue = max(peak_queue, len(conn._control))
