@@ -257,10 +257,11 @@ def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -
         assert got > 150 and len(frames) == got, (got, len(frames))
         assert gaps.min() >= 1 and (gaps == 1).any(), np.bincount(gaps)[:8]
         assert fast.corner is not None and fast.corner.hip_seq > 0
-        await asyncio.sleep(1.2)
-        s1 = await asyncio.to_thread(h.json, "/api/stats")
-        assert s1["lane_messages_in"] - s0["lane_messages_in"] > 60  # its HIPs
-        assert s1["lane_messages_out"] - s0["lane_messages_out"] >= got  # its CORNERs
+        def fast_counted() -> bool:  # its HIPs and its CORNERs, in the gateway's next report
+            s1 = h.json("/api/stats")
+            return (s1["lane_messages_in"] - s0["lane_messages_in"] > 60
+                    and s1["lane_messages_out"] - s0["lane_messages_out"] >= got)
+        await asyncio.to_thread(wait, fast_counted, "the fast lane's counts in /api/stats")
         await fast.close()
 
     with host(tmp_path, 2, "--bots", "3") as h:
