@@ -103,11 +103,11 @@ def test_default_scene_keeps_its_per_node_values_at_n48() -> None:
                                                           node_contact_stiffness(s))):
         assert damping == pytest.approx(0.02, rel=1e-12)
         assert k == pytest.approx(5000.0, rel=1e-12)
-    # Its bending stiffness, beside the bending springs (docs/accuracy.md: the rebound
-    # converges with it): D = 0.5 mN m, k = D / L^2 a stencil.
-    assert s["cloth"]["k_bend"] == 2000.0 and s["cloth"]["bending_stiffness"] == 5e-4
+    # Its bending stiffness, beside the bending springs (docs/accuracy.md: the rebound and
+    # the game's start converge with it, to n = 193): D = 2 mN m, k = D / L^2 a stencil.
+    assert s["cloth"]["k_bend"] == 2000.0 and s["cloth"]["bending_stiffness"] == 2e-3
     for plate_k in (engine.plate_k, node_plate_stiffness(s)):
-        assert plate_k == pytest.approx(5e-4 * 47**2, rel=1e-12)
+        assert plate_k == pytest.approx(2e-3 * 47**2, rel=1e-12)
 
 
 @pytest.mark.parametrize(("name", "n", "mass"), [("classic", 60, 0.5), ("windy", 60, 0.5),
