@@ -203,10 +203,11 @@ def test_cuda_tiled_matches_oracle(
 # force grows about as the depth squared (deeper, more nodes press harder). Measured with
 # the CPU backend, float64, for one frame with the hands moved as below: classic sunk
 # 0.5 mm slows the ball by 0.99 mm/s (under the 1 mm/s this test asks, which is why it
-# failed there), 1 mm by 3.8, 1.5 mm by 8.4, 2 mm by 14.7; the default sunk 0.5 mm by
-# 0.82 mm/s, 1.5 mm by 6.8. Before issue 42, classic's 5000 N/m a node slowed it by
-# 8.6 mm/s sunk 0.5 mm; sunk 1.5 mm now, the CPU backend stays within the oracle's derived
-# tolerance (check_against_oracle on "cpu").
+# failed there), 1 mm by 3.8, 1.5 mm by 8.4, 2 mm by 14.7; the default (bending stiffness
+# 2 mN m) sunk 0.5 mm by 0.87 mm/s, 1.5 mm by 6.9 (0.82 and 6.8 with 0.5 mN m). Before
+# issue 42, classic's 5000 N/m a node slowed it by 8.6 mm/s sunk 0.5 mm. Sunk 1.5 mm, both
+# scenes' CPU backend stays within the oracle's derived tolerance (check_against_oracle
+# on "cpu").
 SINK = {"classic": 1.5e-3, "default": 1.5e-3}
 
 
