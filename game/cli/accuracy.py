@@ -76,6 +76,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     g.add_argument("--per-node", action="store_true",
                    help="also run the scene in per-node units (its per-node values at its n, "
                         "fixed on every grid): how much of the grid's error is the units")
+    g.add_argument("--game-start", action="store_true",
+                   help="with --grid: the game's start instead (game.study.gamestart): the "
+                        "ball's and the centre's heights over 1.5 s on each n (--grid-sizes, "
+                        "default 13,25,49,97), their distances between grids whose spacing "
+                        "halves, sag, hand force, lowest point, rebound and observed orders; "
+                        "every shipped scene, or --scene (docs/accuracy.md: the game's start)")
     p.add_argument("--json", metavar="FILE", help="write the rows as JSON")
     p.add_argument("--plot", metavar="FILE.png", help="error against cost, log-log")
     p.add_argument("--fig4", metavar="FILE.png", help="the paper's Fig. 4")
@@ -157,7 +163,22 @@ def run_grid(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_game_start(args: argparse.Namespace) -> int:
+    """``--grid --game-start``: the game's start on each grid (``game.study.gamestart``)."""
+    from ..study import gamestart  # noqa: PLC0415
+
+    argv = ["--sizes", args.grid_sizes or "13,25,49,97", "--threads", str(args.threads or 1),
+            "--backend", "cpu" if args.backend == "auto" else args.backend]
+    if args.scene:
+        argv += ["--scenes", args.scene]
+    if args.json:
+        argv += ["--json", args.json]
+    return gamestart.main(argv)
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.grid and args.game_start:
+        return run_game_start(args)
     if args.grid:
         return run_grid(args)
     from tqdm import tqdm  # noqa: PLC0415

@@ -240,29 +240,29 @@ class Grip(NamedTuple):
     offset: np.ndarray
 
 
-def _hat_share(m: int, a: float, L: float) -> float:
-    """The integral over the edge segment [0, a] of node m's hat function (1 at m L, 0 at
-    (m +- 1) L; the corner's m = 0 only on the edge's side): exact by the trapezoid rule on
-    the breakpoints, the integrand being linear between them."""
-    s = np.unique(np.clip([(m - 1) * L, m * L, (m + 1) * L, 0.0, a], 0.0, a))
-    hat = np.maximum(0.0, 1.0 - np.abs(s - m * L) / L)
-    return float(np.sum(0.5 * (hat[1:] + hat[:-1]) * np.diff(s)))
+def grip_density(s: float, a: float) -> float:
+    """The grip's stiffness density along an edge at s from the corner, relative to the
+    corner's: (1 - (s / a)^2)^2 within a (smooth at the corner, where it is even, and flat
+    where it ends), 0 beyond."""
+    x = s / a
+    return (1.0 - x * x) ** 2 if x < 1.0 else 0.0
 
 
 def grips(scene: Scene) -> list[Grip]:
     """Every node the hands hold: a hand holds its corner node, and with
-    ``coupling.grip_radius`` a > 0 the nodes of its corner's two edges whose hat function
-    overlaps [0, a] (none past the edge's middle, which would be another hand's), each with
-    its share of the grip (shares summing to 1 a hand)."""
+    ``coupling.grip_radius`` a > 0 the nodes of its corner's two edges closer than a to the
+    corner (none past the edge's middle, which would be another hand's), each with the
+    density at its point times the spacing (the trapezoid rule; the corner's on both edges:
+    its density once), shares summing to 1 a hand."""
     n, L = scene.n, scene.rest_length
     a = scene["coupling"]["grip_radius"]
     held = []  # (corner, i, j, weight, offset)
     for c, (ci, cj) in enumerate(((0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0))):
         di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
-        held.append((c, ci, cj, 2 * _hat_share(0, a, L) if a > 0 else 1.0, np.zeros(3)))
+        held.append((c, ci, cj, 1.0, np.zeros(3)))
         m = 1
-        while a > 0 and (m - 1) * L < a and 2 * m <= n - 2:
-            w = _hat_share(m, a, L)
+        while a > 0 and m * L < a and 2 * m <= n - 2:
+            w = grip_density(m * L, a)
             held.append((c, ci, cj + dj * m, w, np.array([dj * m * L, 0.0, 0.0])))
             held.append((c, ci + di * m, cj, w, np.array([0.0, 0.0, di * m * L])))
             m += 1

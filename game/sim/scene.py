@@ -127,10 +127,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "grip_radius": Key(
             0.0, "float", 0.0, 100.0, effect="coupling",
-            doc="m: a hand holds each of its corner's two edges this far from the corner, K "
-            "spread evenly along them (split over their nodes by n; a fixed length, so the "
-            "sag converges as n grows); 0: the corner node alone (the paper's point support, "
-            "whose sag grows as log n)",
+            doc="m: a hand holds each of its corner's two edges over this length, K spread "
+            "along them with a smooth density falling to zero at this distance, (1 - (s / "
+            "a)^2)^2 (sampled at the nodes, normalised to K; a fixed length in metres, so the "
+            "sag converges as n grows); 0, or a length within one spacing: the corner node "
+            "alone (the paper's point support, whose sag grows as log n)",
         ),
     },
     "wind": {
@@ -416,27 +417,34 @@ GRID_MARKDOWN = (
     "| `coupling.stiffness` | N/m | a hand's total: yes | the corner node's K (grip radius "
     "0), or split over the grip's nodes |",
     "| `coupling.grip_radius` | m | yes: a hand holds each of its corner's two edges over "
-    "this length, K spread evenly along them. A single node is a point support, under which "
-    "a membrane's displacement grows as log(1 / L): the sag grows by ~3 mm each time the "
+    "this length, with a stiffness density (1 - (s / a)^2)^2 at s from the corner, smooth "
+    "at the corner and flat where it ends. A single node is a point support, under which a "
+    "membrane's displacement grows as log(1 / L): the sag grows by ~3 mm each time the "
     "spacing halves and never converges (a segment of fixed length holds a finite "
-    "displacement) | node m (m L from the corner along an edge) takes K w_m / sum w, w_m "
-    "the integral of its hat function over [0, a] (the corner: its half-hat on each edge); "
-    "sum w = 2 a / L, so the total is K at every n. The hand's point (what `corners()` "
-    "reads and the Falcon is pulled to) is the grip's nodes less their rest offsets, "
-    "weighted alike: the corner at rest, and the force on the hand is -K (hip - point) |",
+    "displacement) | node m (m L from the corner along an edge, m L < a) takes K w_m / sum "
+    "w, w_m = (1 - (m L / a)^2)^2 (the trapezoid rule's samples of the density; the corner "
+    "w_0 = 1, once for both edges), so the total is K at every n and the sampled grip "
+    "converges to the continuous one at the trapezoid rule's order; a <= L: the corner node "
+    "alone. The hand's point (what `corners()` reads and the Falcon is pulled to) is the "
+    "grip's nodes less their rest offsets, weighted alike: the corner at rest, and the "
+    "force on the hand is -K (hip - point) |",
     "| `[wind]` | m/s, kg/m^3, 1 | on each triangle's area: yes | - |",
     "| `strain_limit.max_strain` | 1 | a strain: yes | (1 + max_strain) L |",
     "| `sim.*` | s, m/s^2 | - | - |",
     "",
-    "The paper's per-node keys stay: `classic` (the paper's set-up) uses them and holds each",
-    "corner by its node; `default` (the game's) gives `damping_rate` and `stiffness_per_area`,",
-    "chosen so that at its n = 48 they derive the per-node values it had before (0.02 N s/m,",
-    "5000 N/m), a 1 cm `grip_radius` (its sag at n = 49 3 % under the single corner",
-    "node's), and a `bending_stiffness` of 0.0005 N m beside its bending springs, with which",
-    "the ball's rebound converges as n grows (with the springs alone it turned at n = 97);",
-    "docs/accuracy.md: the grid study. At n = 48 the force on a hand (at rest, after a lift,",
-    "after the ball's landing) is within 2.5 % of what it was before (docs/accuracy.md: the",
-    "hand's feel, `python -m clothball.game.study.feel`).",
+    "The paper's per-node keys stay (a scene may give them), but every shipped scene gives",
+    "material values. `classic` (the paper's set-up) gives those that derive the paper's",
+    "per-node values at the paper's resolution, n = 60 (damping 0.002 N s/m, contact 5000",
+    "N/m), and at any other n the same material's; `windy` and `practice` alike, `silk` at",
+    "its n = 64. `default` (the game's) gives `damping_rate` and `stiffness_per_area` chosen",
+    "so that at its n = 48 they derive the per-node values it had before (0.02 N s/m, 5000",
+    "N/m), and a `bending_stiffness` of 0.002 N m beside its bending springs, with which the",
+    "ball's rebound and the game's start converge as n grows (with the springs alone the",
+    "rebound turned at n = 97; with 0.0005 N m the start did at n = 193; `silk` has 0.0005",
+    "N m beside its own, weaker springs, for the same reason). Every",
+    "shipped scene's hands hold a 10 cm `grip_radius` (the paper held each corner by its",
+    "node, a point support whose sag has no limit in n: the one departure of `classic` from",
+    "the paper's set-up). docs/accuracy.md: what converges, at what order, per scene.",
 )
 
 

@@ -108,33 +108,29 @@ inline unsigned compiled_effect_set(const Config& c) {
 }
 
 // A hand's grip (eq. 7 over a patch; docs/scenes.md). With grip radius a > 0 a hand holds
-// the segment [0, a] of each of its corner's two edges, its stiffness K spread evenly over
-// those 2a of border: node m (m spacings L from the corner along an edge) takes the share
-// its hat function (the grid's piecewise-linear interpolation) has of the segment,
-// w_m = H(u - m) in units of L with u = a / L and H the hat's integral (hat_cdf); the
-// corner node takes the half-hat inside each edge, 2 (H(u) - 1/2). The weights sum to 2u,
-// so the total stiffness is K whatever n, and the grip converges to a line support of
-// fixed length (a single node is a point support: its membrane displacement grows as
-// log(1 / L) without bound). a = 0 is the paper's single corner node.
-template <class R>
-CB_HD R hat_cdf(R x) {
-  if (x <= R(-1)) return R(0);
-  if (x <= R(0)) return R(0.5) * (x + R(1)) * (x + R(1));
-  if (x < R(1)) return R(1) - R(0.5) * (R(1) - x) * (R(1) - x);
-  return R(1);
-}
-
+// each of its corner's two edges with a stiffness density that falls smoothly from the
+// corner to zero at a: rho(s) = (1 - (s / a)^2)^2 per unit length (the biweight kernel,
+// even in s, so the corner is a smooth point of it, and flat where it ends). Node m (m
+// spacings L from the corner along an edge) takes rho(m L) L, the trapezoid rule's share;
+// the corner node, on both edges, rho(0) L. The shares are normalised to K, so the total is
+// K whatever n, and since rho is smooth at both ends the sampled grip converges to the
+// continuous one at the trapezoid rule's high order (the earlier hat-function shares of a
+// uniform density were kinked at a and converged at first order). A single node is a point
+// support (its membrane displacement grows as log(1 / L) without bound); a = 0 is the
+// paper's single corner node, and so is any a <= L (the kernel is zero at the next node).
+// In units of L: u = a / L, and the weight of node m is grip_weight(m, u).
 template <class R>
 CB_HD R grip_weight(int m, R u) {
-  return m == 0 ? R(2) * (hat_cdf(u) - R(0.5)) : hat_cdf(u - R(m));
+  const R x = R(m) / u, t = R(1) - x * x;
+  return x < R(1) ? t * t : R(0);
 }
 
-// Nodes a grip holds along each edge beyond the corner: those with a weight (m < u + 1),
-// at most (n - 2) / 2 so that no node belongs to two corners (the weights are then
-// normalised over the nodes held, and the total is still K).
+// Nodes a grip holds along each edge beyond the corner: those with a weight (m < u), at
+// most (n - 2) / 2 so that no node belongs to two corners (the weights are then normalised
+// over the nodes held, and the total is still K).
 inline int grip_node_count(double u, int n) {
-  if (!(u > 0.0)) return 0;
-  const double m = std::floor(u) + 1.0;
+  if (!(u > 1.0)) return 0;
+  const double m = std::ceil(u) - 1.0;
   const int cap = std::max(0, (n - 2) / 2);
   return m < double(cap) ? int(m) : cap;
 }

@@ -116,13 +116,14 @@ def grip_scene(n: int, grip: float, **sim: object) -> Scene:
     })
 
 
-@pytest.mark.parametrize(("n", "grip"), [(4, 0.3), (9, 0.1), (16, 0.05), (16, 0.2),
+@pytest.mark.parametrize(("n", "grip"), [(4, 0.3), (9, 0.3), (16, 0.05), (16, 0.2),
                                           (25, 0.0417), (33, 0.0)])
 def test_a_grip_moves_as_the_oracle(backend: str, n: int, grip: float) -> None:
     """The hands pulled off their rest points: the engine (grip derived in native/core)
-    against the oracle (its own derivation: each node's share as the integral of its hat
-    function over the grip), positions, the points the hands hold and their forces; n = 4
-    caps the grip at the corner node, 25 puts its end on a node."""
+    against the oracle (its own derivation: each node's share the grip's density at its
+    point), positions, the points the hands hold and their forces; n = 4 caps the grip at
+    the corner node, at n = 16 a = 0.05 is within a spacing (the corner node alone), at
+    25 the grip ends just past the first node."""
     s = grip_scene(n, grip)
     cloth, ref = Cloth(s, backend=backend), ReferenceCloth(s)
     hips = cloth.hips() + np.array([[0.03, 0.02, -0.01], [-0.02, 0.04, 0.0],
@@ -157,15 +158,16 @@ def test_a_grip_holds_with_its_stiffness_whatever_n(n: int) -> None:
     held = {(g.i, g.j) for g in grips(s)}
     moved = {(int(i), int(j)) for i, j in zip(*np.nonzero(np.abs(cloth.velocities()).sum(-1)),
                                                strict=True)}
-    per_edge = min(math.ceil(0.06 / s.rest_length), (n - 2) // 2)
+    per_edge = min(max(0, math.ceil(0.06 / s.rest_length) - 1), (n - 2) // 2)  # m L < a
     assert moved == held and len(held) == 4 * (1 + 2 * per_edge)
 
 
-def test_a_grip_shares_its_stiffness_as_its_length() -> None:
-    """The shares (oracle) are the hat functions' integrals over [0, a]: with the grip's end
-    on a node (a = 2 L), the corner takes L / 2 on each edge, node 1 all of its hat (L),
-    node 2 the half-hat before it (L / 2): of 4 L in all."""
-    s = grip_scene(11, 0.2)  # L = 0.1
+def test_a_grip_shares_its_stiffness_as_its_density() -> None:
+    """The shares (oracle) are the grip's density (1 - (s / a)^2)^2 at each node times the
+    spacing (the trapezoid rule), the corner's once: with a = 3 L, the corner 1, node 1
+    (8/9)^2 = 64/81 and node 2 (5/9)^2 = 25/81 on each edge, of 259/81 in all; node 3, at
+    s = a, has none and is not held."""
+    s = grip_scene(11, 0.3)  # L = 0.1
     shares = {(g.i, g.j): g.share for g in grips(s) if g.corner == 0}
-    assert shares == pytest.approx({(0, 0): 0.25, (0, 1): 0.25, (1, 0): 0.25,
-                                    (0, 2): 0.125, (2, 0): 0.125})
+    assert shares == pytest.approx({(0, 0): 81 / 259, (0, 1): 64 / 259, (1, 0): 64 / 259,
+                                    (0, 2): 25 / 259, (2, 0): 25 / 259}, rel=1e-12)

@@ -58,9 +58,12 @@ def test_no_plan_where_the_state_does_not_fit_on_chip() -> None:
     assert plan(config("classic", 64), shared=1000) is None
 
 
+CLASSIC = ["structural", "gravity", "damping", "ball", "coupling"]  # what its keys need
+
+
 @pytest.mark.parametrize("changes", [
-    {"sim": {"effects": ["structural", "gravity", "wind"]}},
-    {"sim": {"effects": ["structural", "gravity", "strain_limit"]}},
+    {"sim": {"effects": [*CLASSIC, "wind"]}},
+    {"sim": {"effects": [*CLASSIC, "strain_limit"]}},
     {"sim": {"integrator": "velocity_verlet"}},
     {"sim": {"integrator": "implicit_euler"}},
 ])

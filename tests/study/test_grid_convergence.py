@@ -1,9 +1,10 @@
 """The physics converges as the grid refines when the scene is in material units.
 
 The game's default scene (material values) and a lightly damped variant of it (so that the
-ball rebounds and the cloth rings) are measured on grids whose spacing halves (n - 1 = 12,
-24, 48 here; 96 on the GPU, and for the rebound on the CPU too: ``slow``), each quantity
-against the same quantity on the other grids (no reference values are hard-coded). Where
+ball rebounds and the cloth rings) are measured on grids whose spacing halves (n - 1 = 24,
+48, 96 on the CPU, ``slow``; to 192 on the GPU; the documentation tests below from 12),
+each quantity against the same quantity on the other grids (no reference values are
+hard-coded). Where
 the physics converges, successive differences must shrink; the observed orders are printed
 (``-s``) and recorded as test properties. The hands hold a grip of fixed length
 (``coupling.grip_radius``); held by single nodes, point supports, the static sag and what
@@ -48,7 +49,17 @@ from clothball.game.study.grid import (
 )
 
 CPU_SIZES = (13, 25, 49)  # spacing 1/12, 1/24, 1/48
-GPU_SIZES = (13, 25, 49, 97)
+# Where the default's grip (10 cm, a smooth density: docs/scenes.md) is resolved: at n = 13
+# (L = 8.3 cm) it is the corner node and a tenth of the next, a point support, and its sag
+# there is pre-asymptotic (92.4, 92.7, 93.8, 94.5 mm at n = 13-97: the first difference the
+# smallest). Issue 42's targets are from n = 25. On the GPU's range to n = 193 the default
+# with its earlier bending stiffness (0.5 mN m) did not converge: its cloth under the
+# resting ball snapped at times that move with n (the rebound -7.11, -0.30, +0.45 mm, the
+# light variant's lowest point -5.04, -1.36, -1.92); with 2 mN m both converge (-6.90,
+# -0.71, +0.07 and -2.10, -0.63, +0.04; CPU float64, which gave CUDA's figures at
+# 0.5 mN m to the digit; docs/accuracy.md, "The larger range").
+CONVERGING_SIZES = (25, 49, 97)
+GPU_SIZES = (25, 49, 97, 193)
 LIGHT_DAMPING = 10.0  # 1/s: what the default's per-node damping was at n = 16
 
 
@@ -125,12 +136,14 @@ def check_converges(name: str, sizes: tuple[int, ...], backend: str, record) -> 
         assert c.shrinking(), line
 
 
+@pytest.mark.slow
 def test_default_scene_converges(record_property) -> None:
-    check_converges("default", CPU_SIZES, "cpu", record_property)
+    check_converges("default", CONVERGING_SIZES, "cpu", record_property)
 
 
+@pytest.mark.slow
 def test_lightly_damped_scene_converges(record_property) -> None:
-    check_converges("light", CPU_SIZES, "cpu", record_property)
+    check_converges("light", CONVERGING_SIZES, "cpu", record_property)
 
 
 def test_point_supports_drift_logarithmically(record_property) -> None:
