@@ -36,6 +36,7 @@ from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .room import Room, RoomSettings
 from .shared import lanes
+from .shared.listen import ACCEPT_BACKLOG
 from .shared.osthread import name_os_thread
 from .sim import SimPool
 from .storage.datadir import Storage, StorageOff
@@ -256,6 +257,7 @@ class GameServer:
             ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
             close_timeout=2,
             open_timeout=None,  # Connection bounds its own handshake (server.ws)
+            backlog=ACCEPT_BACKLOG,  # a burst of connections waits to be accepted (issue 43)
             **extra,
         )
 

@@ -11,7 +11,14 @@ import sys
 from pathlib import Path
 
 from ... import _native
-from ...server.bench import admitbench, emptybench, indexbench, loadbench, soakbench
+from ...server.bench import (
+    admitbench,
+    emptybench,
+    indexbench,
+    loadbench,
+    soakbench,
+    upgradebench,
+)
 from ...server.room import RoomSettings
 from ...server.thread import ServerThread
 from ..rules import EDGE_NAMES
@@ -91,6 +98,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     emptybench.configure_empty_flags(p)
     soakbench.configure_soak_flags(p)
     admitbench.configure_admit_flags(p)
+    upgradebench.configure_upgrade_flags(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -98,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
         return run_rounds_cmd(args)
     if args.largest:
         return run_largest_cmd(args)
+    if args.upgrades:
+        return upgradebench.run_upgrades(args)
     if args.server or args.load:  # their scene: classic at n = 64 unless --scene says
         # Checked here, before any server process starts (its failure is a traceback there).
         why = cuda_unavailable_reason() if args.server_backend == "cuda" else ""

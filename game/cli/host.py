@@ -34,6 +34,7 @@ from ...server.directory import Directory, RedisDirectory
 from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ...server.shared import lifeline
+from ...server.shared.listen import raise_open_files
 from ..sim.scene import Scene, SceneError
 from .args import FIRST_TO, PORT, WORKERS, postgres_url, redis_url, ws_url
 
@@ -251,6 +252,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.parent is not None:
         lifeline.arm(args.parent)
+    raise_open_files()  # every client is a socket or two in each process (issue 43)
     if args.engine_socket is not None or workers == 1:
         return loops.run(serve(args))
     return supervise(args, workers)

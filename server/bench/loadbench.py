@@ -20,8 +20,11 @@ does not hold ends the run, saying what stopped it (lateness, delivery, server C
 saturated, clients' CPU saturated). Reported per step (``--json``: one row each): rooms,
 frame lateness p50/p99 (the server's counters, the worst room), HIP-to-CORNER latency
 p50/p99 (client clock), server CPU (/proc, every thread of every server process; per room;
-per added room), messages in and out a second, the clients' CPU, CORNER and MESH rates
-received against those asked, frames advanced a second.
+per added room; by thread kind, ``server_cores_by_kind``; µs of it a message in or out),
+messages in and out a second, the clients' CPU (and a room's share), CORNER and MESH rates
+received against those asked, frames advanced a second. ``--server-cpus`` and
+``--client-cpus`` (CPU lists) pin the server's processes and the clients (and the bench
+itself) to CPUs of their own (``os.sched_setaffinity``), read back in each row.
 
 ``clothball bench --load --workers N``: the same with an engine and N - 1 gateways on one
 port, as ``clothball host --workers N`` runs them (docs/architecture.md): every client
@@ -41,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -123,6 +127,12 @@ def configure_server_flags(parser: argparse.ArgumentParser) -> None:
                         "joined through a Redis the bench starts (needs redis-server)")
     g.add_argument("--cluster-hosts", default="1,2,3", metavar="N,N,...",
                    help="--load --cluster: the numbers of hosts measured (default %(default)s)")
+    g.add_argument("--server-cpus", default=None, metavar="LIST",
+                   help="--load: the CPUs the server's processes run on (os.sched_setaffinity), "
+                        "a list like 0-7 or 0,2,4-6 (default: any)")
+    g.add_argument("--client-cpus", default=None, metavar="LIST",
+                   help="--load: the CPUs the bench's clients (and the bench itself) run on, "
+                        "none of --server-cpus (default: any)")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -481,7 +491,12 @@ def load_arg_error(args: argparse.Namespace) -> str | None:
         bench_scene(args)
     except SceneError as e:
         return f"--scene, --server-n: {e}"
+    cpus = cpu_lists(args)
+    if isinstance(cpus, str):
+        return cpus
     if not getattr(args, "load", False):
+        if cpus != (None, None):
+            return "--server-cpus and --client-cpus go with --load"
         return None
     if args.workers < 1:
         return f"--workers must be at least 1, got {args.workers}"
@@ -503,6 +518,76 @@ def load_arg_error(args: argparse.Namespace) -> str | None:
     return None
 
 
+def parse_cpu_list(text: str, flag: str) -> frozenset[int]:
+    """``0-3,8,10-11`` (as ``taskset -c`` and /sys's lists write them) as a set of CPUs;
+    ``ValueError`` with one line naming ``flag`` when it is not one, is empty, or names a
+    CPU this process may not run on."""
+    usable = os.sched_getaffinity(0)
+    out: set[int] = set()
+    for part in str(text).split(","):
+        part = part.strip()
+        lo, dash, hi = part.partition("-")
+        try:
+            a = int(lo)
+            b = int(hi) if dash else a
+        except ValueError:
+            a = b = -1
+        if not part or a < 0 or b < a or (dash and not hi.strip()):
+            raise ValueError(f"{flag} must be a list of CPUs like 0-3 or 0,2,4-6, got {text!r}")
+        out.update(range(a, b + 1))
+    missing = sorted(out - usable)
+    if missing:
+        raise ValueError(f"{flag} names CPU{'s' * (len(missing) > 1)} "
+                         f"{_cpus_text(missing)} that this machine does not let the bench use "
+                         f"(usable: {_cpus_text(sorted(usable))})")
+    return frozenset(out)
+
+
+def _cpus_text(cpus: list[int] | frozenset[int]) -> str:
+    """CPUs as a list of ranges: 0-3,8."""
+    runs: list[list[int]] = []
+    for c in sorted(cpus):
+        if runs and c == runs[-1][1] + 1:
+            runs[-1][1] = c
+        else:
+            runs.append([c, c])
+    return ",".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def cpu_lists(args: argparse.Namespace
+              ) -> tuple[frozenset[int] | None, frozenset[int] | None] | str:
+    """``--server-cpus`` and ``--client-cpus`` as sets (None: not given), or what is wrong
+    with them in one line."""
+    got: list[frozenset[int] | None] = []
+    for flag in ("--server-cpus", "--client-cpus"):
+        text = getattr(args, flag[2:].replace("-", "_"), None)
+        try:
+            got.append(None if text is None else parse_cpu_list(text, flag))
+        except ValueError as e:
+            return str(e)
+    server, client = got
+    if server is not None and client is not None and server & client:
+        return (f"--server-cpus and --client-cpus share CPU"
+                f"{'s' * (len(server & client) > 1)} {_cpus_text(server & client)}: the "
+                "server and its clients run on separate cores")
+    return server, client
+
+
+def pin(procs: list[subprocess.Popen[Any]], cpus: frozenset[int] | None) -> None:
+    """Every thread of these processes (just started: their first) onto ``cpus``; the
+    threads they start later inherit it."""
+    if cpus is None:
+        return
+    for p in procs:
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{p.pid}/task")]
+        except OSError:
+            tids = [p.pid]
+        for tid in tids:
+            with contextlib.suppress(ProcessLookupError):
+                os.sched_setaffinity(tid, cpus)
+
+
 def room_counts(step: int, most: int) -> list[int]:
     """The rooms of each step: 1, then every multiple of ``step`` up to ``most`` (and
     ``most`` itself): one room first, for what a room alone costs."""
@@ -521,13 +606,15 @@ class _Clients:
     """The lean client processes (``server/bench/benchclients.py``): rooms are given to them in
     turn; each answers one JSON line per command."""
 
-    def __init__(self, args: argparse.Namespace, n: int) -> None:
+    def __init__(self, args: argparse.Namespace, n: int,
+                 cpus: frozenset[int] | None = None) -> None:
         cmd = [sys.executable, "-m", "clothball.server.bench.benchclients",
                "--hip-rate", repr(args.hip_rate), "--corner-rate", repr(args.corner_rate),
                "--spectators", str(args.load_spectators)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.procs = [subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                        text=True, env=env) for _ in range(n)]
+        pin(self.procs, cpus)
         self._turn = 0
 
     def _ask(self, cmds: list[tuple[subprocess.Popen[str], dict[str, Any]]]
@@ -580,6 +667,9 @@ def run_load(args: argparse.Namespace) -> int:
     if err is not None:
         print(f"clothball bench: {err}", file=sys.stderr)
         return 2
+    _, client_cpus = _cpus(args)
+    if client_cpus is not None:  # the bench's own measuring stays off the server's cores
+        os.sched_setaffinity(0, client_cpus)
     try:
         return run_load_cluster(args) if getattr(args, "cluster", False) else _run_load(args)
     except (OSError, RuntimeError, ValueError) as e:  # a server or client process gone
@@ -621,9 +711,24 @@ def _load_defaults(args: argparse.Namespace) -> None:
         args.client_procs = min(4, max(1, (os.cpu_count() or 1) // 4))
 
 
+def _cpus(args: argparse.Namespace) -> tuple[frozenset[int] | None, frozenset[int] | None]:
+    """``--server-cpus``, ``--client-cpus`` (checked already by ``load_arg_error``), parsed
+    once: the bench then runs on the clients' CPUs, and would no longer see the server's as
+    its own."""
+    got = getattr(args, "_cpus", None)
+    if got is None:
+        got = cpu_lists(args)
+        assert not isinstance(got, str), got
+        args._cpus = got
+    return got
+
+
 def _load_meta(args: argparse.Namespace, info: dict[str, Any], load_before: tuple[float, ...]
                ) -> dict[str, Any]:
+    server_cpus, client_cpus = _cpus(args)
     return {
+        "server_cpus": None if server_cpus is None else sorted(server_cpus),
+        "client_cpus": None if client_cpus is None else sorted(client_cpus),
         "scene": info.get("scene"), "n": info.get("n"), "backend": info.get("backend"),
         "substeps": info.get("substeps"), "server_loop": info.get("loop"),
         "cpus": os.cpu_count(),
@@ -670,11 +775,13 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
             stdout=subprocess.DEVNULL) for k in range(max(1, args.workers - 1))]
     servers = [subprocess.Popen(base, stdout=subprocess.PIPE, text=True,
                                 env=_server_env(args)) for _ in range(n_hosts)]
+    server_cpus, client_cpus = _cpus(args)
     clients: _Clients | None = None
     steps: list[dict[str, Any]] = []
     stopped: dict[str, Any] | None = None
     past = 0  # steps measured after the stop (--steps-past)
     try:
+        pin(servers + gateways, server_cpus)
         infos = [_server_info(s) for s in servers]
         if shared_port is not None:  # an engine's own port is its bots' only
             infos = [(i, f"http://127.0.0.1:{shared_port}", f"ws://127.0.0.1:{shared_port}/ws")
@@ -682,7 +789,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
         entry = infos[0][2] if shared_port is None else f"ws://127.0.0.1:{shared_port}/ws"
         if directory is not None:
             time.sleep(1.5)  # every host has read the others from the directory
-        clients = _Clients(args, args.client_procs)
+        clients = _Clients(args, args.client_procs, client_cpus)
         info = infos[0][0]
         what = (f"an engine and {len(gateways)} gateway{'s' * (len(gateways) > 1)} on one "
                 "port" if gateways else
@@ -695,7 +802,7 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
               f"n={info['n']}, backend {info['backend']} ({info['substeps']} substeps/frame), "
               f"event loop {info['loop']}, "
               f"{args.client_procs} client process{'es' if args.client_procs > 1 else ''}, "
-              f"{os.cpu_count()} CPUs shared by servers and clients, load average "
+              f"{_cpus_line(server_cpus, client_cpus)}, load average "
               f"{os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
         procs = servers + gateways  # every process of the server side, for its CPU
         cpu0, w0 = _cpu_seconds(procs), time.perf_counter()
@@ -734,6 +841,13 @@ def _load_series(args: argparse.Namespace, n_hosts: int, directory: str | None,
     return {"info": info, "idle_server_cpu_cores": idle, "held": held[-1] if held else None,
             "stopped_at": stopped, "stopped_by": stopped["stopped_by"] if stopped else [],
             "steps": steps}
+
+
+def _cpus_line(server: frozenset[int] | None, client: frozenset[int] | None) -> str:
+    if server is None and client is None:
+        return f"{os.cpu_count()} CPUs shared by servers and clients"
+    return (f"server on CPUs {_cpus_text(server) if server is not None else 'any'}, clients on "
+            f"{_cpus_text(client) if client is not None else 'any'} (of {os.cpu_count()})")
 
 
 def _counts_text(counts: list[int]) -> str:
@@ -782,8 +896,20 @@ def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
         label = f"{kinds[pid]} {'event loop' if pid == tid else name}"
         spent[label] = spent.get(label, 0.0) + c
     step["server_threads_cores"] = dict(sorted(spent.items(), key=lambda kv: -kv[1]))
+    by_kind = dict.fromkeys(THREAD_KINDS, 0.0)
+    for (pid, tid), (name, c) in threads.items():
+        by_kind[thread_kind(kinds[pid], name, pid == tid)] += c
+    step["server_cores_by_kind"] = by_kind
+    messages = step["messages_in_per_s"] + step["messages_out_per_s"]
+    step["server_cpu_us_per_message"] = (step["server_cpu_cores"] * 1e6 / messages
+                                         if messages > 0 else None)
+    # Where their threads may run, read back (--server-cpus, --client-cpus: every thread,
+    # the frame loops and encoders started after the pinning included).
+    step["server_affinity"] = _affinity(servers)
+    step["client_affinity"] = _affinity(clients.procs)
     per_client = [(b - a) / dt for a, b in zip(cl0, cl1, strict=True)]
     step["clients_cpu_cores"] = sum(per_client)
+    step["clients_cpu_per_room"] = step["clients_cpu_cores"] / rooms
     step["client_process_cores_max"] = max(per_client)
     step.update(_client_step(c0, c1, args))
     _judge(step, args)
@@ -918,6 +1044,46 @@ def _process_kind(p: subprocess.Popen[str]) -> str:
     return "gateway" if "clothball.server.gateway" in p.args else "engine"
 
 
+# The server's threads by what they do (``server_cores_by_kind``): the native frame loops,
+# the engine's event loop (its network and control messages; a process's main thread), the
+# gateway processes (their event loops: relaying and their clients' lanes), the native MESH
+# encoders, the engine's service threads (each frame loop's Python service thread, the
+# recorder, the replay index's and the directory's pools), and any other (unnamed) thread.
+THREAD_KINDS = ("frame_loop", "event_loop", "gateways", "mesh_encoders", "service_threads",
+                "other")
+SERVICE_THREADS = ("clothball-", "replay-", "directory")
+
+
+def thread_kind(process: str, name: str, main: bool) -> str:
+    """The kind (``THREAD_KINDS``) of a server thread: of a ``process`` ("engine" or
+    "gateway"), named ``name`` by the OS, the process's main thread or not."""
+    if process == "gateway":
+        return "gateways"
+    if main:
+        return "event_loop"
+    if name.startswith("cb-frame-loop"):
+        return "frame_loop"
+    if name.startswith("cb-mesh-encode"):
+        return "mesh_encoders"
+    if name.startswith(SERVICE_THREADS):
+        return "service_threads"
+    return "other"
+
+
+def _affinity(procs: list[subprocess.Popen[str]]) -> list[int]:
+    """The CPUs any thread of these processes may run on (their union)."""
+    cpus: set[int] = set()
+    for p in procs:
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{p.pid}/task")]
+        except OSError:
+            continue
+        for tid in tids:
+            with contextlib.suppress(OSError):
+                cpus |= os.sched_getaffinity(tid)
+    return sorted(cpus)
+
+
 def _threads_cpu_seconds(procs: list[subprocess.Popen[str]]
                          ) -> dict[tuple[int, int], tuple[str, float]]:
     """Every thread of these processes: (pid, tid) -> (its name, CPU seconds so far)."""
@@ -963,8 +1129,16 @@ def _load_line(s: dict[str, Any]) -> str:
             f"{s['frames_per_s']:.0f}/s  CPU server {s['server_cpu_cores']:.2f} "
             f"({s['server_cpu_per_room']:.3f}/room) clients {s['clients_cpu_cores']:.2f} cores"
             f"  load {s['load_average']:.1f}  {verdict}"
+            "\n      server cores by kind: " + ", ".join(
+                f"{k.replace('_', ' ')} {v:.2f}" for k, v in s["server_cores_by_kind"].items())
+            + f"; {_us(s['server_cpu_us_per_message'])} µs of server CPU a message; clients "
+            f"{s['clients_cpu_per_room']:.3f} core a room"
             "\n      busiest threads (cores): " + ", ".join(
                 f"{k} {v:.2f}" for k, v in list(s.get("server_threads_cores", {}).items())[:5]))
+
+
+def _us(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1f}"
 
 
 # --- clothball bench --load --cluster -----------------------------------------------------------
@@ -991,6 +1165,7 @@ def run_load_cluster(args: argparse.Namespace) -> int:
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="clothball-bench-redis-") as rdir:
         redis = start_redis(redis_bin, port, rdir)
+        pin([redis], _cpus(args)[0])  # the cluster's store is the server side's
         try:
             url = f"redis://127.0.0.1:{port}/0"
             load_before = os.getloadavg()

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from ..shared import lifeline
+from ..shared.listen import raise_open_files
 from .relay import Gateway
 
 
@@ -51,6 +52,7 @@ if __name__ == "__main__":
     a = parse(sys.argv[1:])
     if a.parent is not None:
         lifeline.arm(a.parent)
+    raise_open_files()  # two sockets a client it relays
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
     sys.exit(asyncio.run(main(a)))

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import json
 import socket
 from collections.abc import Coroutine
@@ -32,6 +33,7 @@ from ...game.wire.wsframe import FrameTap
 from ..lanes.lane import Lane
 from ..shared import proxyline
 from ..shared.lanes import ctl_path, parse_lane
+from ..shared.listen import ACCEPT_BACKLOG
 from .frames import ServerFrames, close_frame, text_frame
 from .lanes import WRITE_SKIP, SocketLinks, client_frames, lanes_wanted
 
@@ -39,9 +41,39 @@ CHUNK = 1 << 16  # bytes read at a time, each way
 WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
 HEAD_WAIT_S = 5.0  # for a request's head, before a 503 while the engine is away
 RETRY_AFTER_S = 2  # told to a client while the engine is away
+CONNECT_WAIT_S = HEAD_WAIT_S  # for a place in the engine's full accept backlog, then a 503
 ENGINE_CHECK_S = 0.3  # an engine holds a new connection open this long, waiting for its line
 ENGINE_GONE = "the host's engine stopped: its rooms are lost; reconnect in a few seconds"
 ROOM_GONE = "the host's engine stopped"  # room_stopped's reason
+
+
+async def connect_engine(path: str, wait_s: float) -> socket.socket:
+    """A connected Unix socket to the engine at ``path``. While the engine's accept backlog
+    is full, a non-blocking ``connect`` fails with ``EAGAIN``, and asyncio's own connect
+    would take that socket for connected (it polls writable at once, with no error) and
+    the first write fail: the client's connection would end with no answer (issue 43).
+    Here it is tried again, at growing intervals, for up to ``wait_s``; then ``OSError``
+    (the client is answered 503). Any other failure (no socket, refused: no engine)
+    raises at once."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + wait_s
+    pause = 0.002
+    while True:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.setblocking(False)
+        try:
+            sock.connect(path)
+            return sock
+        except BlockingIOError:  # EAGAIN: the backlog is full
+            sock.close()
+            now = loop.time()
+            if now >= end:
+                raise OSError(errno.EAGAIN, "the engine's accept backlog stayed full") from None
+            await asyncio.sleep(min(pause, end - now))
+            pause = min(pause * 2, 0.05)
+        except BaseException:
+            sock.close()
+            raise
 
 
 class Gateway:
@@ -58,7 +90,8 @@ class Gateway:
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
         self.server = await loop.create_server(
-            lambda: _Client(self), self.host, self.port, reuse_port=True, backlog=1024)
+            lambda: _Client(self), self.host, self.port, reuse_port=True,
+            backlog=ACCEPT_BACKLOG)
         if self.lanes is not None:
             self.lanes.start()
 
@@ -82,7 +115,8 @@ class Gateway:
         waiting for the PROXY line (a dying engine's socket may still take a connection
         into its backlog, which is then reset)."""
         try:
-            r, w = await asyncio.open_unix_connection(str(self.engine))
+            sock = await connect_engine(str(self.engine), ENGINE_CHECK_S)
+            r, w = await asyncio.open_unix_connection(sock=sock)
         except OSError:
             return False
         try:
@@ -125,8 +159,8 @@ class _Client(asyncio.Protocol):
     async def _connect(self) -> None:
         loop = asyncio.get_running_loop()
         try:
-            _, engine = await loop.create_unix_connection(lambda: _Engine(self),
-                                                          str(self.gw.engine))
+            sock = await connect_engine(str(self.gw.engine), CONNECT_WAIT_S)
+            _, engine = await loop.create_unix_connection(lambda: _Engine(self), sock=sock)
         except OSError:
             await self._engine_away()
             return

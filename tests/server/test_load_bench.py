@@ -11,6 +11,7 @@ import asyncio
 import inspect
 import json
 import math
+import os
 import shutil
 import subprocess
 import sys
@@ -45,6 +46,8 @@ STEP_KEYS = {
     "corner_delivery", "mesh_hz_asked", "mesh_hz_received", "mesh_delivery", "frames_per_s",
     "frames_per_s_min", "client_errors", "client_last_error", "clients_lost",
     "clients_fell_behind", "held", "stopped_by", "why",
+    "server_cores_by_kind", "server_cpu_us_per_message", "clients_cpu_per_room",
+    "server_affinity", "client_affinity",
 }
 REASONS = {"lateness", "delivery", "server_cpu", "clients_cpu"}
 
@@ -79,6 +82,22 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
     assert "engine event loop" in threads
     assert max(threads.values()) >= step["server_busiest_thread_cores"] - 1e-9
     assert step["clients_cpu_cores"] >= step["client_process_cores_max"] > 0
+    assert step["clients_cpu_per_room"] == pytest.approx(step["clients_cpu_cores"] / rooms)
+    # The same threads grouped by kind (frame loop, event loop, gateways, MESH encoders,
+    # service threads, other): every kind named, together the per-thread split.
+    kinds = step["server_cores_by_kind"]
+    assert tuple(kinds) == loadbench.THREAD_KINDS and min(kinds.values()) >= 0
+    assert sum(kinds.values()) == pytest.approx(sum(threads.values()), abs=1e-9)
+    assert kinds["frame_loop"] > 0  # the native frame loop steps the rooms
+    assert kinds["frame_loop"] == pytest.approx(sum(
+        v for k, v in threads.items() if k.startswith("engine cb-frame-loop")), abs=1e-9)
+    # µs of server CPU a message: its CPU over the messages in and out
+    messages = step["messages_in_per_s"] + step["messages_out_per_s"]
+    assert step["server_cpu_us_per_message"] == pytest.approx(
+        step["server_cpu_cores"] * 1e6 / messages)
+    usable = sorted(os.sched_getaffinity(0))
+    assert step["server_affinity"] and set(step["server_affinity"]) <= set(usable)
+    assert step["client_affinity"] and set(step["client_affinity"]) <= set(usable)
     assert step["corner_hz_asked"] == corner_hz
     assert step["corner_delivery"] == pytest.approx(step["corner_hz_received"] / corner_hz)
     assert 0 < step["corner_hz_min"] <= step["corner_hz_received"] * (1 + 1e-12)  # the mean
@@ -103,6 +122,7 @@ def test_load_bench_runs_and_reports_every_step(tmp_path) -> None:
     assert r["n"] == 12 and r["scene"] == "classic" and r["spectators_per_room"] == 1
     assert r["hip_rate_hz"] == 120 and r["corner_rate_hz"] == 120  # the desktop client's
     assert r["cpus"] >= 1 and r["client_processes"] >= 1 and r["workers"] == 1
+    assert r["server_cpus"] is None and r["client_cpus"] is None  # not pinned
     assert [s["rooms"] for s in r["steps"]] == [1, 2]
     for i, step in enumerate(r["steps"], start=1):
         _check_step(step, i, i, 1, 120.0, 120.0)
@@ -160,10 +180,22 @@ def test_load_bench_over_a_cluster_places_rooms_on_every_host(tmp_path) -> None:
 @pytest.mark.slow
 def test_load_bench_over_an_engine_and_a_gateway_on_one_port(tmp_path) -> None:
     dest = tmp_path / "workers.json"
-    out = subprocess.run([*BENCH, "--workers", "2", *TINY, "--json", str(dest)],
+    usable = sorted(os.sched_getaffinity(0))
+    # The server on the first usable CPU, the clients on the others (issue 43), where there
+    # are two.
+    pinned = (["--server-cpus", str(usable[0]), "--client-cpus",
+               ",".join(map(str, usable[1:]))] if len(usable) >= 2 else [])
+    out = subprocess.run([*BENCH, "--workers", "2", *TINY, *pinned, "--json", str(dest)],
                          capture_output=True, text=True, timeout=240, check=True)
     r = json.loads(dest.read_text())
     assert r["workers"] == 2 and r["n"] == 12
+    if pinned:
+        assert r["server_cpus"] == usable[:1] and r["client_cpus"] == usable[1:]
+        assert f"server on CPUs {usable[0]}, clients on" in out.stderr
+        for step in r["steps"]:  # every thread of theirs, the ones started later included
+            assert step["server_affinity"] == usable[:1]
+            assert step["client_affinity"] == usable[1:]
+            assert step["server_cores_by_kind"]["gateways"] > 0
     # The OS names the engine's native frame loop and the gateway's event loop for the
     # per-thread split (server/shared/osthread.py).
     for step in r["steps"]:
@@ -192,12 +224,46 @@ def test_load_bench_over_an_engine_and_a_gateway_on_one_port(tmp_path) -> None:
     (["--client-procs", "0"], "--client-procs must be at least 1"),
     (["--scene", "nosuch"], "--scene, --server-n: scene 'nosuch': no such scene"),
     (["--server-n", "1"], "--scene, --server-n: cloth.n: must be >= 2"),
+    (["--server-cpus", "x"], "--server-cpus must be a list of CPUs like 0-3 or 0,2,4-6, got 'x'"),
+    (["--server-cpus", "3-1"], "--server-cpus must be a list of CPUs like 0-3 or 0,2,4-6"),
+    (["--server-cpus", "0-"], "--server-cpus must be a list of CPUs like 0-3 or 0,2,4-6"),
+    (["--client-cpus", ""], "--client-cpus must be a list of CPUs like 0-3 or 0,2,4-6"),
+    (["--client-cpus", "0,,1"], "--client-cpus must be a list of CPUs like 0-3 or 0,2,4-6"),
+    (["--client-cpus", "-1"], "--client-cpus must be a list of CPUs like 0-3 or 0,2,4-6"),
+    (["--server-cpus", "100000"], "--server-cpus names CPU 100000 that this machine does not "
+                                  "let the bench use (usable: "),
+    (["--server-cpus", "0", "--client-cpus", "0"],
+     "--server-cpus and --client-cpus share CPU 0: the server and its clients run on "
+     "separate cores"),
 ])
 def test_load_bench_refuses_bad_flags_in_one_line(flags: list[str], says: str, capsys) -> None:
     # The command itself, in this process (it refuses before starting anything).
     assert cli.main(["bench", "--load", *flags]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("clothball bench: ") and says in lines[0]
+
+
+def test_cpu_lists_go_with_load_only(capsys) -> None:
+    assert cli.main(["bench", "--server", "--server-cpus", "0"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "clothball bench: --server-cpus and --client-cpus go with --load"]
+
+
+def test_cpu_lists_parse_as_taskset_writes_them() -> None:
+    usable = os.sched_getaffinity(0)
+    c = min(usable)
+    assert loadbench.parse_cpu_list(f"{c}", "--server-cpus") == {c}
+    assert loadbench.parse_cpu_list(f" {c}-{c} ", "--server-cpus") == {c}
+    every = ",".join(map(str, sorted(usable)))
+    assert loadbench.parse_cpu_list(every, "--client-cpus") == usable
+    assert loadbench._cpus_text([0, 1, 2, 5, 7, 8]) == "0-2,5,7-8"
+    assert loadbench.thread_kind("gateway", "python3", True) == "gateways"
+    assert loadbench.thread_kind("engine", "python3", True) == "event_loop"
+    assert loadbench.thread_kind("engine", "cb-frame-loop", False) == "frame_loop"
+    assert loadbench.thread_kind("engine", "cb-mesh-encode", False) == "mesh_encoders"
+    assert loadbench.thread_kind("engine", "clothball-mesh", False) == "service_threads"
+    assert loadbench.thread_kind("engine", "replay-index_0", False) == "service_threads"
+    assert loadbench.thread_kind("engine", "python3", False) == "other"
 
 
 def test_load_bench_refuses_a_bad_flag_from_the_command_line() -> None:
