@@ -53,6 +53,7 @@ from ...game.wire.wsframe import (
     header_at,
     masked_frame,
 )
+from ..shared.listen import raise_open_files
 
 HIST_BIN_S = 1e-5  # latency histogram: 10 µs bins ...
 HIST_BINS = 100_000  # ... to 1 s; the last bin holds everything later (a quantile there: ≥ 1 s)
@@ -417,22 +418,12 @@ async def _serve(args: argparse.Namespace) -> None:
         await asyncio.sleep(0.1)  # the close frames go out
 
 
-def raise_fd_limit() -> None:
-    """Open files up to the hard limit: hundreds of rooms are thousands of sockets, past a
-    soft limit of 1024."""
-    import resource
-
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft != hard:
-        resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m clothball.server.bench.benchclients")
     p.add_argument("--hip-rate", type=float, required=True)
     p.add_argument("--corner-rate", type=float, required=True)
     p.add_argument("--spectators", type=int, required=True)
-    raise_fd_limit()
+    raise_open_files()
     asyncio.run(_serve(p.parse_args(argv)))
     return 0
 

@@ -62,7 +62,8 @@ import numpy as np
 
 from .. import loops
 from ..hostproc import free_port, get_json, start_redis
-from .benchclients import HIST_BIN_S, raise_fd_limit
+from ..shared.listen import raise_open_files
+from .benchclients import HIST_BIN_S
 
 TARGET_LATENCY_P99_MS = 5.0
 TARGET_LATENESS_P99_MS = 5.0
@@ -335,7 +336,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the whole bench (server, spectators and players) and print the figures."""
     role = getattr(args, "role", "bench")
     if role == "server":
-        raise_fd_limit()  # hundreds of rooms' clients
+        raise_open_files()  # hundreds of rooms' clients
         loops.run(_serve(args), args.server_loop)
         return 0
     if role == "spectators":

@@ -29,7 +29,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from .benchclients import raise_fd_limit
+from ..shared.listen import raise_open_files
 
 HEAD_MAX = 8192  # an answer's head longer than this is "other"
 
@@ -126,7 +126,7 @@ def burst(host: str, port: int, k: int, timeout: float = 30.0) -> dict[str, Any]
     """``k`` websocket upgrades at once to ``host:port`` from this process (its own event
     loop); what each got, counted (``counts``), the ``answered`` (an HTTP status line came)
     and ``unanswered`` (closed with none, timed out, not connected)."""
-    raise_fd_limit()
+    raise_open_files()
     return asyncio.run(_burst(host, port, k, timeout))
 
 
@@ -154,7 +154,7 @@ def run_upgrades(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     limit = args.upgrades_limit if args.upgrades_limit is not None else k + 64
-    raise_fd_limit()
+    raise_open_files()
     with tempfile.TemporaryDirectory() as tmp:
         proc, url = start_host(Path(tmp) / "data", "--limit", f"max_clients={limit}",
                                "--limit", f"conns_per_address={limit}", "--limit",
