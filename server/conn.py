@@ -86,7 +86,7 @@ class Conn:
         # The engine's connections write binary messages at once where they can
         # (game.net.tap); its transport, for the backlog checks and a cut.
         self._tap = ws if isinstance(ws, TapConnection) else None
-        self.transport: Any = ws.stream if isinstance(ws, TapConnection) else None
+        self.transport: Any = None if self._tap is None else self._tap.stream
         self.limits = limits
         addr = ws.remote_address
         self.address: str = address or (str(addr[0]) if addr else "?")

@@ -10,8 +10,11 @@ import re
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +35,24 @@ def start_host(data: Path, *extra: str, port: int = 0, workers: int = 1
     proc.wait()
     proc.stdout.close()  # ended: nothing more to read, and nothing left open
     return proc, None
+
+
+@contextmanager
+def bench_host(*extra: str, workers: int = 1) -> Iterator[str | None]:
+    """A ``clothball host`` of a bench's own (``start_host``'s ``extra`` and ``workers``, its
+    data in a temporary directory): its websocket URL while the block runs, stopped after;
+    None (said on stderr) when it did not start."""
+    with tempfile.TemporaryDirectory() as tmp:
+        proc, url = start_host(Path(tmp) / "data", *extra, workers=workers)
+        if url is None:
+            print(f"clothball bench: the host did not start (exit {proc.returncode})",
+                  file=sys.stderr)
+            yield None
+            return
+        try:
+            yield url
+        finally:
+            stop_host(proc)
 
 
 def http_base(ws_url: str) -> str:

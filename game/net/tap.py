@@ -28,7 +28,7 @@ from typing import Any
 from websockets.asyncio.server import ServerConnection
 from websockets.protocol import State
 
-from ..wire.wsframe import OP_BINARY, SHORT_BINARY, FrameTap, binary_frame_header, masked_frame
+from ..wire.wsframe import OP_BINARY, FrameTap, binary_frame_header, masked_frame
 
 MAX_TAKE = 65535  # larger binary messages go through websockets (and its size limit)
 
@@ -88,8 +88,7 @@ class TapConnection:
                 or t.get_write_buffer_size():
             return False
         if self._server:
-            n = len(data)
-            t.write((SHORT_BINARY[n] if n < 126 else binary_frame_header(n)) + data)
+            t.write(binary_frame_header(len(data)) + data)
         else:
             t.write(masked_frame(OP_BINARY, data))
         return True

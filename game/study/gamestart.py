@@ -177,6 +177,17 @@ def _scene(name: str) -> Scene:
     return Scene.load(name)
 
 
+def scene_changes(items: list[str]) -> dict[str, dict[str, object]]:
+    """``SECTION.KEY=VALUE`` items (each value a TOML value) as ``Scene.with_changes`` takes
+    them: the study's and the lab's ``--set``."""
+    changes: dict[str, dict[str, object]] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        section, _, name = key.partition(".")
+        changes.setdefault(section, {})[name] = tomllib.loads(f"v = {value}")["v"]
+    return changes
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m clothball.game.study.gamestart",
                                  description=__doc__.split("\n\n")[0])
@@ -191,11 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "coupling.grip_radius=0.04: a suspect switched on or off")
     ap.add_argument("--json", default="")
     args = ap.parse_args(argv)
-    changes: dict[str, dict[str, object]] = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        section, _, name = key.partition(".")
-        changes.setdefault(section, {})[name] = tomllib.loads(f"v = {value}")["v"]
+    changes = scene_changes(args.set)
     ns = [int(x) for x in args.sizes.split(",")]
     out = []
     for name in args.scenes.split(","):

@@ -18,7 +18,6 @@ import argparse
 import asyncio
 import json
 import sys
-import tempfile
 from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
@@ -27,7 +26,7 @@ from websockets.asyncio.client import connect
 
 from ...game.net.client import NetClient, ServerError
 from ...game.wire.protocol import PROTOCOL_VERSION
-from ..hostproc import start_host, stats, stop_host
+from ..hostproc import bench_host, stats
 
 
 def configure_admit_flags(parser: argparse.ArgumentParser) -> None:
@@ -143,16 +142,8 @@ def _on_a_host(bench: Callable[[str], Coroutine[Any, Any, dict[str, Any]]],
                *host_args: str) -> dict[str, Any] | None:
     """``bench(url)`` run against a ``clothball host`` of its own (``host_args``), stopped
     after; None (said) when the host did not start."""
-    with tempfile.TemporaryDirectory() as tmp:
-        proc, url = start_host(Path(tmp) / "data", *host_args)
-        if url is None:
-            print(f"clothball bench: the server did not start (exit {proc.returncode})",
-                  file=sys.stderr)
-            return None
-        try:
-            return asyncio.run(bench(url))
-        finally:
-            stop_host(proc)
+    with bench_host(*host_args) as url:
+        return None if url is None else asyncio.run(bench(url))
 
 
 def run_admit(args: argparse.Namespace) -> int:

@@ -23,12 +23,12 @@ import os
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from ...game.wire.wsframe import OP_CLOSE, ZERO_KEY, masked_frame
 from ..shared.listen import raise_open_files
 
 HEAD_MAX = 8192  # an answer's head longer than this is "other"
@@ -107,7 +107,7 @@ async def _burst(host: str, port: int, k: int, timeout: float) -> dict[str, Any]
     gate.set()
     outcomes = await asyncio.gather(*tasks)
     wall = time.perf_counter() - t0
-    close = bytes([0x88, 0x82, 0, 0, 0, 0, 0x03, 0xE8])  # masked close frame 1000
+    close = masked_frame(OP_CLOSE, (1000).to_bytes(2, "big"), ZERO_KEY)
     for s in held:
         try:
             s.send(close)
@@ -142,7 +142,7 @@ def burst_in_process(host: str, port: int, k: int, timeout: float = 30.0) -> dic
 
 
 def run_upgrades(args: argparse.Namespace) -> int:
-    from ..hostproc import start_host, stop_host
+    from ..hostproc import bench_host
 
     k = args.upgrades
     if k < 1:
@@ -155,20 +155,13 @@ def run_upgrades(args: argparse.Namespace) -> int:
         return 2
     limit = args.upgrades_limit if args.upgrades_limit is not None else k + 64
     raise_open_files()
-    with tempfile.TemporaryDirectory() as tmp:
-        proc, url = start_host(Path(tmp) / "data", "--limit", f"max_clients={limit}",
-                               "--limit", f"conns_per_address={limit}", "--limit",
-                               "hello_timeout=60", workers=workers)
+    with bench_host("--limit", f"max_clients={limit}", "--limit", f"conns_per_address={limit}",
+                    "--limit", "hello_timeout=60", workers=workers) as url:
         if url is None:
-            print(f"clothball bench: the host did not start (exit {proc.returncode})",
-                  file=sys.stderr)
             return 1
-        try:
-            time.sleep(1.0)  # its gateways listen too
-            port = int(url.rsplit(":", 1)[1].split("/")[0])
-            result = burst_in_process("127.0.0.1", port, k, args.upgrades_timeout)
-        finally:
-            stop_host(proc)
+        time.sleep(1.0)  # its gateways listen too
+        port = int(url.rsplit(":", 1)[1].split("/")[0])
+        result = burst_in_process("127.0.0.1", port, k, args.upgrades_timeout)
     result.update(workers=workers, limit=limit, cpus=os.cpu_count())
     c = result["counts"]
     print(f"{k} upgrades at once to clothball host --workers {workers} (max_clients "

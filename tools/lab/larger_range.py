@@ -16,11 +16,10 @@ an unloaded 2-core VM.
 from __future__ import annotations
 
 import argparse
-import tomllib
 
 import numpy as np
 from clothball.game import Cloth, Scene
-from clothball.game.study.gamestart import trajectory
+from clothball.game.study.gamestart import scene_changes, trajectory
 from clothball.game.study.grid import GridRun, _drop, rest_state, sized
 
 LIGHT_DAMPING = 10.0  # 1/s, as tests/study/test_grid_convergence.py's "light"
@@ -40,11 +39,7 @@ def main() -> None:
     ap.add_argument("--substeps-x", type=int, default=0,
                     help="step the drops with this multiple of the automatic substeps")
     args = ap.parse_args()
-    changes: dict[str, dict[str, object]] = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        section, _, name = key.partition(".")
-        changes.setdefault(section, {})[name] = tomllib.loads(f"v = {value}")["v"]
+    changes = scene_changes(args.set)
     default = Scene.load("default")
     default = default.with_changes(changes) if changes else default
     light = default.with_changes({"cloth": {"damping_rate": LIGHT_DAMPING}})

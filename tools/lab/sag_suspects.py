@@ -9,9 +9,9 @@ find what keeps the sag from converging at first order.
 from __future__ import annotations
 
 import argparse
-import tomllib
 
 from clothball.game import Scene
+from clothball.game.study.gamestart import scene_changes
 from clothball.game.study.grid import observed_order, rest_state, sized
 
 
@@ -21,11 +21,7 @@ def main() -> None:
     ap.add_argument("--sizes", default="13,25,49,97")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args()
-    changes: dict[str, dict[str, object]] = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        section, _, name = key.partition(".")
-        changes.setdefault(section, {})[name] = tomllib.loads(f"v = {value}")["v"]
+    changes = scene_changes(args.set)
     base = Scene.load(args.scene)
     base = base.with_changes(changes) if changes else base
     ns = [int(x) for x in args.sizes.split(",")]
