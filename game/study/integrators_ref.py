@@ -465,26 +465,7 @@ def static_equilibrium(
     def energy(p: np.ndarray) -> float:
         return potential_energy(s, p, zero_b, ref.hips)
 
-    mu = 1e-2
-    f = residual(x)
-    e = energy(x)
-    it = 0
-    for it in range(1, max_iter + 1):  # noqa: B007 - reported below
-        if np.abs(f).max() <= tol * weight:
-            break
-        lin = Linearization(s, x, zero_b, definite=True)
-        step = _newton_step(lin, f, mu * kscale, mu).reshape(x.shape)
-        accepted = False
-        fmax = np.abs(f).max()
-        for alpha in (1.0, 0.5, 0.25):
-            xt = x + alpha * step
-            et, ft = energy(xt), residual(xt)
-            # Near the solution the energy changes below its rounding: then the residual
-            # decides.
-            if et < e or (et <= e + 1e-13 * abs(e) and np.abs(ft).max() < fmax):
-                x, e, f, accepted = xt, et, ft, True
-                break
-        mu = max(mu / 10.0, 1e-14) if accepted else mu * 10.0
+    x, f, it = damped_newton(s, x, residual, energy, weight * tol, kscale, max_iter)
     info = {"iterations": float(it), "max_residual_over_weight": float(np.abs(f).max() / weight)}
     return x, info
 
@@ -519,6 +500,37 @@ def neg_jacobian_sparse(lin: Linearization):  # noqa: ANN201 - scipy is optional
     keep = v != 0.0
     size = 3 * n * n
     return sp.csc_matrix((v[keep], (r[keep], cidx[keep])), shape=(size, size))
+
+
+def damped_newton(s: Scene, x: np.ndarray, residual: Callable[[np.ndarray], np.ndarray],
+                  energy: Callable[[np.ndarray], float], f_tol: float, kscale: float,
+                  max_iter: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """``static_equilibrium``'s iteration, for any residual force and energy on scene
+    ``s``'s springs: damped Newton steps on the projected Hessian with a backtracking line
+    search, until every residual is within ``f_tol``. Returns the positions, their residual
+    and the iterations taken."""
+    zero_b = np.zeros(3)
+    mu = 1e-2
+    f = residual(x)
+    e = energy(x)
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 - reported below
+        if np.abs(f).max() <= f_tol:
+            break
+        lin = Linearization(s, x, zero_b, definite=True)
+        step = _newton_step(lin, f, mu * kscale, mu).reshape(x.shape)
+        accepted = False
+        fmax = np.abs(f).max()
+        for alpha in (1.0, 0.5, 0.25):
+            xt = x + alpha * step
+            et, ft = energy(xt), residual(xt)
+            # Near the solution the energy changes below its rounding: then the residual
+            # decides.
+            if et < e or (et <= e + 1e-13 * abs(e) and np.abs(ft).max() < fmax):
+                x, e, f, accepted = xt, et, ft, True
+                break
+        mu = max(mu / 10.0, 1e-14) if accepted else mu * 10.0
+    return x, f, it
 
 
 def _newton_step(lin: Linearization, f: np.ndarray, reg: float, mu: float) -> np.ndarray:

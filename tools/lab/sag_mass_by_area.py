@@ -36,22 +36,7 @@ def solve(scene, by_area, tol=1e-7):
     def en(p):
         return ir.potential_energy(s0, p, zero_b, ref.hips) - float(np.sum(load * p))
 
-    mu, f, e = 1e-2, res(x), en(x)
-    it = 0
-    for it in range(400):  # noqa: B007 - reported
-        if np.abs(f).max() <= tol * weight:
-            break
-        lin = ir.Linearization(s0, x, zero_b, definite=True)
-        step = ir._newton_step(lin, f, mu * kscale, mu).reshape(x.shape)
-        ok = False
-        fm = np.abs(f).max()
-        for a in (1.0, 0.5, 0.25):
-            xt = x + a * step
-            et, ft = en(xt), res(xt)
-            if et < e or (et <= e + 1e-13 * abs(e) and np.abs(ft).max() < fm):
-                x, e, f, ok = xt, et, ft, True
-                break
-        mu = max(mu / 10, 1e-14) if ok else mu * 10
+    x, _, it = ir.damped_newton(s0, x, res, en, tol * weight, kscale, 400)
     return ir.centre_sag(scene, x), it
 
 base = Scene.load("default")
