@@ -5,6 +5,8 @@
 #   TWO_CORE="base head base head"  each: one process on 2 cores (taskset -c 2,3), the CPU
 #       engine, `bench --load --workers 1 --scene default --server-n 16 --rooms-step 2`, the
 #       2-core machine's no-regression check on a quiet machine
+#   PAR_ROUNDS="base head base head/head base head base"  the same run, several at once: in
+#       each round (rounds split by /) the i-th label on cores 2i+2,2i+3, the rounds in turn
 #   HOST="base head"  each: one host on the GPU, `bench --load --workers $W --rooms-step 64
 #       --load-max-rooms 128 --client-procs 6`
 #   GPU_TESTS / TESTS  as in tools/gpu_host.sh, on head, first
@@ -47,14 +49,28 @@ as() {  # $1: label (base, head, head:VAR=value); the rest: the command
     *) env PYTHONPATH=/tmp/head-site:/tmp/site "$@" ;;
   esac
 }
+two_core() {  # $1: run name, $2: label, $3: the cores
+  as "$2" timeout 150 taskset -c "$3" python3 -m clothball.game.cli bench --load \
+    --server-backend cpu --workers 1 --scene default --server-n 16 --rooms-step 2 \
+    --load-max-rooms 20 --load-seconds 5 --steps-past 1 --client-procs 1 --json "$OUT/$1.json" \
+    2>>"$OUT/bench.err" | tail -2 >"$OUT/$1.txt"
+  echo "== $1 ($2, cores $3): $(tail -1 "$OUT/$1.txt")"
+}
 i=0
 for label in ${TWO_CORE:-}; do
-  i=$((i + 1)); name="2core_${i}_${label%%:*}"
-  echo "== $name ($label) $(uptime)"
-  as "$label" timeout 150 taskset -c 2,3 python3 -m clothball.game.cli bench --load \
-    --server-backend cpu --workers 1 --scene default --server-n 16 --rooms-step 2 \
-    --load-max-rooms 20 --load-seconds 5 --steps-past 1 --client-procs 1 --json "$OUT/$name.json" \
-    2>>"$OUT/bench.err" | tail -2
+  i=$((i + 1)); echo "$(uptime)"
+  two_core "2core_${i}_${label%%:*}" "$label" 2,3
+done
+r=0
+IFS=/ read -ra rounds <<<"${PAR_ROUNDS:-}"
+[ ${#rounds[@]} -gt 0 ] && lscpu -e=CPU,CORE,SOCKET,NODE >"$OUT/lscpu.txt"
+for round in "${rounds[@]}"; do
+  r=$((r + 1)); i=0; echo "round $r: $(uptime)"
+  for label in $round; do
+    two_core "par_r${r}_${i}_${label%%:*}" "$label" "$((2 * i + 2)),$((2 * i + 3))" &
+    i=$((i + 1))
+  done
+  wait
 done
 W=${W:-16}
 i=0

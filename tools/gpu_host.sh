@@ -9,7 +9,7 @@
 # Environment: W (default 16), STEP, MAX (120 Hz), STEP1K, MAX1K (1 kHz), RUN_S (each run's
 # limit), RUNS (default "w1 wW wW_off"), RATES (default "120 1000"; empty: no load runs), TESTS (server test
 # files run first on the CUDA engine, e.g. "tests/server/test_workers.py"), GPU_TESTS (test
-# paths whose GPU cases run before them: -k "cuda or batch"), SKIP_BUILD=1 (a warm machine
+# paths whose GPU cases run before them: -k "cuda or batch", or GPU_K), SKIP_BUILD=1 (a warm machine
 # that has the build), FLAGS (more `bench --load` flags for every run, e.g. "--client-procs 6").
 OUT=${OUT:-gpu-results}
 if [ "${SKIP_BUILD:-0}" = 1 ]; then
@@ -32,7 +32,7 @@ gpu_pytest() {  # $1: output file, $2: seconds, $3: test paths (words); the rest
   echo "rc=$? $(tail -1 "$out")"
 }
 if [ -n "${GPU_TESTS:-}" ]; then
-  echo "GPU tests: $(gpu_pytest "$OUT/gpu_tests.txt" "${GPU_TESTS_S:-200}" "$GPU_TESTS" -k "cuda or batch")"
+  echo "GPU tests: $(gpu_pytest "$OUT/gpu_tests.txt" "${GPU_TESTS_S:-200}" "$GPU_TESTS" -k "${GPU_K:-cuda or batch}")"
 fi
 if [ -n "${TESTS:-}" ]; then
   echo "server suites on CUDA: $(CLOTHBALL_TEST_BACKEND=cuda gpu_pytest "$OUT/server_cuda.txt" "${TESTS_S:-240}" "$TESTS")"
