@@ -11,7 +11,9 @@
 #       --load-max-rooms 128 --client-procs 6`
 #   GPU_TESTS / TESTS  as in tools/gpu_host.sh, on head, first
 #   SKIP_BUILD=1  a warm machine that has both builds (a second call within its warm time)
-# A label "head:VAR=value" runs head with that environment variable set (an experiment).
+# A label "head:VAR=value" runs head with that environment variable set (an experiment); "mix"
+# runs head's server with base's load-generator clients (on two cores the clients' own CPU
+# is shared with the server's: mix against base compares the servers alone).
 # Usage: OUT=results TWO_CORE="..." HOST="..." bash tools/gpu_ab.sh
 OUT=${OUT:-gpu-results}
 root=$PWD
@@ -38,6 +40,10 @@ fi
 for t in head base; do
   [ -d /tmp/$t-site/clothball ] || { echo "$t build failed"; tail -20 "$OUT/build_$t.log"; }
 done
+if [ -d .base/server/bench ] && [ -d /tmp/head-site/clothball ]; then
+  rm -rf /tmp/mix-site && cp -r /tmp/head-site /tmp/mix-site &&
+    cp .base/server/bench/benchclients.py /tmp/mix-site/clothball/server/bench/
+fi
 cd "$root" || exit 1
 PYTHONPATH=/tmp/head-site SKIP_BUILD=1 RATES="" OUT=$OUT bash "$(dirname "$0")/gpu_host.sh"  # GPU_TESTS, TESTS (head)
 cd /tmp || exit 1  # the installed packages are imported, not the source tree
@@ -45,6 +51,7 @@ as() {  # $1: label (base, head, head:VAR=value); the rest: the command
   local label=$1; shift
   case $label in
     base) env PYTHONPATH=/tmp/base-site:/tmp/site "$@" ;;
+    mix) env PYTHONPATH=/tmp/mix-site:/tmp/site "$@" ;;
     head:*) env PYTHONPATH=/tmp/head-site:/tmp/site "${label#head:}" "$@" ;;
     *) env PYTHONPATH=/tmp/head-site:/tmp/site "$@" ;;
   esac
