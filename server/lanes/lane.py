@@ -15,6 +15,7 @@ each pass; and, when the client wants MESH, each newer MESH of its room from the
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 from collections.abc import Callable
 from typing import Any
@@ -30,6 +31,15 @@ RETRY_FRAME_S = 0.00025  # a CORNER due before its frame is looked for again thi
 RETRIES = 4  # this many times (a frame's time)
 CORNER_HEAD = binary_frame_header(P.CORNER_SIZE)  # a server's frame of one CORNER
 MESH_LOOK_S = 0.004  # the watched rooms' boards are looked at this often (MESH: 30 Hz)
+
+
+def on_grid(t: float) -> float:
+    """``t`` rounded up to a whole frame of the event loop's clock. The lanes' CORNER timers
+    fire on this grid, so those due within one frame go out in one wake-up of the event
+    loop (and reach a client process together), not one wake-up each: 40 lanes at 120 Hz
+    woke the engine's loop 4 800 times a second, beside the frame loop on two cores. The
+    rate holds: the next is due an interval after this one was due, not after the grid."""
+    return math.ceil(t / FRAME_S) * FRAME_S
 
 
 class Links:
@@ -271,4 +281,4 @@ class Lane:
         interval = max(self.spec.corner_interval, FRAME_S)
         due = self._due + interval
         self._due = due if due > now else now + interval
-        self._timer = self._loop.call_at(self._due, self._corner)
+        self._timer = self._loop.call_at(on_grid(self._due), self._corner)
