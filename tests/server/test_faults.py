@@ -38,6 +38,7 @@ from tests.server.conftest import (
     FAST,
     TINY,
     LiveServer,
+    children,
     http_get,
     http_json,
     live_server,
@@ -277,6 +278,23 @@ def check_data_dir(data: Path) -> set[str]:
         header, records = read_replay(f.read_bytes())
         assert header["id"] == f.stem and records
     return ids
+
+
+def test_a_server_that_does_not_start_leaves_no_process_behind(tmp_path, monkeypatch) -> None:
+    """``start_server``'s own teardown: a server process that exits before its first line
+    (an unknown option) fails the start, and every process it had started (the gateway too,
+    with two) is killed and reaped, and the engine socket's directory removed."""
+    before = children()
+    if before is None:
+        pytest.skip("needs Linux's /proc/self/task/*/children")
+    made: list[str] = []
+    mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda **kw: made.append(mkdtemp(**kw)) or made[-1])
+    with pytest.raises(AssertionError, match="did not start"):
+        start_server(tmp_path / "data", "--no-such-option")
+    assert children() == before
+    assert len(made) == (0 if workers.current() == 1 else 1)
+    assert not any(Path(d).exists() for d in made)
 
 
 @pytest.mark.slow
