@@ -166,10 +166,12 @@ def test_a_join_flood_and_a_hung_redis_never_stop_the_loop(tmp_path) -> None:
         async def main() -> None:
             watcher = await NetClient.connect(host.url, role="spectator", room="main")
 
+            def stats() -> Any:
+                with urllib.request.urlopen(f"{base}/api/stats", timeout=10) as r:
+                    return json.loads(r.read())
+
             async def frames() -> int:
-                st = await asyncio.to_thread(
-                    lambda: json.loads(urllib.request.urlopen(f"{base}/api/stats",
-                                                              timeout=10).read()))
+                st = await asyncio.to_thread(stats)
                 return int(st["rooms"]["main"]["frames"])
 
             stop = asyncio.Event()
