@@ -46,8 +46,12 @@ def test_two_hosts_started_together_both_list_two_show_rooms(tmp_path: Path) -> 
                                                room_settings=RoomSettings(autoplay=True),
                                                host_id=f"host-{k}-ab{k}c"), directory=d)
                        for k, d in enumerate(dirs)]
-            await asyncio.gather(*(s.start() for s in servers))
-            try:
+            try:  # (both stopped below, even when one of them fails to start)
+                started = await asyncio.gather(*(s.start() for s in servers),
+                                               return_exceptions=True)
+                for r in started:
+                    if isinstance(r, BaseException):
+                        raise r
                 ids = {s.main_room.id for s in servers if s.main_room is not None}
                 assert ids == {"main", "main-ab0c"} or ids == {"main", "main-ab1c"}, ids
                 await until(lambda: all(listed(s) == ids for s in servers), 15,
