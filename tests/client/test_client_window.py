@@ -94,27 +94,30 @@ def test_window_moves_a_corner_and_shows_the_cloth(tmp_path, display) -> None:
     srv = local_server(tmp_path / "data")
     url = srv.start().ws_url
     spectator = NetThread(url, name="spectator")
-    spectator.start()
-    pump = Pump(spectator)
     out = tmp_path / "out"
     out.mkdir()
     seen: list[tuple[np.ndarray, np.ndarray]] = []  # (hand, cloth corner) of SEAT
     try:
+        spectator.start()
+        pump = Pump(spectator)
         pump.until(lambda: pump.model.connection == "connected", 10, "welcome")
         spectator.join(pump.model.rooms[0]["id"], "spectator").result(10)
         env = {**os.environ, "DISPLAY": display, "PYTHONUNBUFFERED": "1"}
         proc = subprocess.Popen([sys.executable, __file__, "--driver", url, str(out)], env=env,
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        end = time.monotonic() + 90
-        while proc.poll() is None and time.monotonic() < end:
-            pump()
-            seen += [(f.hips[SEAT].copy(), grid_corners(f.positions)[SEAT])
-                     for f in pump.frames]
-            pump.frames.clear()
-            time.sleep(0.02)
-        if proc.poll() is None:
-            proc.kill()
-        log = proc.communicate()[0]
+        with proc:  # killed (if still running), reaped and its pipe closed, whatever happens
+            try:
+                end = time.monotonic() + 90
+                while proc.poll() is None and time.monotonic() < end:
+                    pump()
+                    seen += [(f.hips[SEAT].copy(), grid_corners(f.positions)[SEAT])
+                             for f in pump.frames]
+                    pump.frames.clear()
+                    time.sleep(0.02)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            log = proc.communicate()[0]
         assert proc.returncode == 0, log
     finally:
         spectator.stop()

@@ -15,23 +15,33 @@ import pytest
 from clothball.game import Cloth, ClothBatch, Scene
 from clothball.game.sim import threads
 
-SETTLE_S = 0.3  # the busy loops have been running this long before the machine is looked at
+# the busy loops (each seen running first) have been running this long before the machine is
+# looked at: a fixed wait on purpose, a loaded machine only makes it longer
+SETTLE_S = 0.3
 
 
 @contextmanager
 def busy_loops(k: int) -> Iterator[None]:
     """``k`` processes that spin (two busy loops beside the engine: the issue's case)."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(k)]
+    procs: list[subprocess.Popen[str]] = []
     try:
+        for _ in range(k):
+            procs.append(subprocess.Popen(
+                [sys.executable, "-c", "print(flush=True)\nwhile True: pass"],
+                stdout=subprocess.PIPE, text=True))
+        for p in procs:  # each one spinning (its line out: however slowly Python started)
+            assert p.stdout is not None and p.stdout.readline() == "\n"
         time.sleep(SETTLE_S)
         threads._free = None  # a fresh look, not one from before the loops
         threads._last = None
         yield
-    finally:
+    finally:  # every one started killed, reaped and its pipe closed, whatever happened
         for p in procs:
             p.kill()
         for p in procs:
             p.wait()
+            if p.stdout is not None:
+                p.stdout.close()
 
 
 def big_scene() -> Scene:

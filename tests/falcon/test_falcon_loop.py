@@ -152,8 +152,11 @@ def test_unplugged_mid_game_the_corner_rests(caplog: pytest.LogCaptureFixture) -
     try:
         dev.emulator.set_user(dev.mapping.to_device(reach.centre + [0.1, 0.0, 0.0]).tolist(),
                               300.0, 5.0)
-        time.sleep(0.3)
-        before = dev.hand_position()
+        time.sleep(0.3)  # (a fixed wait: the hand settles; its move is waited for below)
+        deadline = time.monotonic() + 10.0  # the hand moved: waited for, however slowly
+        while (before := dev.hand_position())[0] <= reach.centre[0] + 0.05 \
+                and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert before[0] > reach.centre[0] + 0.05
         dev.emulator.unplug()
         deadline = time.monotonic() + 2.0

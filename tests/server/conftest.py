@@ -109,6 +109,26 @@ def started_room(deliver: Callable[[Any], None] | None = None,
             pool.close()
 
 
+def children() -> set[int] | None:
+    """This process's child processes now, those exited and not yet reaped included (a
+    test's teardown must wait for each one it started): Linux's
+    /proc/self/task/*/children; None where that cannot be read."""
+    found: set[int] = set()
+    try:
+        tasks = list(Path("/proc/self/task").iterdir())
+    except OSError:
+        return None
+    for task in tasks:
+        try:
+            found.update(int(pid) for pid in (task / "children").read_text().split())
+        except FileNotFoundError:
+            if task.exists():  # (a thread that ended meanwhile has none)
+                return None  # a kernel without CONFIG_PROC_CHILDREN
+        except OSError:
+            pass
+    return found
+
+
 def hand_of(room: Any, seat: int) -> tuple[int, Any]:
     """The hand a room's newest frame applied for a seat, (HIP seq, position), (0, None)
     for none, whoever wrote it (the player's lane, in the engine or its gateway:

@@ -46,10 +46,14 @@ class Postgres:
         # Not under pytest's tmp_path: as root that is a 0700 directory postgres cannot enter.
         self.dir = Path(tempfile.mkdtemp(prefix="clothball-pg-"))
         self.data = self.dir / "data"
-        if AS_ROOT:
-            shutil.chown(self.dir, "postgres", "postgres")
-        self._run("initdb", "-D", str(self.data), "-U", "clothball", "--auth=trust",
-                  "-E", "UTF8", "--no-sync")
+        try:
+            if AS_ROOT:
+                shutil.chown(self.dir, "postgres", "postgres")
+            self._run("initdb", "-D", str(self.data), "-U", "clothball", "--auth=trust",
+                      "-E", "UTF8", "--no-sync")
+        except BaseException:  # the directory not left behind when initdb fails
+            shutil.rmtree(self.dir, ignore_errors=True)
+            raise
 
     @property
     def url(self) -> str:
@@ -84,9 +88,17 @@ class Postgres:
         return (self.data / "postmaster.pid").exists()
 
     def remove(self) -> None:
-        if self.running():
-            self.stop()
-        shutil.rmtree(self.dir, ignore_errors=True)
+        try:
+            if self.running():
+                try:
+                    self.stop()
+                except (subprocess.SubprocessError, OSError):
+                    # a fast shutdown that failed: an immediate one, never left running
+                    self._run("pg_ctl", "-D", str(self.data), "-m", "immediate", "-w",
+                              "-t", "60", "stop")
+                    raise
+        finally:  # the directory removed however the server stopped
+            shutil.rmtree(self.dir, ignore_errors=True)
 
 
 @contextmanager

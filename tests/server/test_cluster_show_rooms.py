@@ -6,6 +6,7 @@ second lost the claim when it published, and its show room was listed nowhere.""
 from __future__ import annotations
 
 import asyncio
+import subprocess
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -19,6 +20,15 @@ from tests.server.conftest import TINY, no_admission, run, until
 from tests.server.test_cluster import cluster_host, launch, pytestmark, redis_server
 
 __all__ = ["pytestmark"]  # skipped where redis-server is missing, as test_cluster.py
+
+
+def _reaped(proc: subprocess.Popen[str]) -> None:
+    """Killed and waited for if still running, its pipe closed."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    if proc.stdout is not None:
+        proc.stdout.close()
 
 
 def listed(srv: GameServer) -> set[str]:
@@ -36,8 +46,12 @@ def test_two_hosts_started_together_both_list_two_show_rooms(tmp_path: Path) -> 
                                                room_settings=RoomSettings(autoplay=True),
                                                host_id=f"host-{k}-ab{k}c"), directory=d)
                        for k, d in enumerate(dirs)]
-            await asyncio.gather(*(s.start() for s in servers))
-            try:
+            try:  # (both stopped below, even when one of them fails to start)
+                started = await asyncio.gather(*(s.start() for s in servers),
+                                               return_exceptions=True)
+                for r in started:
+                    if isinstance(r, BaseException):
+                        raise r
                 ids = {s.main_room.id for s in servers if s.main_room is not None}
                 assert ids == {"main", "main-ab0c"} or ids == {"main", "main-ab1c"}, ids
                 await until(lambda: all(listed(s) == ids for s in servers), 15,
@@ -62,7 +76,10 @@ def test_two_host_processes_started_at_once_each_keep_a_listed_show_room(tmp_pat
         return {r["id"]: r["host"] for r in rooms}
 
     with redis_server(tmp_path) as redis, ExitStack() as stack:
-        procs = [launch(tmp_path, name, redis, "--bots", "1") for name in ("a", "b")]
+        procs = []
+        for name in ("a", "b"):  # both started before either is waited for
+            procs.append(launch(tmp_path, name, redis, "--bots", "1"))
+            stack.callback(_reaped, procs[-1])  # (a host cluster_host never took: killed)
         hosts = [stack.enter_context(cluster_host(tmp_path, name, redis, proc=p))
                  for name, p in zip(("a", "b"), procs, strict=True)]
 
@@ -96,7 +113,7 @@ def test_the_processes_directory_claims_an_id_for_one_live_process(tmp_path: Pat
         d.publish(HostEntry("a", "ws://a/ws"), [("main", True, {"id": "main"})])
         assert d.read().locate("main").host_id == "a"  # type: ignore[union-attr]
         assert not d.claim("main", "b")
-        time.sleep(0.6)  # a stops publishing: gone after the TTL
+        time.sleep(0.6)  # a stops publishing: gone after the TTL (a fixed wait past it)
         d.publish(HostEntry("b", "ws://b/ws"), [])
         assert d.claim("main", "b")
     finally:

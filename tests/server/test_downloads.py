@@ -41,12 +41,16 @@ def save_round(data: Path, payload: bytes, records: int) -> tuple[str, bytes]:
 
 def request(port: int, rid: str, extra: str = "") -> socket.socket:
     s = socket.socket()
-    # A small, fixed receive buffer (no autotuning to megabytes): a client that stops
-    # reading backs the server up after a few chunks.
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 * 1024)
-    s.settimeout(30)
-    s.connect(("127.0.0.1", port))
-    s.sendall(f"GET /api/replays/{rid} HTTP/1.1\r\nHost: x\r\n{extra}\r\n".encode())
+    try:
+        # A small, fixed receive buffer (no autotuning to megabytes): a client that stops
+        # reading backs the server up after a few chunks.
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 * 1024)
+        s.settimeout(30)
+        s.connect(("127.0.0.1", port))
+        s.sendall(f"GET /api/replays/{rid} HTTP/1.1\r\nHost: x\r\n{extra}\r\n".encode())
+    except BaseException:  # never left open when the request fails
+        s.close()
+        raise
     return s
 
 
@@ -268,8 +272,10 @@ def test_twenty_concurrent_downloads_of_a_large_replay_cost_less_than_one_file(
         port = json.loads(proc.stdout.readline())["port"]
         assert get(port, rid)[2] == whole  # warm: the pools' threads exist
         before = rss_bytes(proc.pid)
-        socks = [request(port, rid) for _ in range(20)]
+        socks: list[socket.socket] = []
         try:
+            for _ in range(20):  # (each one made closed below, however far this got)
+                socks.append(request(port, rid))
             heads: list[Any] = [read_head(s) for s in socks]
             assert all(h[0] == 200 for h in heads)
             grown = rss_bytes(proc.pid) - before

@@ -4,11 +4,12 @@ The server keeps running and loses nothing it had stored."""
 
 from __future__ import annotations
 
-import asyncio
 import base64
+import contextlib
 import json
 import os
 import random
+import shutil
 import signal
 import socket
 import sqlite3
@@ -37,6 +38,7 @@ from tests.server.conftest import (
     FAST,
     TINY,
     LiveServer,
+    children,
     http_get,
     http_json,
     live_server,
@@ -55,32 +57,43 @@ def raw_client(port: int, hello: dict[str, Any], rcvbuf: int | None = None) -> s
     room lives on the other process, with two) is followed to the port it names."""
     for _ in range(3):
         s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        if rcvbuf:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-        s.settimeout(10)
-        s.connect(("127.0.0.1", port))
-        key = base64.b64encode(os.urandom(16))
-        s.sendall(b"GET /ws HTTP/1.1\r\nHost: localhost\r\nUpgrade: websocket\r\n"
-                  b"Connection: Upgrade\r\nSec-WebSocket-Key: " + key +
-                  b"\r\nSec-WebSocket-Version: 13\r\n\r\n")
-        head = b""
-        while b"\r\n\r\n" not in head:
-            head += s.recv(1)
-        assert b" 101 " in head.split(b"\r\n")[0], head
-        payload = json.dumps(hello).encode()
-        mask = os.urandom(4)
-        n = len(payload)
-        frame = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0xFE]) +
-                                 struct.pack(">H", n))
-        s.sendall(frame + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
-        while (answer := _next_text(s))["type"] not in ("joined", "redirect", "error"):
-            pass
+        try:
+            answer = _seated(s, port, hello, rcvbuf)
+        except BaseException:  # never left open when the hello fails
+            s.close()
+            raise
         if answer["type"] != "redirect":
             assert answer["type"] == "joined", answer
             return s
         s.close()
         port = int(urllib.parse.urlsplit(answer["url"]).port or 0)
     raise AssertionError("redirected too often")
+
+
+def _seated(s: socket.socket, port: int, hello: dict[str, Any], rcvbuf: int | None
+            ) -> dict[str, Any]:
+    """``raw_client``'s connection and hello on ``s``: the hello's answer."""
+    if rcvbuf:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    s.settimeout(10)
+    s.connect(("127.0.0.1", port))
+    key = base64.b64encode(os.urandom(16))
+    s.sendall(b"GET /ws HTTP/1.1\r\nHost: localhost\r\nUpgrade: websocket\r\n"
+              b"Connection: Upgrade\r\nSec-WebSocket-Key: " + key +
+              b"\r\nSec-WebSocket-Version: 13\r\n\r\n")
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += s.recv(1)
+    assert b" 101 " in head.split(b"\r\n")[0], head
+    payload = json.dumps(hello).encode()
+    mask = os.urandom(4)
+    n = len(payload)
+    frame = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0xFE]) +
+                             struct.pack(">H", n))
+    s.sendall(frame + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
+    while (answer := _next_text(s))["type"] not in ("joined", "redirect", "error"):
+        pass
+    return answer
 
 
 def _exactly(s: socket.socket, n: int) -> bytes:
@@ -130,18 +143,19 @@ def test_a_client_that_vanishes_without_a_close(tmp_path) -> None:
         hello = {"type": "hello", "version": 1, "role": "player", "room": room.id,
                  "corner_rate": 50, "mesh": False}
         # 1. the TCP connection is reset (a crashed client): noticed at once
-        s = raw_client(workers.public_port(ls.srv), {**hello, "seat": 2})
-        wait(lambda: conn_of(ls, 2) is not None, 5, "seat 2 taken")
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-        s.close()
+        with contextlib.closing(raw_client(workers.public_port(ls.srv),
+                                           {**hello, "seat": 2})) as s:
+            wait(lambda: conn_of(ls, 2) is not None, 5, "seat 2 taken")
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            s.close()
         wait(lambda: conn_of(ls, 2) is None, 5, "the reset client's seat released")
         assert ls.call(lambda: room.seats[2].held_until) is not None  # held for its return
         # 2. the client goes silent (a pulled cable): the pings go unanswered
-        s = raw_client(workers.public_port(ls.srv), {**hello, "seat": 3})
-        wait(lambda: conn_of(ls, 3) is not None, 5, "seat 3 taken")
-        took = wait(lambda: conn_of(ls, 3) is None, 10, "the silent client dropped")
-        assert took < 5
-        s.close()
+        with contextlib.closing(raw_client(workers.public_port(ls.srv),
+                                           {**hello, "seat": 3})):
+            wait(lambda: conn_of(ls, 3) is not None, 5, "seat 3 taken")
+            took = wait(lambda: conn_of(ls, 3) is None, 10, "the silent client dropped")
+            assert took < 5
         wait(lambda: ls.call(lambda: len(ls.srv.clients)) == 0, 5, "no clients left")
         assert room.sim.alive and ls.errors.texts() == []
 
@@ -153,28 +167,33 @@ def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_
         assert room is not None
         skipped0 = room.sim.stats.skipped_frames
         f0, t0 = room.sim.stats.frames, time.monotonic()
-        s = raw_client(workers.public_port(ls.srv),
-                       {"type": "hello", "version": 1, "role": "player", "room": room.id,
-                        "seat": 1}, rcvbuf=4096)
-        wait(lambda: conn_of(ls, 1) is not None, 5, "the slow client seated")
-        conn = conn_of(ls, 1)
-        peak_buffer, peak_queue = 0, 0
-        while conn_of(ls, 1) is conn:  # never read: CORNER at 1 kHz and MESH pile up
-            tr = conn.transport
-            if tr is not None:
-                peak_buffer = max(peak_buffer, ls.call(tr.get_write_buffer_size))
-            peak_queue = max(peak_queue, len(conn._control))
-            assert time.monotonic() - t0 < 60, "the slow client was never dropped"
-            time.sleep(0.05)
-        dropped_after = time.monotonic() - t0
-        frames = room.sim.stats.frames - f0
-        s.close()
+        with contextlib.closing(raw_client(
+                workers.public_port(ls.srv), {"type": "hello", "version": 1, "role": "player",
+                                              "room": room.id, "seat": 1}, rcvbuf=4096)):
+            wait(lambda: conn_of(ls, 1) is not None, 5, "the slow client seated")
+            conn = conn_of(ls, 1)
+            peak_buffer, peak_queue = 0, 0
+            while conn_of(ls, 1) is conn:  # never read: CORNER at 1 kHz and MESH pile up
+                tr = conn.transport
+                if tr is not None:
+                    peak_buffer = max(peak_buffer, ls.call(tr.get_write_buffer_size))
+                peak_queue = max(peak_queue, len(conn._control))
+                assert time.monotonic() - t0 < 60, "the slow client was never dropped"
+                time.sleep(0.05)
+            dropped_after = time.monotonic() - t0
         # the server held a bounded amount for it: one socket's worth, a short queue
         assert peak_buffer <= limits.max_write_buffer + 128 * 1024, peak_buffer
         assert peak_queue <= limits.max_control_queue
-        # and the room kept its pace: 1 kHz of frames the whole time, none skipped
+        # and the room kept its pace: every frame due while the client was there was
+        # simulated, none skipped. The frame loop skips (and counts) the frames it is more
+        # than its catch-up behind, so with none skipped the frames due by the drop are all
+        # stepped: on a loaded machine the last of them a little later, so waited for, not
+        # read at the drop (a 1 kHz count in a wall-clock window failed beside busy
+        # processes while nothing was skipped).
+        due = 0.9 * 1000 * (dropped_after - 0.2)
+        wait(lambda: room.sim.stats.frames - f0 >= due, 30,
+             f"the {due:.0f} frames due while the slow client was seated")
         assert room.sim.stats.skipped_frames == skipped0
-        assert frames >= 0.9 * 1000 * (dropped_after - 0.2), (frames, dropped_after)
         assert room.sim.alive and ls.errors.texts() == []
 
 
@@ -191,38 +210,51 @@ class ServerProcs:
     port: int  # where clients connect: the gateway's with two
     ports: list[int]  # where each process's statistics are read (the public port)
     recording: str
+    private: Path | None = None  # the engine socket's directory (two processes)
 
 
 def start_server(data: Path, *args: str) -> ServerProcs:
     extra: list[str] = []
-    gateway: list[subprocess.Popen[str]] = []
-    if workers.current() == 2:
-        public = workers.free_port()
-        sock = Path(tempfile.mkdtemp(prefix="cb-engine-")) / "engine.sock"
-        extra = ["--engine-socket", str(sock), "--public-port", str(public)]
-        gateway = [subprocess.Popen(
-            [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1",
-             "--port", str(public), "--engine-socket", str(sock)], stdout=subprocess.PIPE,
-            text=True)]
-    proc = subprocess.Popen([sys.executable, str(HERE / "server_proc.py"), str(data),
-                             *args, *extra], stdout=subprocess.PIPE, text=True)
-    procs = [proc, *gateway]
-    lines = [p.stdout.readline() for p in procs]  # type: ignore[union-attr]
-    if not all(lines):
-        stop(ServerProcs(procs, 0, [], ""))
-        raise AssertionError("the server process did not start")
-    info = json.loads(lines[0])
+    server = ServerProcs([], 0, [], "")
+    try:  # every process started so far killed if any step fails (stop, below)
+        if workers.current() == 2:
+            public = workers.free_port()
+            server.private = Path(tempfile.mkdtemp(prefix="cb-engine-"))
+            sock = server.private / "engine.sock"
+            extra = ["--engine-socket", str(sock), "--public-port", str(public)]
+            server.procs.append(subprocess.Popen(
+                [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1",
+                 "--port", str(public), "--engine-socket", str(sock)],
+                stdout=subprocess.PIPE, text=True))
+        server.procs.insert(0, subprocess.Popen(
+            [sys.executable, str(HERE / "server_proc.py"), str(data), *args, *extra],
+            stdout=subprocess.PIPE, text=True))
+        lines = [p.stdout.readline() for p in server.procs]  # type: ignore[union-attr]
+        if not all(lines):
+            raise AssertionError("the server process did not start")
+        info = json.loads(lines[0])
+    except BaseException:
+        stop(server)
+        raise
     # (its statistics from the public port too: an engine's own port is its bots' only)
-    port = int(extra[-1]) if extra else info["port"]
-    return ServerProcs(procs, port, [port], info["recording"])
+    server.port = int(extra[-1]) if extra else info["port"]
+    server.ports, server.recording = [server.port], info["recording"]
+    return server
 
 
 def stop(server: ServerProcs) -> None:
-    for proc in server.procs:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-        if proc.stdout is not None:
-            proc.stdout.close()
+    """Every process killed and waited for, its pipe closed; the socket's directory gone
+    (a killed engine leaves it)."""
+    try:
+        for proc in server.procs:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGKILL)
+            proc.wait()
+            if proc.stdout is not None:
+                proc.stdout.close()
+    finally:
+        if server.private is not None:
+            shutil.rmtree(server.private, ignore_errors=True)
 
 
 def get(port: int, path: str) -> bytes:
@@ -246,6 +278,23 @@ def check_data_dir(data: Path) -> set[str]:
         header, records = read_replay(f.read_bytes())
         assert header["id"] == f.stem and records
     return ids
+
+
+def test_a_server_that_does_not_start_leaves_no_process_behind(tmp_path, monkeypatch) -> None:
+    """``start_server``'s own teardown: a server process that exits before its first line
+    (an unknown option) fails the start, and every process it had started (the gateway too,
+    with two) is killed and reaped, and the engine socket's directory removed."""
+    before = children()
+    if before is None:
+        pytest.skip("needs Linux's /proc/self/task/*/children")
+    made: list[str] = []
+    mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda **kw: made.append(mkdtemp(**kw)) or made[-1])
+    with pytest.raises(AssertionError, match="did not start"):
+        start_server(tmp_path / "data", "--no-such-option")
+    assert children() == before
+    assert len(made) == (0 if workers.current() == 1 else 1)
+    assert not any(Path(d).exists() for d in made)
 
 
 @pytest.mark.slow
@@ -298,11 +347,14 @@ def test_sigkill_while_writing_replays_leaves_them_complete_or_absent(tmp_path) 
     for _ in range(4):
         proc = subprocess.Popen([sys.executable, "-c", writer, str(data)],
                                 stdout=subprocess.PIPE, text=True)
-        assert proc.stdout is not None
-        saved.append(proc.stdout.readline().strip())  # at least one round per life
-        time.sleep(random.uniform(0.05, 0.5))
-        proc.send_signal(signal.SIGKILL)
-        out, _ = proc.communicate()
+        try:
+            assert proc.stdout is not None
+            saved.append(proc.stdout.readline().strip())  # at least one round per life
+            # (a random moment to kill it at, not a wait for anything to happen)
+            time.sleep(random.uniform(0.05, 0.5))
+        finally:  # killed and reaped, its pipe read to the end, whatever happened above
+            proc.send_signal(signal.SIGKILL)
+            out, _ = proc.communicate()
         saved += out.split()
         store = SqliteIndex(data)  # start-up: recovery
         try:
@@ -452,8 +504,9 @@ def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_pa
             assert again["room"] == "main"
             # the other room never noticed
             f0 = main_room.sim.stats.frames
-            await asyncio.sleep(0.3)
-            assert main_room.sim.stats.frames > f0 + 200 and main_room.sim.alive
+            await until(lambda: main_room.sim.stats.frames > f0 + 200, 30,
+                        "the main room's frames going on")
+            assert main_room.sim.alive
             assert watcher._reader is not None and not watcher._reader.done()
             stats = await workers.service_stats(srv)
             assert rid not in stats["rooms"] and "main" in stats["rooms"]

@@ -280,14 +280,16 @@ def test_a_gateway_without_its_engine_answers_503_saying_so(tmp_path) -> None:
         try:
             def get() -> urllib.error.HTTPError:
                 try:
-                    urllib.request.urlopen(f"http://127.0.0.1:{gw.port}/api/rooms", timeout=10)
+                    with urllib.request.urlopen(f"http://127.0.0.1:{gw.port}/api/rooms",
+                                                timeout=10):
+                        pass
                 except urllib.error.HTTPError as e:
                     return e
                 raise AssertionError("answered 2xx with no engine")
 
-            e = await asyncio.to_thread(get)
-            assert e.code == 503 and e.headers["Retry-After"] == str(RETRY_AFTER_S)
-            assert "engine is restarting" in json.loads(e.read())["error"]
+            with await asyncio.to_thread(get) as e:  # (its response closed after)
+                assert e.code == 503 and e.headers["Retry-After"] == str(RETRY_AFTER_S)
+                assert "engine is restarting" in json.loads(e.read())["error"]
         finally:
             await gw.stop()
 

@@ -22,7 +22,7 @@ def test_an_empty_room_sleeps_and_wakes_for_a_spectator(tmp_path) -> None:
             assert main_room is not None
             await until(lambda: main_room.sim.asleep, 5, "the empty show room asleep")
             f_main = main_room.sim.stats.frames
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # (a fixed wait on purpose: no frame in it)
             assert main_room.sim.stats.frames == f_main
             owner = await NetClient.connect(srv.ws_url)
             assert not main_room.sim.asleep
@@ -32,7 +32,7 @@ def test_an_empty_room_sleeps_and_wakes_for_a_spectator(tmp_path) -> None:
             room = srv.lobby.rooms[rid]
             assert room.sim.asleep  # nobody in it: it does not step
             f0 = room.sim.stats.frames
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # (a fixed wait on purpose: no frame in it)
             assert room.sim.stats.frames == f0
             spec = await NetClient.connect(srv.ws_url, role="spectator", room=rid)
             assert not room.sim.asleep
@@ -43,7 +43,7 @@ def test_an_empty_room_sleeps_and_wakes_for_a_spectator(tmp_path) -> None:
             await spec.request("leave")
             await until(lambda: room.sim.asleep, 5, "asleep again")
             f1 = room.sim.stats.frames
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # (a fixed wait on purpose: no frame in it)
             assert room.sim.stats.frames == f1
             player = await NetClient.connect(srv.ws_url, name="ann", role="player", room=rid)
             assert not room.sim.asleep and player.seat is not None
@@ -66,7 +66,7 @@ def test_an_abandoned_room_closes_after_the_idle_delay_and_a_watched_one_stays(t
             await until(lambda: gone not in srv.lobby.rooms, 10, "the abandoned room closed")
             # Not before its delay (checked each second), and the watched room stays open.
             assert asyncio.get_running_loop().time() - t0 >= 1.0
-            await asyncio.sleep(2.5)
+            await asyncio.sleep(2.5)  # (a fixed wait on purpose: past the delay, still open)
             assert kept in srv.lobby.rooms and srv.main_room is not None
             # The room list says so: the closed room is no longer offered.
             ids = [r["id"] for r in (await owner.request("list_rooms"))["rooms"]]

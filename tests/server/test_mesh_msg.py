@@ -8,7 +8,6 @@ ones on its board."""
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import zlib
 
@@ -114,7 +113,14 @@ def test_meshes_encoded_on_several_threads_land_in_their_own_rooms_slots(monkeyp
                 # by then: each room's newest delivered MESH is its slot's.
                 w.frame_loop.lock()
                 try:
-                    await asyncio.sleep(0.5)
+                    # (the meshes taken before the lock are handed over by the service
+                    # thread: waited for, however long a loaded machine takes)
+                    def newest_delivered() -> bool:
+                        return all(g and _native.board_read(
+                            w.board, sim.slot * w.board_slot, w.board_slot, -1)[1] == g[-1]
+                            for sim, g in zip(sims, got, strict=True))
+
+                    await until(newest_delivered, 20, "each room's newest MESH delivered")
                     slots = set()
                     for sim, g in zip(sims, got, strict=True):
                         mesh = g[-1]

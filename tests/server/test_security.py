@@ -183,7 +183,7 @@ def test_a_spectator_cannot_act_as_a_player(tmp_path) -> None:
                 with pytest.raises(ServerError) as e:
                     await spec.request(t, **fields)
                 assert e.value.code == "not_allowed", t
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(0.2)  # (a fixed wait on purpose: nothing happens in it)
             assert all(hand_of(room, k) == (0, None) for k in range(4))  # none moved
             assert all(s.kind == "empty" for s in room.seats)
             await spec.close()

@@ -32,7 +32,9 @@ def test_reconnect_within_the_grace_period_keeps_the_seat(tmp_path) -> None:
             assert back.seat == 1 and back.room == room.id and back.token == token
             assert room.seats[1].connected and room.seats[1].kind == "human"
             await until(lambda: back.corner is not None, 5, "corner stream resumed")
-            await asyncio.sleep(2.5)  # past the old grace period: the seat stays ours
+            # (a fixed wait on purpose: past the old grace period, the seat stays ours;
+            # a loaded machine only makes it longer)
+            await asyncio.sleep(2.5)
             assert room.seats[1].kind == "human" and room.seats[1].conn is not None
             # a second connection with the same token replaces the first
             again = await NetClient.connect(srv.ws_url, token=token)
@@ -80,8 +82,11 @@ def test_after_the_grace_period_without_bots_the_corner_rests(tmp_path) -> None:
             await p.ws.close()
             await until(lambda: room.seats[0].kind == "empty", 5, "seat freed")
             spec = await NetClient.connect(srv.ws_url, role="spectator", room=room.id)
-            await asyncio.sleep(0.5)
-            await until(lambda: spec.mesh is not None, 5)
+            # (the corner falls back over some frames: waited for, however slowly they run)
+            await until(lambda: spec.mesh is not None
+                        and np.allclose(spec.mesh.hips[0], reach.centre, atol=1e-4)
+                        and abs(spec.mesh.positions[0, 0, 1] - reach.centre[1]) < 0.05, 30,
+                        "the freed corner back at rest in the mesh")
             assert np.allclose(spec.mesh.hips[0], reach.centre, atol=1e-4)  # back at anchor
             assert abs(spec.mesh.positions[0, 0, 1] - reach.centre[1]) < 0.05
             with pytest.raises(ServerError) as e:

@@ -4,7 +4,6 @@ steps them, and the MESH fan-out (every spectator served, the same meshes)."""
 
 from __future__ import annotations
 
-import asyncio
 import time
 
 import numpy as np
@@ -15,7 +14,7 @@ from clothball.game.wire.protocol import decode_mesh
 from clothball.server.room import RoomSettings
 from clothball.server.sim import RoomSim, SimPool
 
-from tests.server.conftest import TINY, run, server
+from tests.server.conftest import TINY, run, server, until
 
 
 def wait_for(cond, what: str, timeout: float = 30.0) -> None:
@@ -96,9 +95,13 @@ def test_every_spectator_gets_the_same_meshes(tmp_path) -> None:
                                             decode_mesh=False)
                 c.on_mesh = lambda data, s=frames[i]: s.add(decode_mesh(data).frame)
                 specs.append(c)
-            await asyncio.sleep(2.0)
-            for c in specs:
-                await c.close()
+            try:  # (waited for, not counted in a fixed window: a loaded machine is slower)
+                await until(lambda: all(len(f) >= 10 for f in frames)
+                            and len(set.intersection(*frames)) >= 5, 30,
+                            "ten meshes for every spectator, five of them the same")
+            finally:
+                for c in specs:
+                    await c.close()
         assert all(len(f) >= 10 for f in frames), [len(f) for f in frames]
         # The same meshes reached the first and the last chunk of spectators.
         assert len(set.intersection(*frames)) >= 5

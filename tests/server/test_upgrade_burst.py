@@ -64,7 +64,7 @@ def test_a_gateway_waits_for_room_in_the_engines_backlog_and_then_gives_up() -> 
             await connect_engine(path, 0.2)  # the queue is full and nobody accepts
         assert asyncio.get_running_loop().time() - t0 >= 0.2
         late = asyncio.ensure_future(connect_engine(path, 5.0))
-        await asyncio.sleep(0.1)
+        await asyncio.sleep(0.1)  # (a fixed wait on purpose: it does not connect in it)
         assert not late.done()
         listener.accept()[0].close()  # the engine takes one: the waiting connect gets in
         sock = await asyncio.wait_for(late, 5.0)

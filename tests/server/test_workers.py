@@ -71,20 +71,20 @@ def host(tmp_path: Path, workers: int, *args: str) -> Iterator[Host]:
         env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.stdout is not None
     h = Host(proc, "")
-    for line in proc.stdout:
-        h.lines.append(line)
-        m = re.match(r"clothball server on (ws://\S+)\s+\(an engine and", line)
-        if m:
-            h.url = m.group(1)
-            break
 
     def read_on() -> None:
         for line in proc.stdout:  # type: ignore[union-attr]
             h.lines.append(line)
 
     reader = threading.Thread(target=read_on, daemon=True)
-    reader.start()
-    try:
+    try:  # (killed below even when reading its first lines fails)
+        for line in proc.stdout:
+            h.lines.append(line)
+            m = re.match(r"clothball server on (ws://\S+)\s+\(an engine and", line)
+            if m:
+                h.url = m.group(1)
+                break
+        reader.start()
         assert h.url, "".join(h.lines)
         yield h
         if proc.poll() is None:
@@ -98,7 +98,8 @@ def host(tmp_path: Path, workers: int, *args: str) -> Iterator[Host]:
         if proc.poll() is None:
             proc.kill()
             proc.wait(10)
-        reader.join(10)
+        if reader.is_alive():
+            reader.join(10)
         proc.stdout.close()
 
 
@@ -187,13 +188,17 @@ def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -
         before = await asyncio.to_thread(h.json, "/api/stats")
         corners0, t0 = p.counts["corner"], time.monotonic()
         sent = 0
-        while time.monotonic() - t0 < 1.0:
+        # At least a second, and until 60 CORNERs came (half the asked rate over it): on a
+        # loaded machine that takes longer, never fails; the upper bound is a rate over the
+        # time it took.
+        while time.monotonic() - t0 < 1.0 or p.counts["corner"] - corners0 < 60:
+            assert time.monotonic() - t0 < 30, p.counts["corner"] - corners0
             await p.send_hip(hand)
             sent += 1
             await asyncio.sleep(1 / 120)
-        got = p.counts["corner"] - corners0
-        # A CORNER a frame loop frame at most, at the asked rate (~120 in the second).
-        assert 60 <= got <= 150, got
+        got, took = p.counts["corner"] - corners0, time.monotonic() - t0
+        # A CORNER a frame loop frame at most, at the asked rate (~120 a second).
+        assert 60 <= got <= 150 * took, (got, took)
         c = p.corner
         assert c is not None and c.seat == 2 and c.hip_seq > 0
         # The hand the frame applied is this client's: the force on the device is the
@@ -207,9 +212,13 @@ def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -
         w = await NetClient.connect(h.url, name="wat", role="spectator", room="main")
         quiet = await NetClient.connect(h.url, name="q", role="spectator", room="main",
                                         mesh=False)
-        m0 = w.counts["mesh"]
+        m0, t0 = w.counts["mesh"], time.monotonic()
+        # (as above: at least a second, and until 15 came; the upper bound over the time)
         await asyncio.sleep(1.0)
-        assert 15 <= w.counts["mesh"] - m0 <= 45, w.counts
+        await until(lambda: w.counts["mesh"] - m0 >= 15 and p.counts["mesh"] > 15, 30,
+                    "15 meshes")
+        took = time.monotonic() - t0
+        assert 15 <= w.counts["mesh"] - m0 <= 45 * took, (w.counts, took)
         assert w.mesh is not None and w.mesh.positions.shape == (16, 16, 3)
         assert p.counts["mesh"] > 15 and quiet.counts["mesh"] == 0
         await quiet.close()
@@ -227,25 +236,29 @@ def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -
         assert err["code"] == "out_of_range", err
         # Left: no more CORNERs, and a HIP is the engine's to refuse.
         await p.request("leave")
-        await asyncio.sleep(0.2)
+        await asyncio.sleep(0.2)  # (a CORNER sent before the leave may still be on its way)
         n = p.counts["corner"]
         await p.send_hip(hand)
         err = await p.wait_for(lambda m: m.get("type") == "error" and m["code"] != "out_of_range",
                                10)
         assert err["code"] == "not_allowed", err
-        await asyncio.sleep(0.3)
+        await asyncio.sleep(0.3)  # (a fixed wait on purpose: no CORNER comes in it)
         assert p.counts["corner"] == n
         await p.close()
         # At corner_rate 1000 the gateway sends them too, on the frame loop's wake-up after
         # each pass (its timers wait whole milliseconds), and takes the HIPs.
         fast = await NetClient.connect(h.url, name="bo", role="player", room="main", seat=2,
                                        corner_rate=1000)
-        await asyncio.sleep(1.2)  # the gateway's last report
+        # (a fixed wait: the gateway's last report in; one that comes later only adds to
+        # the lower bounds below)
+        await asyncio.sleep(1.2)
         s0, c0 = await asyncio.to_thread(h.json, "/api/stats"), fast.counts["corner"]
         frames: list[int] = []
         fast.on_corner = lambda c: frames.append(c.frame)
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 1.0:
+        # (at least a second, and until more than 150 came: waited for, as above)
+        while time.monotonic() - t0 < 1.0 or fast.counts["corner"] - c0 <= 150:
+            assert time.monotonic() - t0 < 30, fast.counts["corner"] - c0
             await fast.send_hip(hand)
             await asyncio.sleep(1 / 120)
         fast.on_corner = None

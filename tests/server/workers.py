@@ -114,19 +114,21 @@ class Gateway:
 
     def stop(self) -> None:
         """SIGTERM, then check that it stopped cleanly and logged nothing wrong."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
         try:
-            rc = self.proc.wait(60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(10)
-            raise AssertionError("the gateway process did not stop on SIGTERM:\n"
-                                 + "".join(self.stderr)) from None
-        for pipe in (self.proc.stdout, self.proc.stderr):
-            if pipe is not None:
-                with contextlib.suppress(ValueError):  # the reader thread's last line
-                    pipe.close()
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGTERM)
+            try:
+                rc = self.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+                raise AssertionError("the gateway process did not stop on SIGTERM:\n"
+                                     + "".join(self.stderr)) from None
+        finally:  # its pipes closed however it stopped (killed included)
+            for pipe in (self.proc.stdout, self.proc.stderr):
+                if pipe is not None:
+                    with contextlib.suppress(ValueError):  # the reader thread's last line
+                        pipe.close()
         text = "".join(self.stderr)
         assert rc == 0, f"the gateway process exited {rc}:\n{text}"
         bad = [ln for ln in self.stderr if ln.startswith(("ERROR", "CRITICAL", "Traceback"))

@@ -148,7 +148,10 @@ def test_live_room_shows_the_cloth(live: ServerThread, driver) -> None:
     n = SCENE.n
     ij = [[i, j] for i in (n // 4, n // 2, 3 * n // 4) for j in (n // 4, n // 2, 3 * n // 4)]
     js(driver, "window.clothball.freeze(true)")  # the cloth holds still while we look
-    time.sleep(0.3)  # frames drawn after the latest upload
+    # frames drawn after the latest upload: two animation frames of the page's own (its
+    # renderer draws on each), waited for instead of a fixed 0.3 s
+    driver.execute_async_script("""const done = arguments[arguments.length - 1];
+                                   requestAnimationFrame(() => requestAnimationFrame(done));""")
     pts = js(driver, "return window.clothball.screenPoints(arguments[0])", ij)
     img = screenshot_rgb(driver)
     js(driver, "window.clothball.freeze(false)")
@@ -239,7 +242,7 @@ def test_replay_plays_pauses_and_seeks(live: ServerThread, driver) -> None:
     driver.find_element("id", "play").click()
     wait_for(lambda: state()[0] == "paused", 5, "pause")
     paused_at = state()[1]
-    time.sleep(0.4)
+    time.sleep(0.4)  # (a fixed wait on purpose: the paused clock does not move in it)
     assert state() == ["paused", paused_at]
     # seek to the middle: the clock and the shown mesh follow
     duration = js(driver, "return window.clothball.replay.duration")
