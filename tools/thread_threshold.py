@@ -25,7 +25,8 @@ def main() -> None:
     print(f"scene {args.scene}, float32, the median of {args.rounds} alternated rounds")
     print("     n   nodes   1 thread us   2 threads us   2 / 1")
     for n in (int(s) for s in args.sizes.split(",")):
-        scene = Scene.load(args.scene).with_changes({"cloth": {"n": n}, "sim": {"precision": "float32"}})
+        scene = Scene.load(args.scene).with_changes(
+            {"cloth": {"n": n}, "sim": {"precision": "float32"}})
         cloths = {t: Cloth(scene, "cpu", threads=t) for t in (1, 2)}
         got: dict[int, list[float]] = {1: [], 2: []}
         for r in range(args.rounds):

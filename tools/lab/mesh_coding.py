@@ -17,7 +17,6 @@ import time
 import zlib
 
 import numpy as np
-
 from clothball import _native
 from clothball.game.sim.cloth import Cloth
 from clothball.game.sim.scene import Scene
