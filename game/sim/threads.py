@@ -20,10 +20,11 @@ import threading
 import time
 
 # A thread's share of a frame below this many nodes costs more at its barriers than it
-# saves. Reckoned, not yet measured on a quiet machine: one thread of the 2-core VM spends
-# ~9 ns a node a substep (n = 100: 94 us, loaded), so 16 384 nodes give each of two threads
-# ~75 us a substep against the tens of us a passive barrier's wake-up costs.
-MIN_NODES_PER_THREAD = 16384
+# saves. Measured on the quiet 2-core VM (`python tools/thread_threshold.py`, classic,
+# float32, 2026-11-28), two threads against one a substep: 1.47x the time at 16 384 nodes,
+# 1.45 at 32 761, 1.06 at 40 000, 0.86 at 50 176, 0.83 at 65 536, 0.82 at 90 000 (the passive
+# barriers' wake-ups cost ~50-80 us a substep there). So a second thread from ~49 000 nodes.
+MIN_NODES_PER_THREAD = 24576
 SAMPLE_S = 0.02  # the shortest look at /proc/stat that says how busy the machine is
 FRESH_S = 1.0  # a look this recent is reused
 
