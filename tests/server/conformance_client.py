@@ -12,13 +12,14 @@ import json
 import os
 import socket
 import struct
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
+
+from tests.server.conftest import recv_all
 
 HELLO: dict[str, Any] = {"type": "hello", "version": 1}
 
@@ -177,7 +178,6 @@ def raw_ws_close_code(host: str, port: int, hello: bytes, wait_s: float) -> int 
     the connection, waiting at most ``wait_s`` (None if no close came by then). Blocking:
     run it in a thread."""
     key = base64.b64encode(os.urandom(16)).decode()
-    end = time.monotonic() + wait_s
     with socket.create_connection((host, port), timeout=wait_s) as s:
         s.sendall((f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
                    f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
@@ -191,15 +191,7 @@ def raw_ws_close_code(host: str, port: int, hello: bytes, wait_s: float) -> int 
         assert len(hello) < 126
         s.sendall(bytes([0x81, 0x80 | len(hello)]) + mask + body)
         # (until the server closes, not a fixed time: a loaded machine only takes longer)
-        while (left := end - time.monotonic()) > 0:
-            s.settimeout(left)
-            try:
-                b = s.recv(65536)
-            except (TimeoutError, ConnectionResetError):
-                break
-            if not b:
-                break
-            buf += b
+        buf += recv_all(s, wait_s)
     # the server's frames, unmasked: find the close frame (opcode 8)
     off = 0
     while off + 2 <= len(buf):

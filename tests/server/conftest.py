@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import socket
+import time
 import urllib.error
 import urllib.request
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
@@ -192,10 +193,16 @@ class LiveServer:
             return recv_all(s)
 
 
-def recv_all(s: socket.socket) -> bytes:
-    """What a socket receives until the other side closes it (or its timeout)."""
+def recv_all(s: socket.socket, within_s: float | None = None) -> bytes:
+    """What a socket receives until the other side closes it (or its timeout; or, given
+    ``within_s``, that many seconds from now at most, in all)."""
     chunks = []
+    end = None if within_s is None else time.monotonic() + within_s
     while True:
+        if end is not None:
+            if (left := end - time.monotonic()) <= 0:
+                break
+            s.settimeout(left)
         try:
             b = s.recv(65536)
         except (TimeoutError, ConnectionResetError):
