@@ -31,7 +31,8 @@ from .storage.recorder import Recording
 log = logging.getLogger("clothball.server")
 
 REACH_FRACTION = 0.3  # a hand may move this fraction of the cloth's size from its anchor
-RECORD_TAIL = 1.0  # s recorded after the ball left the cloth
+RECORD_TAIL = 1.0  # s of the room's frames recorded after the ball left the cloth
+RECORD_TAIL_LATE_S = 9.0  # a late room's tail waits at most this much longer (wall time)
 # s the host's show room steps, with no one in it and no bots, after the rooms were listed
 SHOWN_AWAKE_S = 30.0
 
@@ -206,7 +207,8 @@ class Room:
         if self._finishing:
             # A round that just ended is still recording its tail: let it be saved (the
             # simulation answers until it stops below), then nothing is left pending.
-            _, late = await asyncio.wait(set(self._finishing), timeout=RECORD_TAIL + 6.0)
+            _, late = await asyncio.wait(set(self._finishing),
+                                         timeout=RECORD_TAIL + RECORD_TAIL_LATE_S + 6.0)
             for t in late:
                 t.cancel()
         for s in self.seats:
@@ -696,7 +698,7 @@ class Room:
         if rec is not None:
             header = self._round_header(rec, edge, result.conceded_by, list(result.scores),
                                         list(result.scorers))
-            t = asyncio.create_task(self._finish_recording(header))
+            t = asyncio.create_task(self._finish_recording(header, frame))
             self._finishing.add(t)
             t.add_done_callback(self._finishing.discard)
         self.broadcast_state()
@@ -736,8 +738,8 @@ class Room:
             "tail_s": RECORD_TAIL,
         }
 
-    async def _finish_recording(self, header: dict[str, Any]) -> None:
-        await asyncio.sleep(RECORD_TAIL)
+    async def _finish_recording(self, header: dict[str, Any], exit_frame: int) -> None:
+        await self._tail(exit_frame)
         fut: asyncio.Future[Recording | None] = self.loop.create_future()
 
         def got(rec: Recording | None) -> None:
@@ -766,6 +768,18 @@ class Room:
         if rec.cut is not None:
             header["cut"] = rec.cut  # recorded up to where it stopped, and says why
         self.host.save_round(header, rec)
+
+
+    async def _tail(self, exit_frame: int) -> None:
+        """Until RECORD_TAIL of the room's own frames have followed the score: a room that
+        runs late takes longer in wall time (at most RECORD_TAIL_LATE_S more), one that stops
+        stepping (asleep, stopped) no longer."""
+        want = exit_frame + round(RECORD_TAIL / self.sim.frame_dt)
+        await asyncio.sleep(RECORD_TAIL)
+        end = self.loop.time() + RECORD_TAIL_LATE_S
+        while self.sim.frame < want and self.sim.alive and self.sim.awake \
+                and self.loop.time() < end:
+            await asyncio.sleep(0.02)
 
 
 def _discard(rec: Recording | None) -> None:

@@ -180,6 +180,11 @@ def test_the_page_spectates_and_replays_through_the_proxy(proxied: Proxied) -> N
                  30, "the page to connect through the proxy")
         wait_for(lambda: js("return window.clothball.stats.meshFrames") > 5, 30,
                  "mesh frames through the proxy")
+        def bots() -> int:  # the seats' labels, filled once the room's state has come
+            return sum(e.text.startswith("bot-")
+                       for e in drv.find_elements("css selector", "#labels .label"))
+
+        wait_for(lambda: bots() >= 2, 30, "the bots' labels")
         labels = [e.text for e in drv.find_elements("css selector", "#labels .label")]
         assert sum(lab.startswith("bot-") for lab in labels) == 2, labels
         # The recorded round: listed, fetched and played through the proxy.

@@ -168,7 +168,9 @@ def test_live_room_shows_the_cloth(live: ServerThread, driver) -> None:
     rect = js(driver, "const r = document.getElementById('view').getBoundingClientRect();"
                       "return [r.left, r.top, r.width, r.height]")
     assert not is_cloth(img.getpixel((round(rect[0]) + 3, round(rect[1]) + 3)))
-    # corner names and the scoreboard are shown
+    # corner names and the scoreboard are shown (the labels once the room's state has come)
+    wait_for(lambda: sum(e.text.startswith("bot-") for e in driver.find_elements(
+        "css selector", "#labels .label")) >= 4, 20, "the corners' labels")
     labels = [e.text for e in driver.find_elements("css selector", "#labels .label")]
     assert len(labels) == 4 and all(lab.startswith("bot-") for lab in labels)
     assert len(driver.find_elements("css selector", "#scoreboard tr.seat")) == 4
