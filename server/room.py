@@ -738,6 +738,17 @@ class Room:
             "tail_s": RECORD_TAIL,
         }
 
+    async def _tail(self, exit_frame: int) -> None:
+        """Until RECORD_TAIL of the room's own frames have followed the score: a room that
+        runs late takes longer in wall time (at most RECORD_TAIL_LATE_S more), one that stops
+        stepping (asleep, stopped) no longer."""
+        want = exit_frame + round(RECORD_TAIL / self.sim.frame_dt)
+        await asyncio.sleep(RECORD_TAIL)
+        end = self.loop.time() + RECORD_TAIL_LATE_S
+        while self.sim.frame < want and self.sim.alive and self.sim.awake \
+                and self.loop.time() < end:
+            await asyncio.sleep(0.02)
+
     async def _finish_recording(self, header: dict[str, Any], exit_frame: int) -> None:
         await self._tail(exit_frame)
         fut: asyncio.Future[Recording | None] = self.loop.create_future()
@@ -768,18 +779,6 @@ class Room:
         if rec.cut is not None:
             header["cut"] = rec.cut  # recorded up to where it stopped, and says why
         self.host.save_round(header, rec)
-
-
-    async def _tail(self, exit_frame: int) -> None:
-        """Until RECORD_TAIL of the room's own frames have followed the score: a room that
-        runs late takes longer in wall time (at most RECORD_TAIL_LATE_S more), one that stops
-        stepping (asleep, stopped) no longer."""
-        want = exit_frame + round(RECORD_TAIL / self.sim.frame_dt)
-        await asyncio.sleep(RECORD_TAIL)
-        end = self.loop.time() + RECORD_TAIL_LATE_S
-        while self.sim.frame < want and self.sim.alive and self.sim.awake \
-                and self.loop.time() < end:
-            await asyncio.sleep(0.02)
 
 
 def _discard(rec: Recording | None) -> None:
