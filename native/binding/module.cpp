@@ -12,6 +12,8 @@
 namespace py = pybind11;
 void bind_batch(py::module_& m);  // binding/batch.cpp
 void bind_loop(py::module_& m);   // binding/loop.cpp
+void bind_pump(py::module_& m);   // binding/pump.cpp
+void bind_follow(py::module_& m); // binding/pump.cpp
 using cbind::Array;
 
 namespace {
@@ -105,6 +107,8 @@ PYBIND11_MODULE(_native, m) {
 
   bind_batch(m);
   bind_loop(m);
+  bind_pump(m);
+  bind_follow(m);
 
   py::dict effects;
   effects["structural"] = unsigned(cb::STRUCTURAL);

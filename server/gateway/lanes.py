@@ -1,12 +1,8 @@
-"""A gateway's side of its clients' lanes (``server.lanes``): the lanes themselves are the
-one lane code the engine runs too; here are what only a gateway needs.
-
-* ``client_frames`` follows a client's websocket frames (masked, RFC 6455) and takes out the
-  HIPs its lane takes (``game.wire.wsframe.FrameTap``); every other byte goes on to the
-  engine unchanged.
-* ``SocketLinks`` is the gateway's link to the engine's control socket: the blocks and mesh
-  boards (memfds passed over it, mapped here), the frame wake-up (an eventfd passed the
-  same way) and the counts reported to the engine for the host's figures.
+"""A gateway's link to its engine's control socket (``server.shared.lanes``), for the lanes
+its pump serves (``_native.Pump``, native/net/pump.hpp): the blocks and mesh boards (memfds
+passed over the socket, handed to the pump, which maps them), the frame wake-up (an eventfd
+passed the same way, the pump's from then on), arming it, and the counts reported to the
+engine for the host's figures (messages the pump handled that the engine did not see).
 """
 
 from __future__ import annotations
@@ -17,20 +13,14 @@ import logging
 import math
 import os
 import socket
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ... import _native
-from ...game.wire import protocol as P
-from ...game.wire.wsframe import FrameTap
-from ..lanes.lane import Links
 from ..shared import lanes
 
 log = logging.getLogger("clothball.gateway")
 
 LANES_ENV = "CLOTHBALL_GATEWAY_LANES"  # "0": the gateway relays every message (A/B runs)
-WRITE_SKIP = 1 << 16  # a client with this much unsent: its CORNER is skipped (a newer comes)
 REPORT_S = 1.0  # counts reported to the engine this often
 RETRY_S = 0.5  # between two requests for the blocks
 
@@ -39,64 +29,72 @@ def lanes_wanted() -> bool:
     return os.environ.get(LANES_ENV, "1").strip() != "0"
 
 
-def client_frames(take: Callable[[bytes], bool]) -> FrameTap:
-    """A client's stream from the first frame after the handshake: each whole HIP-sized
-    binary frame is offered to ``take`` (unmasked), and dropped if taken."""
-    return FrameTap(take, masked=True, max_take=P.HIP_SIZE)
+class EngineLink:
+    """The gateway's link to the engine's control socket at ``path``, feeding ``pump``."""
 
-
-class SocketLinks(Links):
-    """The gateway's link to the engine's control socket at ``path``."""
-
-    def __init__(self, path: Path) -> None:
-        super().__init__()
-        self.path = path
-        self.blocks: dict[int, Any] = {}  # id -> _native.BlockView, or a mesh board's mmap
+    def __init__(self, path: Path, pump: Any) -> None:
+        self.path, self.pump = path, pump
+        self.have: set[int] = set()  # the ids of the blocks the pump has
+        self.no_wake = False  # the engine has no wake-up: the pump times every CORNER
+        self._wake = False  # the pump has the wake-up
+        self._armed = False
+        self._want_armed = False
         self._sock: socket.socket | None = None
         self._lock = asyncio.Lock()
         self._fetching: asyncio.Task[None] | None = None
+        self._arming: asyncio.Task[None] | None = None
         self._fetched_at = -math.inf
-        self._reported: dict[str, int] = {}
+        self._reported = (0, 0)
         self._task: asyncio.Task[None] | None = None
 
     def start(self) -> None:
         self._task = asyncio.get_running_loop().create_task(self._report_forever())
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
+        for task in (self._task, self._fetching, self._arming):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
         self._drop()
 
-    def block(self, block_id: int) -> Any | None:
-        """The block ``block_id``, else None, and it is asked for (not more than once per
-        ``RETRY_S``): a later call has it. Block ids are random, so a restarted engine's
-        blocks are never taken for its predecessor's."""
-        view = self.blocks.get(block_id)
+    def want_block(self, block_id: int) -> None:
+        """The pump needs block ``block_id``: the blocks are asked for (not more than once
+        per ``RETRY_S``). Block ids are random, so a restarted engine's blocks are never
+        taken for its predecessor's."""
         loop = asyncio.get_running_loop()
-        if view is None and (self._fetching is None or self._fetching.done()) \
+        if block_id not in self.have and (self._fetching is None or self._fetching.done()) \
                 and loop.time() - self._fetched_at > RETRY_S:
             self._fetched_at = loop.time()
             self._fetching = loop.create_task(self._fetch())
-        return view
 
-    async def _set_armed(self, on: bool) -> bool:
-        async with self._lock:
-            line = lanes.ARM if on else lanes.DISARM
-            try:
-                await asyncio.to_thread(lambda: self._connect().sendall(line))
-            except OSError:
-                self._drop()
-                return False
-            return True
+    def want_armed(self, on: bool) -> None:
+        """The pump has lanes on the frame wake-up (or none now): the engine's loops write
+        it after each pass (or no more)."""
+        self._want_armed = on
+        if self._arming is None or self._arming.done():
+            self._arming = asyncio.get_running_loop().create_task(self._arm())
+
+    async def _arm(self) -> None:
+        while self._wake and self._want_armed != self._armed:
+            want = self._want_armed
+            async with self._lock:
+                try:
+                    line = lanes.ARM if want else lanes.DISARM
+                    await asyncio.to_thread(lambda: self._connect().sendall(line))  # noqa: B023
+                except OSError:
+                    self._drop()
+                    return
+            self._armed = want
 
     def _drop(self) -> None:
         if self._sock is not None:
             self._sock.close()
             self._sock = None
-        self._forget_wake()
-        self.blocks = {}  # an engine's blocks die with it (its lanes' clients are closed)
+        # An engine's blocks and wake-up die with it (its lanes' clients are closed).
+        self.pump.drop_maps()
+        self.have = set()
+        self._wake = self._armed = False
 
     def _connect(self) -> socket.socket:
         if self._sock is None:
@@ -114,19 +112,26 @@ class SocketLinks(Links):
         async with self._lock:
             for attempt in range(2):  # a connection to an engine that has gone: a new one
                 try:
-                    maps = await asyncio.to_thread(
-                        lambda: lanes.receive_blocks(self._connect()))
-                    # a frame loop's block as a view of its records; a mesh board as bytes
-                    self.blocks = {i: _native.BlockView(m) if kind == "block" else m
-                                   for i, (kind, m) in maps.items()}
-                    if self.wake < 0 and not self.no_wake:
-                        await self._fetch_wake()
-                    return
+                    shares = await asyncio.to_thread(
+                        lambda: lanes.receive_block_fds(self._connect()))
+                    try:
+                        self.pump.set_maps([(i, kind == "board", fd, n)
+                                            for i, (kind, fd, n) in shares.items()])
+                    finally:
+                        for _, fd, _ in shares.values():
+                            os.close(fd)
+                    self.have = set(shares)
+                    break
                 except (OSError, ValueError) as e:
                     self._drop()
                     if attempt:
                         log.warning("the engine's blocks could not be had (%s): its "
                                     "players' messages go through the engine", e)
+                        return
+            if not self._wake and not self.no_wake:
+                await self._fetch_wake()
+        if self._want_armed:
+            self.want_armed(True)
 
     async def _fetch_wake(self) -> None:
         try:
@@ -134,23 +139,26 @@ class SocketLinks(Links):
         except ConnectionError as e:  # an engine that has none: timers, a little late
             log.warning("%s: CORNERs above %g Hz are timed here", e, lanes.TIMER_MAX_HZ)
             self.no_wake = True
-            for lane in list(self.framed):
-                self.framed.discard(lane)
-                lane.use_timer()
+            self.pump.no_wake()
             return
-        self._listen_wake(fd)
+        except OSError:
+            self._drop()
+            return
+        self.pump.set_wake(fd)
+        self._wake = True
 
     async def _report_forever(self) -> None:
         while True:
             await asyncio.sleep(REPORT_S)
-            if self.counts == self._reported:
+            counts = (self.pump.messages_in, self.pump.messages_out)
+            if counts == self._reported:
                 continue
-            counts = dict(self.counts)
             async with self._lock:
                 try:
-                    line = lanes.counts_line(counts)
+                    line = lanes.counts_line({"messages_in": counts[0],
+                                              "messages_out": counts[1]})
                     await asyncio.to_thread(lambda: self._connect().sendall(line))  # noqa: B023
                     self._reported = counts
                 except OSError:
                     self._drop()  # the engine is away; a new one is asked when a lane opens
-                    self._reported = {}
+                    self._reported = (0, 0)

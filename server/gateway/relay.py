@@ -12,11 +12,13 @@ engine does when a room's simulation fails (the event and the error ``room_stopp
 then closes the client 1011 saying so (``frames``): the engine held the client's session,
 so its connection cannot stay open in the lobby as after a room's own failure.
 
-The relay works on the transports themselves (``asyncio.Protocol``): each chunk read on
-one side is written to the other from the read callback, with no stream buffer and no
-task in between; a side whose write buffer is full pauses the other side's reading
-(backpressure). An end of file is passed on (a half-close), and a side that fails aborts
-the other."""
+Once the engine's socket is connected, both sockets go to the gateway's pump
+(``_native.Pump``, native/net/pump.hpp), one native thread that relays every connection's
+bytes both ways (backpressure, half-closes passed on, a side that fails ending the other)
+and serves the lanes (``server.shared.lanes``): a seated player's HIPs, its CORNERs and a
+watcher's MESH never reach Python. Python keeps what is rare: accepting, the engine's
+connection and PROXY line, the 503, parsing the engine's lane messages, and what to tell a
+client whose engine's stream ended."""
 
 from __future__ import annotations
 
@@ -24,27 +26,29 @@ import asyncio
 import contextlib
 import errno
 import json
+import logging
+import os
 import socket
 from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
-from ...game.wire.wsframe import FrameTap
-from ..lanes.lane import Lane
+from ... import _native
 from ..shared import proxyline
 from ..shared.lanes import ctl_path, parse_lane
 from ..shared.listen import ACCEPT_BACKLOG
-from .frames import ServerFrames, close_frame, text_frame
-from .lanes import WRITE_SKIP, SocketLinks, client_frames, lanes_wanted
+from .frames import close_frame, text_frame
+from .lanes import EngineLink, lanes_wanted
 
-CHUNK = 1 << 16  # bytes read at a time, each way
-WRITE_HIGH = 1 << 18  # a side's buffered bytes above which its reader waits (backpressure)
+CHUNK = 1 << 16  # bytes a client may send before its engine answers
 HEAD_WAIT_S = 5.0  # for a request's head, before a 503 while the engine is away
 RETRY_AFTER_S = 2  # told to a client while the engine is away
 CONNECT_WAIT_S = HEAD_WAIT_S  # for a place in the engine's full accept backlog, then a 503
 ENGINE_CHECK_S = 0.3  # an engine holds a new connection open this long, waiting for its line
 ENGINE_GONE = "the host's engine stopped: its rooms are lost; reconnect in a few seconds"
 ROOM_GONE = "the host's engine stopped"  # room_stopped's reason
+
+log = logging.getLogger("clothball.gateway")
 
 
 async def connect_engine(path: str, wait_s: float) -> socket.socket:
@@ -82,9 +86,10 @@ class Gateway:
     def __init__(self, host: str, port: int, engine: Path) -> None:
         self.host, self.port, self.engine = host, port, engine
         self.server: asyncio.Server | None = None
-        # Its clients' lanes served here (server.lanes), unless off.
-        self.lanes = SocketLinks(ctl_path(engine)) if lanes_wanted() else None
-        self._open: set[asyncio.BaseTransport] = set()  # both sides of every relay
+        self.pump = _native.Pump()
+        # Its clients' lanes served here (server.shared.lanes), unless off.
+        self.lanes = EngineLink(ctl_path(engine), self.pump) if lanes_wanted() else None
+        self._open: set[asyncio.BaseTransport] = set()  # clients not yet handed to the pump
         self._tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
@@ -92,6 +97,7 @@ class Gateway:
         self.server = await loop.create_server(
             lambda: _Client(self), self.host, self.port, reuse_port=True,
             backlog=ACCEPT_BACKLOG)
+        loop.add_reader(self.pump.event_fd, self._events)
         if self.lanes is not None:
             self.lanes.start()
 
@@ -101,6 +107,9 @@ class Gateway:
             self.server.close()
         for transport in list(self._open):
             transport.abort()
+        with contextlib.suppress(ValueError, OSError):
+            asyncio.get_running_loop().remove_reader(self.pump.event_fd)
+        self.pump.stop()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         if self.lanes is not None:
             await self.lanes.stop()
@@ -109,6 +118,61 @@ class Gateway:
         task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
+
+    def _events(self) -> None:
+        """What the pump tells: a lane message, an engine's stream that ended, a block
+        to fetch, the frame wake-up to arm."""
+        for ev in self.pump.take_events():
+            kind, conn = ev[0], ev[1]
+            if kind == "lane":
+                self._lane(conn, ev[2])
+            elif kind == "ended":
+                self._spawn(self._ended(conn, ev[2], ev[3], ev[4], ev[5]))
+            elif kind == "block" and self.lanes is not None:
+                self.lanes.want_block(conn)
+            elif kind == "arm" and self.lanes is not None:
+                self.lanes.want_armed(ev[1])
+
+    def _lane(self, conn: int, payload: bytes) -> None:
+        """The engine opened (or closed) a client's lane."""
+        try:
+            spec = parse_lane(payload)
+        except (ValueError, KeyError, TypeError) as e:
+            log.warning("the engine sent a lane message that is not one (%s): %.80r", e, payload)
+            spec = None
+        if spec is None or self.lanes is None:
+            self.pump.close_lane(conn)
+            return
+        # The room as the engine's compact JSON writes it: the pump matches it against
+        # the stream's "joined" (game.wire.protocol.encode_json).
+        self.pump.open_lane(conn, json.dumps(spec.room), spec.block, spec.slot,
+                            -1 if spec.seat is None else spec.seat, spec.occupant,
+                            spec.lo, spec.hi, spec.corner_interval, spec.binary_rate,
+                            spec.binary_burst, -1 if spec.board is None else spec.board,
+                            spec.board_slot)
+        self.lanes.want_block(spec.block)
+
+    async def _ended(self, conn: int, between: bool, room: str | None, frame: int,
+                     time: float) -> None:
+        """The engine's stream ended: when the engine itself is gone (its socket no longer
+        answers), the room's room_stopped and a close frame of the gateway's own, then the
+        end of file to the client."""
+        tail = b""
+        try:
+            if between and not await self._engine_answers():
+                if room is not None:
+                    # docs/protocol.md's event and error (the gateway imports nothing of
+                    # the game: the two messages are written here).
+                    name = json.loads(room)
+                    tail += text_frame(
+                        {"type": "event", "event": "room_stopped", "room": name,
+                         "frame": max(frame, 0), "time": time, "reason": ROOM_GONE})
+                    tail += text_frame(
+                        {"type": "error", "code": "room_stopped",
+                         "message": f"room {name} stopped: {ROOM_GONE}"})
+                tail += close_frame(1011, ENGINE_GONE)
+        finally:
+            self.pump.finish(conn, tail)
 
     async def _engine_answers(self) -> bool:
         """Whether the engine is there: its socket takes a connection and holds it open,
@@ -131,19 +195,16 @@ class Gateway:
 
 
 class _Client(asyncio.Protocol):
-    """A client's connection on the public port, and its relay to the engine."""
+    """A client's connection on the public port until its engine's connection is open
+    (then both are the pump's)."""
 
     def __init__(self, gw: Gateway) -> None:
         self.gw = gw
         self.t: asyncio.Transport | None = None
-        self.engine: _Engine | None = None
-        self.early: bytearray | None = bytearray()  # read before the engine answered
+        self.early: bytearray = bytearray()  # read before the engine answered
         self.head = asyncio.Event()  # a request's head is in ``early`` (or the client ended)
         self.eof = False
-        self.frames: FrameTap | None = None  # its websocket frames, once upgraded
-        self.lane: Lane | None = None  # its open lane (server.lanes)
-        # lane messages waiting for a message boundary (header, payload), the newest of each
-        self.pending: dict[str, tuple[bytes, bytes]] = {}
+        self.handed = False  # its socket is the pump's
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -152,121 +213,48 @@ class _Client(asyncio.Protocol):
         if sock is not None:
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        transport.set_write_buffer_limits(high=WRITE_HIGH)
         self.gw._open.add(transport)
         self.gw._spawn(self._connect())
 
     async def _connect(self) -> None:
-        loop = asyncio.get_running_loop()
         try:
             sock = await connect_engine(str(self.gw.engine), CONNECT_WAIT_S)
-            _, engine = await loop.create_unix_connection(lambda: _Engine(self), sock=sock)
         except OSError:
             await self._engine_away()
             return
-        assert self.t is not None and engine.t is not None
-        if self.t.is_closing():  # the client went while the engine answered
-            engine.t.abort()
+        t = self.t
+        assert t is not None
+        if t.is_closing():  # the client went while the engine answered
+            sock.close()
             return
-        self.engine = engine
-        early, self.early = self.early or b"", None
-        engine.t.write(proxyline.encode(self.t.get_extra_info("peername"),
-                                        self.t.get_extra_info("sockname"),
-                                        lanes=self.gw.lanes is not None) + early)
-        if self.eof and engine.t.can_write_eof():
-            engine.t.write_eof()
-        self.t.resume_reading()
+        line = proxyline.encode(t.get_extra_info("peername"), t.get_extra_info("sockname"),
+                                lanes=self.gw.lanes is not None)
+        # The client's socket, duplicated for the pump: the transport's own is closed
+        # with it (abort closes, never shuts down, so the connection stays open).
+        t.pause_reading()
+        client = os.dup(t.get_extra_info("socket").fileno())
+        self.handed = True
+        self.gw.pump.add(client, sock.detach(), line + bytes(self.early), self.eof)
+        self.early = bytearray()
+        t.abort()
 
     def data_received(self, data: bytes) -> None:
-        if self.engine is not None:
-            assert self.engine.t is not None
-            if self.frames is None and self.gw.lanes is not None and self.engine.frames.websocket:
-                self.frames = client_frames(self._take)  # the handshake is done: frames follow
-            if self.frames is not None:
-                data = self.frames.feed(data)
-            if data:
-                self.engine.t.write(data)
-        elif self.early is not None:
-            self.early += data
-            if b"\r\n\r\n" in self.early:
-                self.head.set()
-            if len(self.early) >= CHUNK:  # no engine yet: read no more until it answers
-                assert self.t is not None
-                self.t.pause_reading()
-
-    # --- its lane ---------------------------------------------------------------------------
-    def _take(self, payload: bytes) -> bool:
-        return self.lane is not None and self.lane.take(payload)
-
-    def on_lane(self, payload: bytes) -> None:
-        """The engine opened (or closed) this client's lane."""
-        if self.lane is not None:
-            self.lane.close()
-            self.lane = None
-        spec = parse_lane(payload)
-        if spec is not None and self.gw.lanes is not None and self.engine is not None:
-            frames = self.engine.frames
-            self.lane = Lane(spec, self.gw.lanes, self.write_lane, lambda: frames.room)
-
-    def write_lane(self, kind: str, head: bytes, payload: bytes) -> None:
-        """A message of the client's lane (a CORNER, a MESH) to the client, between two of
-        the engine's messages (else the newest of each kind is held until the engine's
-        stream is between two), unless the client is behind on reading. The engine's
-        stream follower learns its room's frame from it, as from the engine's own."""
-        t = self.t
-        if t is None or t.is_closing() or t.get_write_buffer_size() > WRITE_SKIP:
-            return
-        engine = self.engine
-        if engine is not None and engine.frames.between_messages():
-            t.write(head + payload)
-            engine.frames.sent_binary(payload)
-            assert self.gw.lanes is not None
-            self.gw.lanes.counts["messages_out"] += 1
-        else:
-            self.pending[kind] = (head, payload)
-
-    def flush_pending(self) -> None:
-        held, self.pending = self.pending, {}
-        for kind, (head, payload) in held.items():
-            self.write_lane(kind, head, payload)
+        self.early += data
+        if b"\r\n\r\n" in self.early:
+            self.head.set()
+        if len(self.early) >= CHUNK:  # no engine yet: read no more until it answers
+            assert self.t is not None
+            self.t.pause_reading()
 
     def eof_received(self) -> bool:
         self.eof = True
         self.head.set()
-        if self.engine is not None:
-            assert self.engine.t is not None
-            if self.engine.t.can_write_eof():
-                self.engine.t.write_eof()
-        self.close_if_done()
         return True  # the engine's answer may still be on its way: keep writing
-
-    def close_if_done(self) -> None:
-        """Both ways have ended (the client's end of file, the engine's passed on): close
-        the connection (and with it the engine's side, ``connection_lost``)."""
-        if self.eof and self.engine is not None and self.engine.done and self.t is not None:
-            self.t.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.head.set()
-        if self.lane is not None:
-            self.lane.close()
-            self.lane = None
         if self.t is not None:
             self.gw._open.discard(self.t)
-        if self.engine is not None and self.engine.t is not None:
-            # One side failed (or both ended): end the other too.
-            if exc is None:
-                self.engine.t.close()
-            else:
-                self.engine.t.abort()
-
-    def pause_writing(self) -> None:  # the client reads slowly: stop reading the engine
-        if self.engine is not None and self.engine.t is not None:
-            self.engine.t.pause_reading()
-
-    def resume_writing(self) -> None:
-        if self.engine is not None and self.engine.t is not None:
-            self.engine.t.resume_reading()
 
     async def _engine_away(self) -> None:
         with contextlib.suppress(TimeoutError):
@@ -280,87 +268,6 @@ class _Client(asyncio.Protocol):
         if not self.t.is_closing():
             self.t.write(head + body)
             self.t.close()
-
-
-class _Engine(asyncio.Protocol):
-    """The engine's side of one relay: its bytes to the client, followed (``ServerFrames``)
-    so that a client whose engine vanished is told its room stopped and gets a close frame
-    that says so."""
-
-    def __init__(self, client: _Client) -> None:
-        self.client = client
-        self.t: asyncio.Transport | None = None
-        self.frames = ServerFrames(on_lane=client.on_lane)
-        self.ended = False  # the engine's stream ended
-        self.done = False  # and what follows it was written to the client
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.t = transport
-        transport.set_write_buffer_limits(high=WRITE_HIGH)
-        self.client.gw._open.add(transport)
-
-    def data_received(self, data: bytes) -> None:
-        data = self.frames.feed(data)  # lane messages taken out
-        ct = self.client.t
-        if ct is not None and not ct.is_closing():
-            if data:
-                ct.write(data)
-            if self.client.pending and self.frames.between_messages():
-                self.client.flush_pending()
-
-    def eof_received(self) -> bool:
-        self._end()
-        return True  # the client's last bytes may still be on their way: keep writing
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if self.t is not None:
-            self.client.gw._open.discard(self.t)
-        self._end()
-
-    def pause_writing(self) -> None:  # the engine reads slowly: stop reading the client
-        if self.client.t is not None:
-            self.client.t.pause_reading()
-
-    def resume_writing(self) -> None:
-        if self.client.t is not None:
-            self.client.t.resume_reading()
-
-    def _end(self) -> None:
-        if not self.ended:
-            self.ended = True
-            self.client.gw._spawn(self._ended())
-
-    async def _ended(self) -> None:
-        """The engine's stream ended: when the engine itself is gone (its socket no longer
-        answers), the room's room_stopped and a close frame of the gateway's own, then the
-        end of file to the client."""
-        try:
-            await self._tell_client()
-        finally:
-            self.done = True
-            self.client.close_if_done()
-
-    async def _tell_client(self) -> None:
-        ct, frames = self.client.t, self.frames
-        if ct is None or ct.is_closing():
-            return
-        if frames.between_messages() and not await self.client.gw._engine_answers():
-            if ct.is_closing():
-                return
-            if frames.room is not None:
-                # docs/protocol.md's event and error (the gateway imports nothing of the
-                # game: the two messages are written here).
-                ct.write(text_frame(
-                    {"type": "event", "event": "room_stopped", "room": frames.room,
-                     "frame": max(frames.frame, 0), "time": frames.time, "reason": ROOM_GONE}))
-                ct.write(text_frame(
-                    {"type": "error", "code": "room_stopped",
-                     "message": f"room {frames.room} stopped: {ROOM_GONE}"}))
-            ct.write(close_frame(1011, ENGINE_GONE))
-        if not ct.is_closing() and ct.can_write_eof():
-            with contextlib.suppress(OSError):  # the client has gone meanwhile
-                ct.write_eof()
 
 
 __all__ = ["Gateway"]

@@ -29,7 +29,6 @@ HTTP) between the client and the engine.
 from __future__ import annotations
 
 import json
-import mmap
 import os
 import socket
 from dataclasses import dataclass
@@ -123,9 +122,9 @@ def send_blocks(sock: socket.socket, shares: list[tuple[int, int, int, str]]) ->
     socket.send_fds(sock, [line + b"\n"], [fd for _, fd, _, _ in shares])
 
 
-def receive_blocks(sock: socket.socket) -> dict[int, tuple[str, mmap.mmap]]:
-    """The gateway's side of ``BLOCKS`` (a blocking socket): each share mapped read/write,
-    by id, with its kind."""
+def receive_block_fds(sock: socket.socket) -> dict[int, tuple[str, int, int]]:
+    """The gateway's side of ``BLOCKS`` (a blocking socket): each share as (kind, memfd,
+    bytes), by id; the descriptors are the caller's to close."""
     sock.sendall(BLOCKS)
     data, fds, _, _ = socket.recv_fds(sock, LINE_MAX, MAX_BLOCKS)
     try:
@@ -134,11 +133,12 @@ def receive_blocks(sock: socket.socket) -> dict[int, tuple[str, mmap.mmap]]:
         named = json.loads(data)["blocks"]
         if len(named) != len(fds):
             raise ConnectionError(f"the engine named {len(named)} blocks and passed {len(fds)}")
-        return {int(b["id"]): (str(b["kind"]), mmap.mmap(fd, int(b["bytes"])))
+        return {int(b["id"]): (str(b["kind"]), fd, int(b["bytes"]))
                 for b, fd in zip(named, fds, strict=True)}
-    finally:
+    except BaseException:
         for fd in fds:
             os.close(fd)
+        raise
 
 
 def send_wake(sock: socket.socket, fd: int) -> None:

@@ -1,4 +1,5 @@
-"""The gateway's parts. Its reading of a server's stream (``server.gateway.frames``):
+"""The gateway's parts. Its pump's reading of a server's stream (``_native.ServerFollow``,
+native/net/follow.hpp):
 after any prefix of an HTTP 101 answer and a run of server frames made by websockets' own
 encoder (the reference), cut into chunks anywhere, it says a close frame may be written
 exactly when the prefix ends between two complete messages, and never after the server's
@@ -15,8 +16,9 @@ import urllib.error
 import urllib.request
 
 import pytest
+from clothball import _native
 from clothball.game.wire import protocol as P
-from clothball.server.gateway.frames import ServerFrames, close_frame, text_frame
+from clothball.server.gateway.frames import close_frame, text_frame
 from clothball.server.limits import Limits
 from clothball.server.shared import proxyline
 from hypothesis import given, settings
@@ -59,7 +61,7 @@ def stream(rng: random.Random, n: int) -> tuple[bytes, set[int]]:
 def test_between_messages_exactly_at_message_boundaries(seed: int, n: int) -> None:
     rng = random.Random(seed)
     data, ends = stream(rng, n)
-    frames, at = ServerFrames(), 0
+    frames, at = _native.ServerFollow(), 0
     while at < len(data):
         step = rng.choice((1, 2, 3, 7, 64, 1000, 70000))
         frames.feed(data[at:at + step])
@@ -91,10 +93,10 @@ def test_lane_messages_are_taken_out_and_every_other_byte_passes(seed: int, n: i
         prev = cut
     with_lanes += data[prev:]
     seen: list[bytes] = []
-    frames, out, i = ServerFrames(on_lane=seen.append), bytearray(), 0
+    frames, out, i = _native.ServerFollow(), bytearray(), 0
     while i < len(with_lanes):
         step = rng.choice((1, 2, 3, 7, 64, 1000, 70000))
-        out += frames.feed(with_lanes[i:i + step])
+        out += frames.feed(with_lanes[i:i + step], seen.append)
         i += step
     assert bytes(out) == data
     assert seen == lanes[:len(at)]
@@ -104,7 +106,6 @@ def test_a_clients_hips_are_offered_whole_and_the_rest_passes() -> None:
     """A client's stream (masked frames, as websockets' client writes them): each whole
     HIP-sized binary frame is offered unmasked; one taken is dropped, one refused passes
     as it came, and every other frame passes byte for byte, however the stream is cut."""
-    from clothball.server.gateway.lanes import client_frames
     rng = random.Random(5)
     hips = [P.encode_hip((0.1 * k, 1.0, -0.2), k, 0.5 * k) for k in range(1, 41)]
     frames = []  # a HIP, then a text message, each time
@@ -122,20 +123,20 @@ def test_a_clients_hips_are_offered_whole_and_the_rest_passes() -> None:
             offered.append(payload)
             return (len(offered) - 1) % 5 != 4
 
-        cf, out, i = client_frames(take), bytearray(), 0
+        cf, out, i = _native.ClientTap(P.HIP_SIZE), bytearray(), 0
         while i < len(data):
-            out += cf.feed(data[i:i + cut])
+            out += cf.feed(data[i:i + cut], take)
             i += cut
         assert offered == hips, cut
         assert bytes(out) == passed, cut
 
 
 def test_after_the_close_frame_and_for_plain_http_never() -> None:
-    f = ServerFrames()
+    f = _native.ServerFollow()
     f.feed(HEAD + Frame(Opcode.CLOSE, Close(1000, "bye").serialize()).serialize(
         mask=False, extensions=[]))
     assert f.closed and not f.between_messages()
-    g = ServerFrames()
+    g = _native.ServerFollow()
     g.feed(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}")
     assert g.given_up and not g.between_messages()
 
@@ -190,7 +191,7 @@ def test_the_room_a_client_is_in_as_the_engine_said(seed: int) -> None:
             mask=False, extensions=[]), room, 2**32 + 1),  # an older frame's: not taken
         (_text(P.error_message("room_stopped", "room stopped: non-finite")), None, 2**32 + 1),
     ]
-    f = ServerFrames()
+    f = _native.ServerFollow()
     data = HEAD + b"".join(b for b, _, _ in steps)
     at, ends, end = 0, [], len(HEAD)
     for b, r, fr in steps:  # each message's end in the stream, and what holds there
@@ -203,7 +204,9 @@ def test_the_room_a_client_is_in_as_the_engine_said(seed: int) -> None:
         f.feed(data[at:at + step])
         at += step
         if at == end:
-            assert (f.room, f.frame) == (r, fr), (at, f.room, f.frame)
+            # (the room as the engine's JSON wrote it, quoted)
+            room_now = None if f.room is None else json.loads(f.room)
+            assert (room_now, f.frame) == (r, fr), (at, f.room, f.frame)
             if fr == 12345:
                 assert f.time == 12.5
             end, r, fr = next(expect, (len(data) + 1, None, 0))
