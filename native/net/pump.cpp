@@ -6,6 +6,7 @@
 #include <sys/mman.h>
 #include <sys/socket.h>
 #include <sys/timerfd.h>
+#include <pthread.h>
 #include <sys/uio.h>
 #include <unistd.h>
 
@@ -322,6 +323,7 @@ void Pump::stop() {
 // --- the thread -----------------------------------------------------------------------------
 
 void Pump::run() {
+  pthread_setname_np(pthread_self(), "cb-pump");  // for /proc and the load bench
   epoll_event evs[256];
   while (running_.load()) {
     const int n = epoll_wait(ep_, evs, 256, -1);

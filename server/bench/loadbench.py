@@ -1047,19 +1047,20 @@ def _process_kind(p: subprocess.Popen[str]) -> str:
 
 # The server's threads by what they do (``server_cores_by_kind``): the native frame loops,
 # the engine's event loop (its network and control messages; a process's main thread), the
-# gateway processes (their event loops: relaying and their clients' lanes), the native MESH
-# encoders, the engine's service threads (each frame loop's Python service thread, the
-# recorder, the replay index's and the directory's pools), and any other (unnamed) thread.
-THREAD_KINDS = ("frame_loop", "event_loop", "gateways", "mesh_encoders", "service_threads",
-                "other")
+# gateway processes' Python (accepting, lane messages, control) and their native pumps
+# (relaying and their clients' lanes: native/net/pump.hpp), the native MESH encoders, the
+# engine's service threads (each frame loop's Python service thread, the recorder, the
+# replay index's and the directory's pools), and any other (unnamed) thread.
+THREAD_KINDS = ("frame_loop", "event_loop", "gateways", "gateway_pumps", "mesh_encoders",
+                "service_threads", "other")
 SERVICE_THREADS = ("clothball-", "replay-", "directory")
 
 
 def thread_kind(process: str, name: str, main: bool) -> str:
     """The kind (``THREAD_KINDS``) of a server thread: of a ``process`` ("engine" or
     "gateway"), named ``name`` by the OS, the process's main thread or not."""
-    if process == "gateway":
-        return "gateways"
+    if process == "gateway":  # its pump (the lanes, the relay), else its Python
+        return "gateway_pumps" if name.startswith("cb-pump") else "gateways"
     if main:
         return "event_loop"
     if name.startswith("cb-frame-loop"):

@@ -195,12 +195,12 @@ def test_load_bench_over_an_engine_and_a_gateway_on_one_port(tmp_path) -> None:
         for step in r["steps"]:  # every thread of theirs, the ones started later included
             assert step["server_affinity"] == usable[:1]
             assert step["client_affinity"] == usable[1:]
-            assert step["server_cores_by_kind"]["gateways"] > 0
-    # The OS names the engine's native frame loop and the gateway's event loop for the
-    # per-thread split (server/shared/osthread.py).
+            assert step["server_cores_by_kind"]["gateway_pumps"] > 0
+    # The OS names the engine's native frame loop and the gateway's pump for the
+    # per-thread split (server/shared/osthread.py, native/net/pump.cpp).
     for step in r["steps"]:
         assert step["server_threads_cores"]["engine cb-frame-loop"] > 0
-        assert step["server_threads_cores"]["gateway event loop"] > 0
+        assert step["server_threads_cores"]["gateway cb-pump"] > 0
     assert [s["rooms"] for s in r["steps"]] == [1, 2]
     for i, step in enumerate(r["steps"], start=1):
         assert step["rooms_per_host"] == [i]  # every room in the one engine
@@ -258,6 +258,7 @@ def test_cpu_lists_parse_as_taskset_writes_them() -> None:
     assert loadbench.parse_cpu_list(every, "--client-cpus") == usable
     assert loadbench._cpus_text([0, 1, 2, 5, 7, 8]) == "0-2,5,7-8"
     assert loadbench.thread_kind("gateway", "python3", True) == "gateways"
+    assert loadbench.thread_kind("gateway", "cb-pump", False) == "gateway_pumps"
     assert loadbench.thread_kind("engine", "python3", True) == "event_loop"
     assert loadbench.thread_kind("engine", "cb-frame-loop", False) == "frame_loop"
     assert loadbench.thread_kind("engine", "cb-mesh-encode", False) == "mesh_encoders"
