@@ -904,6 +904,10 @@ def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
     messages = step["messages_in_per_s"] + step["messages_out_per_s"]
     step["server_cpu_us_per_message"] = (step["server_cpu_cores"] * 1e6 / messages
                                          if messages > 0 else None)
+    # ... and by thread kind: what each kind spends a message of the server's (issue 43's
+    # per-message path: the gateways' pumps' figure is the HIP, CORNER and MESH path's).
+    step["server_cpu_us_per_message_by_kind"] = {
+        k: (v * 1e6 / messages if messages > 0 else None) for k, v in by_kind.items()}
     # Where their threads may run, read back (--server-cpus, --client-cpus: every thread,
     # the frame loops and encoders started after the pinning included).
     step["server_affinity"] = _affinity(servers)
@@ -1133,7 +1137,10 @@ def _load_line(s: dict[str, Any]) -> str:
             f"  load {s['load_average']:.1f}  {verdict}"
             "\n      server cores by kind: " + ", ".join(
                 f"{k.replace('_', ' ')} {v:.2f}" for k, v in s["server_cores_by_kind"].items())
-            + f"; {_us(s['server_cpu_us_per_message'])} µs of server CPU a message; clients "
+            + f"; {_us(s['server_cpu_us_per_message'])} µs of server CPU a message ("
+            + ", ".join(f"{k.replace('_', ' ')} {_us(v)}" for k, v in
+                        s.get("server_cpu_us_per_message_by_kind", {}).items() if v)
+            + "); clients "
             f"{s['clients_cpu_per_room']:.3f} core a room"
             "\n      busiest threads (cores): " + ", ".join(
                 f"{k} {v:.2f}" for k, v in list(s.get("server_threads_cores", {}).items())[:5]))

@@ -46,7 +46,8 @@ STEP_KEYS = {
     "corner_delivery", "mesh_hz_asked", "mesh_hz_received", "mesh_delivery", "frames_per_s",
     "frames_per_s_min", "client_errors", "client_last_error", "clients_lost",
     "clients_fell_behind", "held", "stopped_by", "why",
-    "server_cores_by_kind", "server_cpu_us_per_message", "clients_cpu_per_room",
+    "server_cores_by_kind", "server_cpu_us_per_message", "server_cpu_us_per_message_by_kind",
+    "clients_cpu_per_room",
     "server_affinity", "client_affinity",
 }
 REASONS = {"lateness", "delivery", "server_cpu", "clients_cpu"}
@@ -95,6 +96,8 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
     messages = step["messages_in_per_s"] + step["messages_out_per_s"]
     assert step["server_cpu_us_per_message"] == pytest.approx(
         step["server_cpu_cores"] * 1e6 / messages)
+    assert step["server_cpu_us_per_message_by_kind"] == pytest.approx(
+        {k: v * 1e6 / messages for k, v in kinds.items()})
     usable = sorted(os.sched_getaffinity(0))
     assert step["server_affinity"] and set(step["server_affinity"]) <= set(usable)
     assert step["client_affinity"] and set(step["client_affinity"]) <= set(usable)
