@@ -7,8 +7,9 @@
 #       2-core machine's no-regression check on a quiet machine
 #   PAR_ROUNDS="base head base head/head base head base"  the same run, several at once: in
 #       each round (rounds split by /) the i-th label on cores 2i+2,2i+3, the rounds in turn
-#   HOST="base head"  each: one host on the GPU, `bench --load --workers $W --rooms-step 64
-#       --load-max-rooms 128 --client-procs 6`
+#   HOST="base head"  each: one host on the GPU, `bench --load --workers $W --rooms-step $STEP
+#       --load-max-rooms $MAX --client-procs $PROCS $CPUS` (CPUS: e.g. "--server-cpus 0-9
+#       --client-cpus 10-15", the server and its load on cores of their own)
 #   GPU_TESTS / TESTS  as in tools/gpu_host.sh, on head, first
 #   SKIP_BUILD=1  a warm machine that has both builds (a second call within its warm time)
 # A label "head:VAR=value" runs head with that environment variable set (an experiment); "mix"
@@ -85,7 +86,8 @@ for label in ${HOST:-}; do
   i=$((i + 1)); name="host_${i}_${label%%:*}"
   echo "== $name ($label) $(uptime)"
   as "$label" timeout "${RUN_S:-120}" python3 -m clothball.game.cli bench --load \
-    --server-backend cuda --workers "$W" --scene default --rooms-step "${STEP:-64}" --load-max-rooms 128 \
-    --load-seconds 5 --steps-past 1 --client-procs 6 --json "$OUT/$name.json" \
+    --server-backend cuda --workers "$W" --scene default --rooms-step "${STEP:-64}" \
+    --load-max-rooms "${MAX:-128}" --load-seconds 5 --steps-past 1 --client-procs "${PROCS:-6}" \
+    ${CPUS:-} --json "$OUT/$name.json" \
     2>>"$OUT/bench.err" | tail -2
 done

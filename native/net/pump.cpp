@@ -5,7 +5,6 @@
 #include <sys/eventfd.h>
 #include <sys/mman.h>
 #include <sys/socket.h>
-#include <sys/timerfd.h>
 #include <pthread.h>
 #include <sys/uio.h>
 #include <unistd.h>
@@ -24,7 +23,7 @@ namespace cb::net {
 namespace lp = cb::loop;
 
 namespace {
-constexpr std::uint64_t kCmdTag = 1, kTimerTag = 2, kWakeTag = 3;
+constexpr std::uint64_t kCmdTag = 1, kWakeTag = 3;
 constexpr int kCorner = 0, kMesh = 1;
 
 // epoll data: a connection's id times 2, plus 1 for its engine side.
@@ -102,23 +101,20 @@ Pump::Pump() {
   ep_ = epoll_create1(EPOLL_CLOEXEC);
   cmd_fd_ = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
   event_fd_ = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
-  timer_fd_ = timerfd_create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC);
-  if (ep_ < 0 || cmd_fd_ < 0 || event_fd_ < 0 || timer_fd_ < 0)
+  if (ep_ < 0 || cmd_fd_ < 0 || event_fd_ < 0)
     throw std::runtime_error(std::string("the gateway's pump could not start: ") +
                              std::strerror(errno));
   epoll_event ev{};
   ev.events = EPOLLIN;
   ev.data.u64 = kCmdTag;
   epoll_ctl(ep_, EPOLL_CTL_ADD, cmd_fd_, &ev);
-  ev.data.u64 = kTimerTag;
-  epoll_ctl(ep_, EPOLL_CTL_ADD, timer_fd_, &ev);
   thread_ = std::thread([this] { run(); });
 }
 
 Pump::~Pump() {
   stop();
   if (thread_.joinable()) thread_.join();
-  for (int fd : {ep_, cmd_fd_, event_fd_, timer_fd_})
+  for (int fd : {ep_, cmd_fd_, event_fd_})
     if (fd >= 0) ::close(fd);
 }
 
@@ -326,15 +322,12 @@ void Pump::run() {
   pthread_setname_np(pthread_self(), "cb-pump");  // for /proc and the load bench
   epoll_event evs[256];
   while (running_.load()) {
-    const int n = epoll_wait(ep_, evs, 256, -1);
+    const int n = wait(evs, 256);
     if (n < 0 && errno != EINTR) break;
     for (int i = 0; i < n; ++i) {
       const std::uint64_t t = evs[i].data.u64;
       if (t == kCmdTag) {
         on_cmd();
-      } else if (t == kTimerTag) {
-        drain(timer_fd_);
-        armed_at_ = -1;
       } else if (t == kWakeTag) {
         on_wake();
       } else {
@@ -354,11 +347,8 @@ void Pump::run() {
       c->dirty = false;
       flush(*c);
     }
-    for (auto it = conns_.begin(); it != conns_.end();) {
-      if (it->second->dead) it = conns_.erase(it);
-      else ++it;
-    }
-    arm_timer();
+    for (std::int64_t id : dead_) conns_.erase(id);
+    dead_.clear();
   }
   for (auto& kv : conns_) {
     Conn& c = *kv.second;
@@ -446,7 +436,7 @@ void Pump::on_client(Conn& c, std::uint32_t ev) {
       dirty_.push_back(&c);
     }
   }
-  interest(c);
+  if (!c.dirty) interest(c);  // (else the pass's flush sets it, once)
 }
 
 void Pump::on_engine(Conn& c, std::uint32_t ev) {
@@ -479,7 +469,7 @@ void Pump::on_engine(Conn& c, std::uint32_t ev) {
       dirty_.push_back(&c);
     }
   }
-  interest(c);
+  if (!c.dirty) interest(c);  // (else the pass's flush sets it, once)
 }
 
 void Pump::engine_ended(Conn& c) {
@@ -556,6 +546,7 @@ void Pump::kill(Conn& c) {
   ::close(c.cfd);
   ::close(c.efd);
   c.dead = true;
+  dead_.push_back(c.id);
   live_.fetch_sub(1);
   Event e;
   e.kind = Event::kClosed;
@@ -788,24 +779,22 @@ void Pump::on_timers() {
   }
 }
 
-void Pump::arm_timer() {
-  if (timers_.empty()) {
-    if (armed_at_ >= 0) {
-      itimerspec off{};
-      timerfd_settime(timer_fd_, 0, &off, nullptr);
-      armed_at_ = -1;
-    }
-    return;
+// Waits for the sockets until the earliest timer (epoll_pwait2: to the nanosecond, without
+// a timer descriptor's two system calls a wake-up; epoll_wait's whole milliseconds where
+// the kernel lacks it).
+int Pump::wait(epoll_event* evs, int max) {
+  if (timers_.empty()) return epoll_wait(ep_, evs, max, -1);
+  double d = timers_.top().at - monotonic();
+  if (d < 0) d = 0;
+  if (pwait2_) {
+    timespec ts;
+    ts.tv_sec = time_t(d);
+    ts.tv_nsec = long((d - std::floor(d)) * 1e9);
+    const int n = epoll_pwait2(ep_, evs, max, &ts, nullptr);
+    if (n >= 0 || errno != ENOSYS) return n;
+    pwait2_ = false;
   }
-  const double at = timers_.top().at;
-  if (at == armed_at_) return;
-  armed_at_ = at;
-  itimerspec its{};
-  double secs = std::floor(at);
-  its.it_value.tv_sec = time_t(secs);
-  its.it_value.tv_nsec = long((at - secs) * 1e9);
-  if (its.it_value.tv_sec == 0 && its.it_value.tv_nsec == 0) its.it_value.tv_nsec = 1;
-  timerfd_settime(timer_fd_, TFD_TIMER_ABSTIME, &its, nullptr);
+  return epoll_wait(ep_, evs, max, int(std::ceil(d * 1000.0)));
 }
 
 }  // namespace cb::net

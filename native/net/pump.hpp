@@ -12,6 +12,8 @@
 // (net/follow.hpp), a lane's messages written only between two of the engine's (else
 // the newest of each kind held), a CORNER skipped for a client with kWriteSkip unsent.
 #pragma once
+#include <sys/epoll.h>
+
 #include <atomic>
 #include <cstdint>
 #include <deque>
@@ -137,7 +139,7 @@ class Pump {
   void on_engine(Conn& c, std::uint32_t ev);
   void on_wake();
   void on_timers();
-  void arm_timer();
+  int wait(epoll_event* evs, int max);
   void schedule(double at, std::int64_t conn, std::uint64_t gen);
   void interest(Conn& c);
   bool flush(Conn& c);
@@ -157,7 +159,8 @@ class Pump {
   Shared* shared(std::int64_t id);
   void unmap_all();
 
-  int ep_ = -1, cmd_fd_ = -1, event_fd_ = -1, timer_fd_ = -1, wake_fd_ = -1;
+  int ep_ = -1, cmd_fd_ = -1, event_fd_ = -1, wake_fd_ = -1;
+  bool pwait2_ = true;
   bool no_wake_ = false, armed_want_ = false;
   std::thread thread_;
   std::atomic<bool> running_{true};
@@ -174,12 +177,12 @@ class Pump {
   std::unordered_map<std::int64_t, std::unique_ptr<Conn>> conns_;
   std::unordered_map<std::int64_t, Shared> shared_;
   std::priority_queue<Timer, std::vector<Timer>, std::greater<Timer>> timers_;
-  double armed_at_ = -1;
   std::set<std::int64_t> framed_;
   std::map<std::pair<std::int64_t, std::size_t>, Watch> watched_;
   bool mesh_timer_ = false;
   std::vector<std::uint8_t> mesh_buf_;
   std::vector<Conn*> dirty_;
+  std::vector<std::int64_t> dead_;  // closed this pass: erased at its end
   double block_asked_at_ = -1e9;
 };
 
