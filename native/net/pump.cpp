@@ -84,6 +84,9 @@ struct Pump::Conn {
   bool finishing = false;  // the gateway's tail is queued: then the client's end
   bool c_shut = false;     // the client's side was ended
   bool c_paused = false, e_paused = false;  // reading stopped (the other side is behind)
+  // The engine hung up while its reading was stopped: out of the poll until it is read
+  // again (a hang-up is reported on every wait, whatever the interest).
+  bool e_parked = false;
   std::uint32_t c_mask = 0, e_mask = 0;     // epoll interest now
   bool dirty = false, dead = false;
   ClientTap tap{kHipBytes};
@@ -388,20 +391,23 @@ void Pump::interest(Conn& c) {
     epoll_ctl(ep_, EPOLL_CTL_MOD, c.cfd, &ev);
     c.c_mask = cm;
   }
-  if (em != c.e_mask && !c.e_ended) {
+  if (c.e_ended || (c.e_parked && c.e_paused)) return;
+  if (em != c.e_mask || c.e_parked) {
     epoll_event ev{};
     ev.events = em;
     ev.data.u64 = tag(c.id, true);
-    epoll_ctl(ep_, EPOLL_CTL_MOD, c.efd, &ev);
+    epoll_ctl(ep_, c.e_parked ? EPOLL_CTL_ADD : EPOLL_CTL_MOD, c.efd, &ev);
     c.e_mask = em;
+    c.e_parked = false;
   }
 }
 
 void Pump::on_client(Conn& c, std::uint32_t ev) {
   if (ev & EPOLLOUT) flush(c);
   if (c.dead) return;
-  // An error, or both ways shut (a reset, or a close after its end): nothing more can pass.
-  if (((ev & EPOLLERR) && !(ev & EPOLLIN)) || ((ev & EPOLLHUP) && c.c_eof)) {
+  // An error, or both ways shut (a reset, or a close after its end; or while its reading
+  // is stopped): nothing more can pass.
+  if (((ev & EPOLLERR) && !(ev & EPOLLIN)) || ((ev & EPOLLHUP) && (c.c_eof || c.c_paused))) {
     kill(c);
     return;
   }
@@ -442,7 +448,14 @@ void Pump::on_client(Conn& c, std::uint32_t ev) {
 void Pump::on_engine(Conn& c, std::uint32_t ev) {
   if (ev & EPOLLOUT) flush(c);
   if (c.dead || c.e_ended) return;
-  if (!(ev & (EPOLLIN | EPOLLRDHUP | EPOLLHUP | EPOLLERR)) || c.e_paused) return;
+  if (c.e_paused) {
+    if ((ev & (EPOLLHUP | EPOLLERR)) && !c.e_parked) {
+      epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
+      c.e_parked = true;
+    }
+    return;
+  }
+  if (!(ev & (EPOLLIN | EPOLLRDHUP | EPOLLHUP | EPOLLERR))) return;
   std::uint8_t buf[kChunk];
   const ssize_t r = ::read(c.efd, buf, sizeof buf);
   if (r < 0 && (errno == EAGAIN || errno == EINTR)) return;
@@ -478,7 +491,7 @@ void Pump::engine_ended(Conn& c) {
   c.to_engine.clear();  // nothing more can reach it
   c.e_off = 0;
   // Out of the poll for good: a closed peer's hang-up would be reported on every wait.
-  epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
+  if (!c.e_parked) epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
   Event e;
   e.kind = Event::kEnded;
   e.conn = c.id;
@@ -542,7 +555,7 @@ void Pump::kill(Conn& c) {
   if (c.dead) return;
   end_lane(c);
   epoll_ctl(ep_, EPOLL_CTL_DEL, c.cfd, nullptr);
-  if (!c.e_ended) epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
+  if (!c.e_ended && !c.e_parked) epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
   ::close(c.cfd);
   ::close(c.efd);
   c.dead = true;
