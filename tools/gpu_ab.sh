@@ -12,6 +12,7 @@
 #       --client-cpus 10-15", the server and its load on cores of their own)
 #   GPU_TESTS / TESTS  as in tools/gpu_host.sh, on head, first
 #   SKIP_BUILD=1  a warm machine that has both builds (a second call within its warm time)
+#   BUILD="head"  build only these (no base: no label may use it)
 # A label "head:VAR=value" runs head with that environment variable set (an experiment); "mix"
 # runs head's server with base's load-generator clients (on two cores the clients' own CPU
 # is shared with the server's: mix against base compares the servers alone).
@@ -29,7 +30,7 @@ if [ "${SKIP_BUILD:-0}" != 1 ]; then
   nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv \
     | tee "$OUT/gpu.txt"
   start=$SECONDS
-  for t in head base; do
+  for t in ${BUILD:-head base}; do
     src=.; [ $t = base ] && src=./.base
     python3 -m pip install -q --no-build-isolation --no-deps --target /tmp/$t-site \
       -Cbuild-dir=/tmp/cb-build-$t -Ccmake.define.CLOTHBALL_CUDA=ON \

@@ -41,7 +41,12 @@ py::tuple event_tuple(const cn::Event& e) {
 
 void bind_pump(py::module_& m) {
   py::class_<cn::Pump>(m, "Pump")
-      .def(py::init<>())
+      .def(py::init([](double coalesce_s) {
+             if (!std::isfinite(coalesce_s) || coalesce_s < 0 || coalesce_s > 0.01)
+               throw py::value_error("the pump's coalescing: 0 to 0.01 s");
+             return std::make_unique<cn::Pump>(coalesce_s);
+           }),
+           py::arg("coalesce_s") = cn::kCoalesceS)
       .def("add", &cn::Pump::add, py::arg("client_fd"), py::arg("engine_fd"),
            py::arg("to_engine"), py::arg("client_eof"))
       .def(

@@ -47,6 +47,7 @@ constexpr double kMeshLookS = 0.004;         // the watched rooms' boards looked
 constexpr double kTimerMaxHz = 500.0;        // above: CORNERs on the frame wake-up
 constexpr double kBlockRetryS = 0.5;         // between two asks for a missing block
 constexpr std::size_t kHipBytes = 28;        // docs/protocol.md's HIP
+constexpr double kCoalesceS = 0.001;         // the pump's tick while it has timers
 
 // A lane (server/shared/lanes.py LaneSpec): a seated player's hand and CORNER, and any
 // client's MESH, served from the engine's shared memory.
@@ -84,7 +85,9 @@ struct Shared {
 
 class Pump {
  public:
-  Pump();
+  // coalesce_s: the tick the pump runs on while it has lanes (0: each event wakes it), a
+  // message's most added wait.
+  explicit Pump(double coalesce_s = kCoalesceS);
   ~Pump();
   Pump(const Pump&) = delete;
   Pump& operator=(const Pump&) = delete;
@@ -161,6 +164,7 @@ class Pump {
 
   int ep_ = -1, cmd_fd_ = -1, event_fd_ = -1, wake_fd_ = -1;
   bool pwait2_ = true;
+  double coalesce_s_;
   bool no_wake_ = false, armed_want_ = false;
   std::thread thread_;
   std::atomic<bool> running_{true};

@@ -19,11 +19,12 @@ from .relay import Gateway
 
 
 async def main(args: argparse.Namespace) -> int:
-    gw = Gateway(args.host, args.port, args.engine_socket)
     try:
+        gw = Gateway(args.host, args.port, args.engine_socket)
         await gw.start()
-    except OSError as e:
-        print(json.dumps({"gateway": args.index, "error": e.strerror or str(e)}), flush=True)
+    except (OSError, ValueError) as e:
+        why = (e.strerror or str(e)) if isinstance(e, OSError) else str(e)
+        print(json.dumps({"gateway": args.index, "error": why}), flush=True)
         return 1
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -29,6 +29,24 @@ def lanes_wanted() -> bool:
     return os.environ.get(LANES_ENV, "1").strip() != "0"
 
 
+COALESCE_ENV = "CLOTHBALL_PUMP_COALESCE_US"  # the pump's wake-ups under load (A/B runs)
+
+
+def pump_coalesce_s() -> float | None:
+    """The pump's coalescing time from ``COALESCE_ENV`` (µs, 0-10 000), None: its default.
+    Raises ``ValueError`` saying what is wrong."""
+    text = os.environ.get(COALESCE_ENV, "").strip()
+    if not text:
+        return None
+    try:
+        us = float(text)
+    except ValueError:
+        us = math.nan
+    if not (0 <= us <= 10_000):
+        raise ValueError(f"{COALESCE_ENV}={text!r}: give microseconds from 0 to 10000")
+    return us * 1e-6
+
+
 class EngineLink:
     """The gateway's link to the engine's control socket at ``path``, feeding ``pump``."""
 

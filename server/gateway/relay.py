@@ -38,7 +38,7 @@ from ..shared import proxyline
 from ..shared.lanes import ctl_path, parse_lane
 from ..shared.listen import ACCEPT_BACKLOG
 from .frames import close_frame, text_frame
-from .lanes import EngineLink, lanes_wanted
+from .lanes import EngineLink, lanes_wanted, pump_coalesce_s
 
 CHUNK = 1 << 16  # bytes a client may send before its engine answers
 HEAD_WAIT_S = 5.0  # for a request's head, before a 503 while the engine is away
@@ -86,7 +86,8 @@ class Gateway:
     def __init__(self, host: str, port: int, engine: Path) -> None:
         self.host, self.port, self.engine = host, port, engine
         self.server: asyncio.Server | None = None
-        self.pump = _native.Pump()
+        coalesce = pump_coalesce_s()
+        self.pump = _native.Pump() if coalesce is None else _native.Pump(coalesce)
         # Its clients' lanes served here (server.shared.lanes), unless off.
         self.lanes = EngineLink(ctl_path(engine), self.pump) if lanes_wanted() else None
         self._open: set[asyncio.BaseTransport] = set()  # clients not yet handed to the pump

@@ -354,3 +354,17 @@ def test_the_control_socket_gives_a_gateway_its_frame_wake_up_and_arms_it(tmp_pa
             await ctl.stop()
 
     run(main())
+
+
+def test_the_pumps_tick_from_the_environment_is_checked(monkeypatch) -> None:
+    from clothball.server.gateway.lanes import COALESCE_ENV, pump_coalesce_s
+    monkeypatch.delenv(COALESCE_ENV, raising=False)
+    assert pump_coalesce_s() is None
+    monkeypatch.setenv(COALESCE_ENV, "250")
+    assert pump_coalesce_s() == pytest.approx(250e-6)
+    for bad in ("-1", "nan", "1e9", "fast"):
+        monkeypatch.setenv(COALESCE_ENV, bad)
+        with pytest.raises(ValueError, match=f"{COALESCE_ENV}=.*microseconds from 0 to 10000"):
+            pump_coalesce_s()
+    with pytest.raises(ValueError, match="0 to 0.01 s"):
+        _native.Pump(0.5)
