@@ -20,6 +20,7 @@
 #pragma once
 #include <zlib.h>
 
+#include <algorithm>
 #include <cstdint>
 #include <cstring>
 #include <memory>
@@ -53,23 +54,25 @@ struct MeshScratch {
 
 // Version 2's payload order: for each axis, the low bytes of all n*n values (nodes
 // row-major), then their high bytes. `v`: n*n*3 interleaved uint16; with `above` (a row's
-// width of values back, n*3) each value less the one above it (the first row as it is), as
-// a zigzag code: given the row deltas, the 2-D residuals of docs/protocol.md.
+// width of values, n*3) each value less the one above it (the first row as it is), as a
+// zigzag code: given the row deltas, the 2-D residuals of docs/protocol.md. One pass over
+// the nodes, writing the six planes together.
 inline void to_planes(const std::uint16_t* v, std::size_t nodes, unsigned char* out,
                       std::size_t above = 0) {
-  for (int a = 0; a < 3; ++a) {
-    unsigned char* lo = out + 2 * std::size_t(a) * nodes;
-    unsigned char* hi = lo + nodes;
-    for (std::size_t k = 0; k < nodes; ++k) {
-      const std::size_t at = 3 * k + std::size_t(a);
-      std::uint16_t x = v[at];
+  unsigned char* pl[6];
+  for (int k = 0; k < 6; ++k) pl[k] = out + std::size_t(k) * nodes;
+  const std::size_t first = above == 0 ? nodes : std::min(nodes, above / 3);
+  for (std::size_t k = 0; k < nodes; ++k) {
+    for (int a = 0; a < 3; ++a) {
+      std::uint16_t x = v[3 * k + std::size_t(a)];
       if (above != 0) {
-        const std::uint16_t r = at >= above ? std::uint16_t(x - v[at - above]) : x;
-        // zigzag: (r << 1) ^ (r < 0 ? 0xFFFF : 0), r read as int16
+        // the first row as it is; zigzag: (r << 1) ^ (r < 0 ? 0xFFFF : 0), r read as int16
+        const std::uint16_t r =
+            k < first ? x : std::uint16_t(x - v[3 * k + std::size_t(a) - above]);
         x = std::uint16_t(std::uint16_t(r << 1) ^ std::uint16_t(0u - (r >> 15)));
       }
-      lo[k] = static_cast<unsigned char>(x & 0xFFu);
-      hi[k] = static_cast<unsigned char>(x >> 8);
+      pl[2 * a][k] = static_cast<unsigned char>(x & 0xFFu);
+      pl[2 * a + 1][k] = static_cast<unsigned char>(x >> 8);
     }
   }
 }
