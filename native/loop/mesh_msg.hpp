@@ -10,12 +10,12 @@
 // Version 2 (what the server sends) codes each value as its residual from the plane through
 // its left, upper and upper-left neighbours (the row deltas less the row above's), zigzag
 // mapped (0, -1, 1, -2 ... to 0, 1, 2, 3 ...), lays them out in byte planes, axis by axis
-// (x's low bytes, x's high bytes, then y's, z's) and deflates with libdeflate; version 1
+// (x's low bytes, x's high bytes, then y's, z's) and deflates them as literals, a Huffman
+// code a plane (huffman_deflate.hpp), or with libdeflate's level 1 for small cloths; version 1
 // (old replays; kept here as the benchmark's "before") sends row deltas interleaved x y z
-// as uint16, deflated with zlib. Both are zlib streams. On a smooth cloth the residuals are
-// small, so their high-byte planes are nearly all zeros: ~40 % fewer bytes than version 1,
-// and libdeflate at level 1 takes about a third of zlib's time (docs/benchmarks/load.md,
-// "MESH codings").
+// as uint16, deflated with zlib. All are zlib streams. On a smooth cloth the residuals are
+// small, so their high-byte planes are nearly all zeros: ~30 % fewer bytes than version 1
+// at n = 48, in ~0.2x its time (docs/benchmarks/load.md, "MESH codings").
 // tests/server/test_mesh_msg.py checks it against the Python encoder and decoder.
 #pragma once
 #include <zlib.h>
@@ -27,6 +27,7 @@
 #include <vector>
 
 #include "loop/corner_msg.hpp"
+#include "loop/huffman_deflate.hpp"
 #include "loop/mesh_quant.hpp"
 #include "third_party/libdeflate/libdeflate.h"
 
@@ -34,6 +35,12 @@ namespace cb::loop {
 
 constexpr std::uint8_t kMeshType = 3;
 constexpr std::uint8_t kMeshVersion = 2;        // the planes; 1: today's interleaved uint16
+// Version 2's deflater: its planes as literals, or libdeflate's level 1; kAuto (the
+// server's) takes literals from kLiteralsFromNodes nodes on and libdeflate below, where the
+// literal coder's six codes a message cost more than libdeflate's match search saves
+// (`clothball bench --mesh --sizes 16,24,32,40,48`: the two even at n = 32-40).
+enum class MeshDeflater { kAuto, kLiterals, kLibdeflate };
+constexpr std::size_t kLiteralsFromNodes = 36 * 36;
 constexpr std::uint16_t kFlagZlib = 1, kFlagDelta = 2;
 constexpr std::size_t kMeshHeadBytes = 16 + 100;  // header and body, before the nodes
 
@@ -44,8 +51,8 @@ struct DeflaterFree {
   void operator()(libdeflate_compressor* c) const { libdeflate_free_compressor(c); }
 };
 
-// One encoder thread's buffers, kept between messages (the compressor's tables are
-// ~0.5 MB: made once, not a message).
+// One encoder thread's buffers, kept between messages (libdeflate's compressor, where
+// asked for, holds ~0.5 MB of tables: made once, not a message).
 struct MeshScratch {
   std::vector<std::uint16_t> q, delta;
   std::vector<unsigned char> planes, z;
@@ -82,7 +89,8 @@ inline void to_planes(const std::uint16_t* v, std::size_t nodes, unsigned char* 
 inline void encode_mesh_msg(std::vector<std::uint8_t>& out, MeshScratch& s, const double* p,
                             int n, std::int64_t frame, double server_time, const double* ball,
                             double radius, const double* hips, bool compress,
-                            int version = kMeshVersion) {
+                            int version = kMeshVersion,
+                            MeshDeflater deflater = MeshDeflater::kAuto) {
   using detail::put;
   using detail::put3f;
   const std::size_t nodes = std::size_t(n) * std::size_t(n), values = 3 * nodes;
@@ -105,15 +113,22 @@ inline void encode_mesh_msg(std::vector<std::uint8_t>& out, MeshScratch& s, cons
       flags = kFlagZlib | kFlagDelta;
     }
   } else if (compress) {
-    if (!s.deflater) s.deflater.reset(libdeflate_alloc_compressor(1));
     s.planes.resize(raw);
     to_planes(s.delta.data(), nodes, s.planes.data(), 3 * std::size_t(n));
     // The output room is 90 % of the raw nodes: a stream that does not fit is not worth it.
     s.z.resize(std::size_t(0.9 * double(raw)));
-    const std::size_t zn =
-        s.deflater ? libdeflate_zlib_compress(s.deflater.get(), s.planes.data(), raw,
-                                              s.z.data(), s.z.size())
-                   : 0;
+    std::size_t zn = 0;
+    if (deflater == MeshDeflater::kAuto)
+      deflater = nodes >= kLiteralsFromNodes ? MeshDeflater::kLiterals
+                                             : MeshDeflater::kLibdeflate;
+    if (deflater == MeshDeflater::kLiterals) {
+      zn = huff::zlib_literals(s.planes.data(), raw, 6, s.z.data(), s.z.size());
+    } else {
+      if (!s.deflater) s.deflater.reset(libdeflate_alloc_compressor(1));
+      if (s.deflater)
+        zn = libdeflate_zlib_compress(s.deflater.get(), s.planes.data(), raw, s.z.data(),
+                                      s.z.size());
+    }
     if (zn != 0) {
       payload = s.z.data();
       bytes = zn;
