@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from clothball import _native
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay, write_replay
 
@@ -108,6 +109,11 @@ def messages() -> list[tuple[str, bytes]]:
     out.append(("mesh_rough", P.encode_mesh(8, 0.008, rough, [0, 1.2, 0], 0.05, hips)))
     big_frame = P.encode_mesh(2**40 + 3, 1e6, sheet(4, 8), [0, 1, 0], 0.1, hips)
     out.append(("mesh_big_frame", big_frame))
+    # the server's encoder (C++): its planes deflated as literals and by libdeflate
+    for deflater in ("literals", "libdeflate"):
+        out.append((f"mesh_native_{deflater}", _native.encode_mesh_msg(
+            sheet(36, 9), 2000, 2.0, [0.0, 1.3, 0.0], 0.08, hips.reshape(12), True, 2,
+            deflater)))
     v1 = json.loads(MESH_V1.read_text())["messages"]
     out += [(f"mesh_v1_{k}_{'zlib' if m['flags'] else 'raw'}", base64.b64decode(m["b64"]))
             for k, m in enumerate(v1)]
