@@ -510,7 +510,7 @@ class FrameWorker:
         # with the event loop and one another (H100, 128 rooms: MESH at 17 of 30 Hz). The
         # due rooms are shared among the encoder threads: zlib took ~0.5 ms a mesh at
         # n = 48 (one thread held 64 rooms' 30 Hz only at 0.95 core, H100); MESH version
-        # 2 takes ~0.3x that (`clothball bench --mesh`).
+        # 2 takes ~0.2x that (`clothball bench --mesh`).
         taken = self.frame_loop.take_encoded(self.board, self.board_slot,
                                              self.arena.ball_radius,
                                              self.settings.compress_mesh, self.encoders)
