@@ -217,9 +217,10 @@ def run_rooms_cmd(args: argparse.Namespace) -> int:
 
 def run_mesh_cmd(args: argparse.Namespace) -> int:
     try:
-        sizes = [int(s) for s in csv_list(args.sizes or "16,48,96", "sizes")]
-        if any(not 2 <= s <= 1024 for s in sizes):
-            raise ValueError("--sizes: each n must be in 2..1024 for --mesh")
+        items = csv_list(args.sizes or "16,48,96", "sizes")
+        if not all(s.isdigit() and 2 <= int(s) <= 1024 for s in items):
+            raise ValueError("--sizes: each n must be an integer in 2..1024 for --mesh")
+        sizes = [int(s) for s in items]
         if not 1 <= args.mesh_rounds <= 100_000:
             raise ValueError("--mesh-rounds: must be in 1..100000")
     except ValueError as e:
