@@ -3,7 +3,7 @@
 // frames start with the same 16-byte little-endian header:
 //
 //   offset 0  u8   type     HIP=1, CORNER=2, MESH=3, TRACK=4
-//   offset 1  u8   version  PROTOCOL_VERSION
+//   offset 1  u8   version  the message's format: 1 (MESH: 2; MESH 1 still read)
 //   offset 2  u16  flags    MESH: bit 0 zlib payload, bit 1 row-delta payload
 //   offset 4  u32  seq      sender's sequence number
 //   offset 8  f64  time     sender's clock, seconds
@@ -14,6 +14,10 @@
 
 
 export const PROTOCOL_VERSION = 1;
+// Each binary type's format versions read (protocol.py's READ_VERSIONS): MESH 2 is sent,
+// MESH 1 (interleaved payload) is still read for old replays.
+export const MESH_VERSION = 2;
+export const READ_VERSIONS = { 1: [1], 2: [1], 3: [1, 2], 4: [1] };
 export const HIP = 1, CORNER = 2, MESH = 3, TRACK = 4;
 export const BINARY_TYPES = { 1: "HIP", 2: "CORNER", 3: "MESH", 4: "TRACK" };
 export const FLAG_ZLIB = 1, FLAG_DELTA = 2;
@@ -72,9 +76,9 @@ export function decodeHeader(data, expect = null) {
   const type = dv.getUint8(0), version = dv.getUint8(1), flags = dv.getUint16(2, true);
   const seq = dv.getUint32(4, true), time = dv.getFloat64(8, true);
   if (!(type in BINARY_TYPES)) throw new ProtocolError("bad_binary", `unknown binary message type ${type}`);
-  if (version !== PROTOCOL_VERSION) {
+  if (!READ_VERSIONS[type].includes(version)) {
     throw new ProtocolError("bad_version",
-      `binary message version ${version}; this client speaks ${PROTOCOL_VERSION}`);
+      `${BINARY_TYPES[type]} message version ${version}; this side reads ${READ_VERSIONS[type].join(", ")}`);
   }
   if (expect !== null && type !== expect) {
     throw new ProtocolError("bad_binary",
@@ -194,7 +198,9 @@ export async function decodeMesh(data) {
     throw new ProtocolError("bad_binary", `MESH payload of ${payload.length} bytes, need ${expected}`);
   }
   let q;
-  if (LITTLE_ENDIAN && payload.byteOffset % 2 === 0 && (h.flags & FLAG_ZLIB)) {
+  if (h.version === 2) {
+    q = meshFromPlanes(payload, n, h.flags & FLAG_DELTA);
+  } else if (LITTLE_ENDIAN && payload.byteOffset % 2 === 0 && (h.flags & FLAG_ZLIB)) {
     q = new Uint16Array(payload.buffer, payload.byteOffset, count); // freshly inflated: ours
   } else if (LITTLE_ENDIAN) {
     q = new Uint16Array(count); // a copy: the caller's buffer stays untouched
@@ -204,7 +210,7 @@ export async function decodeMesh(data) {
     const pv = view(payload);
     for (let i = 0; i < count; i++) q[i] = pv.getUint16(2 * i, true);
   }
-  if (h.flags & FLAG_DELTA) {
+  if (h.version === 1 && (h.flags & FLAG_DELTA)) {
     // Rows were delta-coded along j (axis 1) with uint16 wrap-around: a cumulative sum.
     const row = n * 3;
     for (let r = 0; r < count; r += row) {
@@ -223,7 +229,33 @@ export async function decodeMesh(data) {
     ballRadius: f[9],
     hips: triples(f.slice(10, 22)),
     flags: h.flags,
+    version: h.version,
   };
+}
+
+/**
+ * MESH version 2's payload (docs/protocol.md, "MESH") to quantised nodes: byte planes (for
+ * each axis its values' low bytes, then their high bytes) back to x y z a node; with
+ * `predicted`, each value a zigzag-mapped residual: unmapped, then summed down the columns
+ * (the row deltas) and along the rows (the nodes), wrapping as uint16.
+ */
+function meshFromPlanes(payload, n, predicted) {
+  const nodes = n * n, q = new Uint16Array(3 * nodes);
+  for (let a = 0; a < 3; a++) {
+    const lo = 2 * a * nodes, hi = lo + nodes;
+    for (let k = 0; k < nodes; k++) {
+      const z = payload[lo + k] | (payload[hi + k] << 8);
+      q[3 * k + a] = predicted ? (z >>> 1) ^ -(z & 1) : z; // Uint16Array keeps the low 16 bits
+    }
+  }
+  if (predicted) {
+    const row = 3 * n;
+    for (let k = row; k < q.length; k++) q[k] = q[k] + q[k - row];
+    for (let r = 0; r < q.length; r += row) {
+      for (let k = r + 3, stop = r + row; k < stop; k++) q[k] = q[k] + q[k - 3];
+    }
+  }
+  return q;
 }
 
 /** Float64Array(n*n*3): lo + q * ((hi - lo) / 65535), the same arithmetic as Python. */

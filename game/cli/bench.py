@@ -1,7 +1,7 @@
 """``clothball bench``: time per substep (the paper's Table 1 re-measured, ``--effects``),
-the rooms and the largest cloth one engine steps at 1 kHz (``--rooms``, ``--largest``), the
-game server under load (``--server``, ``--load``), or its replay index's HTTP queries at
-scale (``--index``)."""
+the rooms and the largest cloth one engine steps at 1 kHz (``--rooms``, ``--largest``), a
+MESH's encoder (``--mesh``), the game server under load (``--server``, ``--load``), or its
+replay index's HTTP queries at scale (``--index``)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from ..rules import EDGE_NAMES
 from ..sim.cloth import cuda_unavailable_reason
 from ..sim.scene import Scene, SceneError
 from ..sim.threads import busy_note
-from ..study import largest, rooms, rounds
+from ..study import largest, meshcode, rooms, rounds
 from ..study.bench import (
     csv_list,
     gpu_target_verdicts,
@@ -72,6 +72,14 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="--largest: frames timed per size (default %(default)s)")
     p.add_argument("--largest-max", type=int, default=largest.MAX_N, metavar="N",
                    help="--largest: the largest n tried (default %(default)s)")
+    p.add_argument(
+        "--mesh", action="store_true",
+        help="the server's MESH encoder, µs and bytes a message, version 2 beside version 1, "
+             "on the game's cloth from its start, per n (--sizes; default 16,48,96)",
+    )
+    p.add_argument("--mesh-rounds", type=int, default=50, metavar="R",
+                   help="--mesh: times each cloth state is encoded per version "
+                        "(default %(default)s)")
     p.add_argument("--rooms-frames", type=int, default=300, metavar="F",
                    help="--rooms: frames timed per room count (default %(default)s)")
     p.add_argument("--max-rooms", type=int, default=4096, metavar="K",
@@ -128,6 +136,11 @@ def run(args: argparse.Namespace) -> int:
     busy = busy_note()  # looked at before the bench's own work starts
     if busy:
         print(busy, file=sys.stderr, flush=True)
+    if args.mesh:
+        code = run_mesh_cmd(args)
+        if busy and code == 0:
+            print(busy)
+        return code
     if args.rooms:
         code = run_rooms_cmd(args)
         if busy and code == 0:
@@ -196,6 +209,27 @@ def run_rooms_cmd(args: argparse.Namespace) -> int:
 
         rows = rooms.run_rooms(base, cases, args.rooms_frames, args.max_rooms, progress)
     rooms.print_rooms(rows)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def run_mesh_cmd(args: argparse.Namespace) -> int:
+    try:
+        items = csv_list(args.sizes or "16,48,96", "sizes")
+        if not all(s.isdigit() and 2 <= int(s) <= 1024 for s in items):
+            raise ValueError("--sizes: each n must be an integer in 2..1024 for --mesh")
+        sizes = [int(s) for s in items]
+        if not 1 <= args.mesh_rounds <= 100_000:
+            raise ValueError("--mesh-rounds: must be in 1..100000")
+    except ValueError as e:
+        print(f"clothball bench: {e}", file=sys.stderr)
+        return 2
+    backend = "auto" if args.backends == "auto" else csv_list(args.backends, "backends")[0]
+    rows = meshcode.run_mesh(sizes, args.mesh_rounds, backend,
+                             lambda label: print(f"  {label} done", file=sys.stderr))
+    meshcode.print_mesh(rows)
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=2))
         print(f"wrote {args.json}")

@@ -5,7 +5,7 @@ messages (``{"type": ...}``), binary frames carry the hot streams, each with the
 16-byte little-endian header::
 
     offset 0  u8   type     HIP=1, CORNER=2, MESH=3, TRACK=4
-    offset 1  u8   version  PROTOCOL_VERSION
+    offset 1  u8   version  the message's format: 1, MESH 2 (MESH 1 still read)
     offset 2  u16  flags    MESH: bit 0 zlib payload, bit 1 row-delta payload
     offset 4  u32  seq      sender's sequence number (CORNER/MESH/TRACK: frame mod 2^32)
     offset 8  f64  time     sender's clock, seconds (server: since the server started)
@@ -35,6 +35,12 @@ FLAG_ZLIB = 1
 FLAG_DELTA = 2
 # The header flags each type may set: MESH's payload coding; every other type sends 0.
 KNOWN_FLAGS = {HIP: 0, CORNER: 0, MESH: FLAG_ZLIB | FLAG_DELTA, TRACK: 0}
+# Each binary type's format version, in its header's version byte: a type's number changes
+# when its layout does. MESH 2 lays its payload out in byte planes (docs/protocol.md,
+# "MESH"); MESH 1 (interleaved uint16) is still read: old replays hold it.
+# HIP, CORNER and TRACK are at PROTOCOL_VERSION (hello's); MESH at MESH_VERSION.
+MESH_VERSION = 2
+READ_VERSIONS = {HIP: (1,), CORNER: (1,), MESH: (1, 2), TRACK: (1,)}
 
 HEADER = struct.Struct("<BBHId")
 HIP_BODY = struct.Struct("<3f")
@@ -259,10 +265,10 @@ def decode_header(data: bytes, expect: int | None = None) -> Header:
     t, v, flags, seq, time = HEADER.unpack_from(data)
     if t not in BINARY_TYPES:
         raise ProtocolError("bad_binary", f"unknown binary message type {t}")
-    if v != PROTOCOL_VERSION:
-        raise ProtocolError(
-            "bad_version", f"binary message version {v}; this server speaks {PROTOCOL_VERSION}"
-        )
+    if v not in READ_VERSIONS[t]:
+        known = ", ".join(map(str, READ_VERSIONS[t]))
+        raise ProtocolError("bad_version",
+                            f"{BINARY_TYPES[t]} message version {v}; this side reads {known}")
     if expect is not None and t != expect:
         raise ProtocolError(
             "bad_binary", f"expected a {BINARY_TYPES[expect]} message, got {BINARY_TYPES[t]}"
@@ -398,6 +404,7 @@ class Mesh:
     ball_radius: float
     hips: np.ndarray  # (4, 3)
     flags: int
+    version: int = MESH_VERSION  # the payload's layout (1: interleaved, 2: byte planes)
 
 
 def quantise(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -440,22 +447,56 @@ def mesh_deltas(q: np.ndarray) -> np.ndarray:
     return d
 
 
+def mesh_residuals(deltas: np.ndarray) -> np.ndarray:
+    """MESH version 2's prediction: row deltas (``mesh_deltas``) less the row above's (each
+    node less its left, upper and upper-left neighbours' plane), zigzag mapped (0, -1, 1, -2
+    ... to 0, 1, 2, 3 ...) so that small residuals of either sign have a zero high byte."""
+    r = deltas.copy()
+    r[1:] = deltas[1:] - deltas[:-1]  # uint16: wraps, as the decoder's sums do
+    s = r.view(np.int16)
+    return ((r << 1) ^ (s >> 15).view(np.uint16)).astype(np.uint16)
+
+
+def mesh_unresiduals(z: np.ndarray) -> np.ndarray:
+    """``mesh_residuals`` and ``mesh_deltas`` undone: the quantised nodes (n, n, 3)."""
+    r = (z >> 1) ^ (np.uint16(0) - (z & 1))
+    return np.cumsum(np.cumsum(r, axis=0, dtype=np.uint16), axis=1, dtype=np.uint16)
+
+
+def to_planes(v: np.ndarray) -> bytes:
+    """MESH version 2's payload order of n*n*3 uint16 (x y z a node): for each axis, the low
+    bytes of all its values (nodes row-major), then their high bytes."""
+    axes = np.ascontiguousarray(np.asarray(v, dtype="<u2").reshape(-1, 3).T)  # (3, nodes)
+    return np.ascontiguousarray(axes.view(np.uint8).reshape(3, -1, 2).transpose(0, 2, 1)).tobytes()
+
+
+def from_planes(payload: bytes, n: int) -> np.ndarray:
+    """``to_planes`` undone: (n, n, 3) uint16."""
+    b = np.frombuffer(payload, dtype=np.uint8).reshape(3, 2, n * n)
+    v = b[:, 0, :].astype(np.uint16) | (b[:, 1, :].astype(np.uint16) << 8)
+    return np.ascontiguousarray(v.T).reshape(n, n, 3)
+
+
 def encode_quantised_mesh(frame: int, server_time: float, q: np.ndarray, lo: Any, hi: Any,
                           ball_position: Any, ball_radius: float, hips: Any,
-                          compress: bool = True, deltas: np.ndarray | None = None) -> bytes:
+                          compress: bool = True, deltas: np.ndarray | None = None,
+                          version: int = MESH_VERSION) -> bytes:
     """``encode_mesh`` from nodes already quantised (``quantise``'s q, lo, hi; ``deltas``:
-    ``mesh_deltas(q)`` where already made, e.g. by the server's native quantiser)."""
+    ``mesh_deltas(q)`` where already made, e.g. by the server's native quantiser).
+    ``version`` 1 makes the old layout (interleaved), for tests of old replays' bytes."""
+    if version not in READ_VERSIONS[MESH]:
+        raise ValueError(f"version: expected one of {READ_VERSIONS[MESH]}, got {version}")
     n = q.shape[0]
-    payload = q.tobytes()
+    payload = to_planes(q) if version == 2 else q.tobytes()
     flags = 0
     if compress:
         d = mesh_deltas(q) if deltas is None else deltas
-        z = zlib.compress(d.tobytes(), 1)
+        z = zlib.compress(to_planes(mesh_residuals(d)) if version == 2 else d.tobytes(), 1)
         if len(z) <= 0.9 * len(payload):
             payload, flags = z, FLAG_ZLIB | FLAG_DELTA
     body = MESH_BODY.pack(frame, n, *lo, *hi, *ball_position, ball_radius,
                           *np.asarray(hips, dtype=np.float64).reshape(12))
-    head = HEADER.pack(MESH, PROTOCOL_VERSION, flags, frame & 0xFFFFFFFF, server_time)
+    head = HEADER.pack(MESH, version, flags, frame & 0xFFFFFFFF, server_time)
     return head + body + payload
 
 
@@ -478,14 +519,19 @@ def decode_mesh(data: bytes) -> Mesh:
             raise ProtocolError("bad_binary", f"MESH payload not valid zlib: {e}") from None
     if len(payload) != expected:
         raise ProtocolError("bad_binary", f"MESH payload of {len(payload)} bytes, need {expected}")
-    q = np.frombuffer(payload, dtype="<u2").reshape(n, n, 3)
-    if h.flags & FLAG_DELTA:
-        q = np.cumsum(q, axis=1, dtype=np.uint16)
+    if h.version == 2:
+        q = from_planes(payload, n)
+        if h.flags & FLAG_DELTA:
+            q = mesh_unresiduals(q)
+    else:
+        q = np.frombuffer(payload, dtype="<u2").reshape(n, n, 3)
+        if h.flags & FLAG_DELTA:
+            q = np.cumsum(q, axis=1, dtype=np.uint16)
     lo, hi = f[0:3], f[3:6]
     return Mesh(
         frame=frame, server_time=h.time, positions=dequantise(q, lo, hi), lo=lo, hi=hi,
         ball_position=f[6:9], ball_radius=float(f[9]), hips=f[10:22].reshape(4, 3),
-        flags=h.flags,
+        flags=h.flags, version=h.version,
     )
 
 

@@ -7,6 +7,7 @@
 
 #include <pthread.h>
 
+#include <chrono>
 #include <cmath>
 #include <cstddef>
 #include <memory>
@@ -30,6 +31,22 @@ using cbind::BatchEngine;
 namespace lp = cb::loop;
 
 namespace {
+
+// The MESH versions the encoder writes (mesh_msg.hpp): 2, the server's; 1, the old one.
+void check_mesh_version(int version) {
+  if (version != 1 && version != 2)
+    throw py::value_error("version: expected 1 or 2, got " + std::to_string(version));
+}
+
+// Version 2's deflater by name: "auto" (the server's: by the cloth's size), "literals" or
+// "libdeflate".
+lp::MeshDeflater mesh_deflater(const std::string& name) {
+  if (name == "auto") return lp::MeshDeflater::kAuto;
+  if (name == "literals") return lp::MeshDeflater::kLiterals;
+  if (name == "libdeflate") return lp::MeshDeflater::kLibdeflate;
+  throw py::value_error("deflater: expected 'auto', 'literals' or 'libdeflate', got '" + name +
+                        "'");
+}
 
 py::list fields(const lp::Field* f, int count) {
   py::list out;
@@ -404,20 +421,78 @@ void bind_loop(py::module_& m) {
       "encode_mesh_msg",
       [](py::array_t<double, py::array::c_style | py::array::forcecast> positions,
          std::int64_t frame, double server_time, Array ball, double radius, Array hips,
-         bool compress) {
+         bool compress, int version, const std::string& deflater) {
         if (positions.ndim() != 3 || positions.shape(0) != positions.shape(1) ||
             positions.shape(2) != 3 || positions.shape(0) < 1 || positions.shape(0) > 65535)
           throw py::value_error("positions: expected (n, n, 3)");
+        check_mesh_version(version);
+        const lp::MeshDeflater d = mesh_deflater(deflater);
         cbind::sized(ball, 3, "ball");
         cbind::sized(hips, 12, "hips");
         std::vector<std::uint8_t> out;
         lp::MeshScratch scratch;
         lp::encode_mesh_msg(out, scratch, positions.data(), int(positions.shape(0)), frame,
-                            server_time, ball.data(), radius, hips.data(), compress);
+                            server_time, ball.data(), radius, hips.data(), compress, version,
+                            d);
         return py::bytes(reinterpret_cast<const char*>(out.data()), out.size());
       },
       py::arg("positions"), py::arg("frame"), py::arg("server_time"), py::arg("ball"),
-      py::arg("radius"), py::arg("hips"), py::arg("compress"));
+      py::arg("radius"), py::arg("hips"), py::arg("compress"),
+      py::arg("version") = int(lp::kMeshVersion), py::arg("deflater") = "auto");
+  // MESH version 2's deflater alone (huffman_deflate.hpp), for the tests against zlib's
+  // inflater on inputs of every shape; None where the stream would pass `cap` bytes.
+  m.def(
+      "deflate_literals",
+      [](py::bytes data, int segments, std::size_t cap) -> py::object {
+        if (segments < 1 || segments > 64)
+          throw py::value_error("segments: expected 1..64, got " + std::to_string(segments));
+        const std::string in = data;
+        std::vector<std::uint8_t> out(cap);
+        const std::size_t n = lp::huff::zlib_literals(
+            reinterpret_cast<const std::uint8_t*>(in.data()), in.size(), segments, out.data(),
+            cap);
+        if (n == 0) return py::none();
+        return py::bytes(reinterpret_cast<const char*>(out.data()), n);
+      },
+      py::arg("data"), py::arg("segments"), py::arg("cap"));
+  // The MESH encoder timed alone, as the service thread runs it (one thread, its scratch
+  // kept): each of `states` (k, n, n, 3) encoded in turn, `rounds` times; the seconds of
+  // each encode (rounds * k, timed in C++: no binding in them) and each state's bytes.
+  m.def(
+      "time_mesh_encoder",
+      [](py::array_t<double, py::array::c_style | py::array::forcecast> states, int version,
+         int rounds, const std::string& deflater) {
+        if (states.ndim() != 4 || states.shape(1) != states.shape(2) || states.shape(3) != 3 ||
+            states.shape(0) < 1 || states.shape(1) < 1 || states.shape(1) > 65535)
+          throw py::value_error("states: expected (k, n, n, 3)");
+        check_mesh_version(version);
+        const lp::MeshDeflater d = mesh_deflater(deflater);
+        if (rounds < 1) throw py::value_error("rounds: expected >= 1");
+        const py::ssize_t k = states.shape(0), n = states.shape(1);
+        py::array_t<double> seconds(py::ssize_t(rounds) * k);
+        py::array_t<std::int64_t> sizes(k);
+        double* sec = seconds.mutable_data();
+        std::int64_t* sz = sizes.mutable_data();
+        const double* p = states.data();
+        {
+          py::gil_scoped_release release;
+          const double zeros[12] = {};
+          std::vector<std::uint8_t> out;
+          lp::MeshScratch scratch;
+          for (int r = 0; r < rounds; ++r)
+            for (py::ssize_t i = 0; i < k; ++i) {
+              const auto t0 = std::chrono::steady_clock::now();
+              lp::encode_mesh_msg(out, scratch, p + std::size_t(i) * std::size_t(n * n * 3),
+                                  int(n), i, 0.0, zeros, 0.1, zeros, true, version, d);
+              sec[std::size_t(r) * std::size_t(k) + std::size_t(i)] =
+                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+              sz[i] = std::int64_t(out.size());
+            }
+        }
+        return py::make_tuple(seconds, sizes);
+      },
+      py::arg("states"), py::arg("version") = int(lp::kMeshVersion), py::arg("rounds") = 50,
+      py::arg("deflater") = "auto");
   // The loop's CORNER encoder (corner_msg.hpp), for the test against the Python one.
   m.def("encode_corners",
         [](std::int64_t frame, double server_time, Array pos, Array vel, Array force,

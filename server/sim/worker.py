@@ -508,8 +508,9 @@ class FrameWorker:
         # Encoded and written into the board in C++, without the GIL
         # (native/loop/mesh_msg.hpp): 4 threads encoding in Python contended for the GIL
         # with the event loop and one another (H100, 128 rooms: MESH at 17 of 30 Hz). The
-        # due rooms are shared among the encoder threads: zlib takes ~0.5 ms a mesh at
-        # n = 48, and one thread held 64 rooms' 30 Hz only at 0.95 core (H100).
+        # due rooms are shared among the encoder threads: zlib took ~0.5 ms a mesh at
+        # n = 48 (one thread held 64 rooms' 30 Hz only at 0.95 core, H100); MESH version
+        # 2 takes ~0.2x that (`clothball bench --mesh`).
         taken = self.frame_loop.take_encoded(self.board, self.board_slot,
                                              self.arena.ball_radius,
                                              self.settings.compress_mesh, self.encoders)

@@ -4,7 +4,10 @@ the playhead; fetch by file, id and URL from a real server."""
 from __future__ import annotations
 
 import asyncio
+import base64
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -155,6 +158,23 @@ def test_the_length_is_the_simulations_as_the_index_lists_it(tmp_path) -> None:
     assert [e["event"] for e in p.events_until()] == ["score"]
     p.advance(100.0)
     assert p.position == pytest.approx(length, abs=1e-9) and p.finished
+
+
+def test_an_old_replay_of_version_1_meshes_plays() -> None:
+    """A replay recorded before MESH version 2 (tests/data/mesh_v1.json, the encoder of its
+    day): the desktop player reads its three meshes, each the nodes stored beside it."""
+    fixture = json.loads((Path(__file__).parent.parent / "data" / "mesh_v1.json").read_text())
+    data = ReplayData.parse(base64.b64decode(fixture["replay_b64"]))
+    stored = [m for m in fixture["messages"] if m["flags"]]  # the replay's: compressed ones
+    frames = list(data.timeline.frames)
+    assert len(frames) == len(stored) == 3
+    for f, m in zip(frames, stored, strict=True):
+        q = np.array(m["q"], dtype=np.uint16).reshape(16, 16, 3)
+        want = P.dequantise(q, np.array(m["lo"]), np.array(m["hi"])).astype(np.float32)
+        assert np.array_equal(f.positions, want)
+    p = ReplayPlayer(data)
+    p.seek_fraction(0.5)
+    assert p.sample().positions.shape == (16, 16, 3)
 
 
 def test_speed_steps_and_loop(replay_file) -> None:

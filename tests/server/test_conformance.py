@@ -86,16 +86,27 @@ def header_types() -> dict[int, str]:
 
 
 def decode_mesh_payload(data: bytes) -> np.ndarray:
-    """The MESH payload decoded by the doc's words: uint16 per axis, bit 0 zlib, bit 1
-    row deltas (a cumulative sum along each row), p = min + q (max - min) / 65535."""
+    """The MESH payload decoded by the doc's words: bit 0 zlib; version 2: byte planes, bit
+    1 zigzag 2-D residuals (unmapped, summed down the columns, then along the rows);
+    version 1: uint16 per axis, bit 1 row deltas (a cumulative sum along each row);
+    p = min + q (max - min) / 65535."""
     n = read(data, "mesh", 24)
     flags = read(data, "header", 2)
     payload = data[116:]
     if flags & 1:
         payload = zlib.decompress(payload)
-    q = np.frombuffer(payload, dtype="<u2").reshape(n, n, 3)
-    if flags & 2:
-        q = np.cumsum(q, axis=1, dtype=np.uint16)
+    if data[1] == 2:
+        b = np.frombuffer(payload, dtype=np.uint8).astype(np.uint16)
+        q = np.stack([b[2 * a * n * n:(2 * a + 1) * n * n]
+                      | (b[(2 * a + 1) * n * n:(2 * a + 2) * n * n] << 8) for a in range(3)],
+                     axis=-1).reshape(n, n, 3)
+        if flags & 2:
+            r = (q >> 1) ^ (np.uint16(0) - (q & 1))
+            q = np.cumsum(np.cumsum(r, axis=0, dtype=np.uint16), axis=1, dtype=np.uint16)
+    else:
+        q = np.frombuffer(payload, dtype="<u2").reshape(n, n, 3)
+        if flags & 2:
+            q = np.cumsum(q, axis=1, dtype=np.uint16)
     lo, hi = read(data, "mesh", 28), read(data, "mesh", 40)
     return lo + q.astype(np.float64) * (hi - lo) / 65535
 
@@ -1046,8 +1057,7 @@ def _h_type(s: Session, row: D.Row) -> None:
 
 @check("header:1")
 def _h_version(s: Session, row: D.Row) -> None:
-    for b in (s.got["corner"], s.got["mesh"]):
-        assert b[1] == 1
+    assert s.got["corner"][1] == 1 and s.got["mesh"][1] == 2  # MESH: its version 2
     err(s.got["hip_version"], "bad_version")
 
 

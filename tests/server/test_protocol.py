@@ -83,6 +83,68 @@ def test_mesh_of_a_flat_cloth_has_a_zero_span_axis() -> None:
     assert np.allclose(m.positions, pos)
 
 
+@settings(max_examples=examples(40), deadline=None)
+@given(
+    st.integers(2, 24).flatmap(
+        lambda n: hnp.arrays(np.float64, (n, n, 3), elements=st.floats(-50, 50, width=32))
+    ),
+    st.booleans(),
+)
+def test_mesh_versions_1_and_2_carry_the_same_quantised_nodes(pos, compress) -> None:
+    q, lo, hi = P.quantise(pos)
+    for version in (1, 2):
+        m = P.decode_mesh(P.encode_quantised_mesh(9, 0.5, q, lo, hi, (0, 0, 0), 0.1,
+                                                  np.zeros((4, 3)), compress, version=version))
+        assert m.version == version
+        assert np.array_equal(m.positions, P.dequantise(q, lo, hi))
+
+
+def _mesh_seeds() -> list[bytes]:
+    """A smooth cloth's MESH in each version, compressed and not."""
+    u = np.linspace(-0.5, 0.5, 12)
+    x, z = np.meshgrid(u, u)
+    pos = np.stack([x, 1.0 + 0.05 * np.sin(3 * x) * np.cos(2 * z), z], axis=-1)
+    q, lo, hi = P.quantise(pos)
+    return [P.encode_quantised_mesh(3, 0.1, q, lo, hi, (0, 1, 0), 0.1, np.zeros((4, 3)),
+                                    compress, version=version)
+            for version in (1, 2) for compress in (True, False)]
+
+
+MESH_SEEDS = _mesh_seeds()
+
+
+@settings(max_examples=examples(300), deadline=None)
+@given(st.sampled_from(range(len(MESH_SEEDS))),
+       st.lists(st.tuples(st.integers(0, 4000), st.integers(0, 255)), max_size=6),
+       st.one_of(st.none(), st.integers(0, 4000)))
+def test_damaged_meshes_decode_or_are_refused_with_a_code(k, flips, cut) -> None:
+    """Any byte of either version's MESH changed (version and flags included), or the
+    message cut short: it decodes to finite nodes or is refused with a documented code,
+    never another exception."""
+    data = bytearray(MESH_SEEDS[k])
+    for at, value in flips:
+        data[at % len(data)] = value
+    if cut is not None:
+        data = data[:cut]
+    try:
+        m = P.decode_mesh(bytes(data))
+    except P.ProtocolError as e:
+        assert e.code in P.ERROR_CODES and str(e)
+    else:
+        assert m.version in (1, 2) and m.positions.shape[2] == 3
+
+
+def test_a_mesh_of_an_unknown_version_is_refused_naming_the_versions_read() -> None:
+    for v in (0, 3, 255):
+        bad = MESH_SEEDS[2][:1] + bytes([v]) + MESH_SEEDS[2][2:]
+        with pytest.raises(P.ProtocolError,
+                           match=f"MESH message version {v}; this side reads 1, 2"):
+            P.decode_mesh(bad)
+    hip = P.encode_hip([0, 0, 0], 1, 0.0)
+    with pytest.raises(P.ProtocolError, match="HIP message version 2; this side reads 1"):
+        P.decode_hip(hip[:1] + bytes([2]) + hip[2:])
+
+
 @given(st.integers(0, 2**40), times, vec3, vec3)
 def test_track_round_trip(frame, t, bp, bv) -> None:
     hips, corners = np.arange(12.0).reshape(4, 3), -np.arange(12.0).reshape(4, 3)

@@ -99,7 +99,8 @@ def test_js_decoder_agrees_with_python_vectors(live: ServerThread, driver) -> No
                 ballVelocity: m.ballVelocity, hipSeq: m.hipSeq, hipTime: nan(m.hipTime),
                 serverTime: m.serverTime };
               case 'MESH': return { kind: m.kind, frame: m.frame, serverTime: m.serverTime,
-                n: m.n, flags: m.flags, lo: m.lo, hi: m.hi, ballPosition: m.ballPosition,
+                n: m.n, flags: m.flags, version: m.version, lo: m.lo, hi: m.hi,
+                ballPosition: m.ballPosition,
                 ballRadius: m.ballRadius, hips: m.hips.flat(),
                 positions: Array.from(P.meshPositions(m)) };
               case 'TRACK': return { kind: m.kind, frame: m.frame, serverTime: m.serverTime,
@@ -115,14 +116,19 @@ def test_js_decoder_agrees_with_python_vectors(live: ServerThread, driver) -> No
           };
           const binary = [];
           for (const v of vectors.binary) binary.push(await decode(bytes(v.b64)));
-          const rep = await R.parseReplay(bytes(vectors.replay.b64));
-          const records = [];
-          for (const r of rep.records) {
-            records.push(r.kind === 0
-              ? { record: 0, json: JSON.parse(new TextDecoder().decode(r.data)) }
-              : { record: 1, ...(await decode(r.data)) });
-          }
-          done({ binary, replay: { header: rep.header, records } });
+          const replay = async (b64) => {
+            const rep = await R.parseReplay(bytes(b64));
+            const records = [];
+            for (const r of rep.records) {
+              records.push(r.kind === 0
+                ? { record: 0, json: JSON.parse(new TextDecoder().decode(r.data)) }
+                : { record: 1, ...(await decode(r.data)) });
+            }
+            return { header: rep.header, records };
+          };
+          // today's replay and an old one (version-1 MESH records)
+          done({ binary, replay: await replay(vectors.replay.b64),
+                 replay_v1: await replay(vectors.replay_v1.b64) });
         })().catch((e) => done({ fatal: String(e && e.stack || e) }));
     """, vectors)
     assert "fatal" not in got, got.get("fatal")
@@ -131,6 +137,8 @@ def test_js_decoder_agrees_with_python_vectors(live: ServerThread, driver) -> No
         assert g == v["expect"], f"{v['name']}: JS decoded {str(g)[:200]}"
     assert got["replay"]["header"] == vectors["replay"]["header"]
     assert got["replay"]["records"] == vectors["replay"]["records"]
+    assert got["replay_v1"] == {"header": vectors["replay_v1"]["header"],
+                                "records": vectors["replay_v1"]["records"]}
     assert console_errors(driver) == []
 
 

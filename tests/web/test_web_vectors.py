@@ -32,6 +32,9 @@ def test_every_stored_message_decodes_in_python_as_stored(stored: dict) -> None:
     assert {"HIP", "CORNER", "MESH", "TRACK"} <= kinds
     flags = {v["expect"]["flags"] for v in stored["binary"] if v["expect"].get("kind") == "MESH"}
     assert flags == {0, P.FLAG_ZLIB | P.FLAG_DELTA}
+    versions = {v["expect"]["version"] for v in stored["binary"]
+                if v["expect"].get("kind") == "MESH"}
+    assert versions == {1, P.MESH_VERSION}  # old replays' MESH and today's
     assert {"bad_binary", "bad_version"} <= errors
 
 
@@ -49,6 +52,7 @@ def test_the_file_is_what_todays_encoder_makes(stored: dict) -> None:
         assert new["b64"] == old["b64"], f"{new['name']}: bytes differ from the stored vector"
     assert fresh["replay"]["header"] == stored["replay"]["header"]
     assert fresh["replay"]["records"] == stored["replay"]["records"]
+    assert fresh["replay_v1"] == stored["replay_v1"]
 
 
 def test_replay_vector_reads_as_stored(stored: dict) -> None:

@@ -20,10 +20,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from clothball import _native
 from clothball.game.wire import protocol as P
 from clothball.game.wire.replay import read_replay, write_replay
 
 VECTORS = Path(__file__).parent.parent / "data" / "protocol_vectors.json"
+# Version-1 MESH messages and a replay of them, made by the encoder before version 2
+# (tests/data/mesh_v1.json says how): old replays' bytes, which every decoder still reads.
+MESH_V1 = Path(__file__).parent.parent / "data" / "mesh_v1.json"
 
 
 def b64(data: bytes) -> str:
@@ -55,7 +59,8 @@ def expectation(data: bytes) -> dict[str, Any]:
     if isinstance(m, P.Mesh):
         return {
             "kind": "MESH", "frame": m.frame, "serverTime": m.server_time,
-            "n": int(m.positions.shape[0]), "flags": m.flags, "lo": _floats(m.lo),
+            "n": int(m.positions.shape[0]), "flags": m.flags, "version": m.version,
+            "lo": _floats(m.lo),
             "hi": _floats(m.hi), "ballPosition": _floats(m.ball_position),
             "ballRadius": m.ball_radius, "hips": _floats(m.hips),
             "positions": _floats(m.positions),
@@ -104,6 +109,14 @@ def messages() -> list[tuple[str, bytes]]:
     out.append(("mesh_rough", P.encode_mesh(8, 0.008, rough, [0, 1.2, 0], 0.05, hips)))
     big_frame = P.encode_mesh(2**40 + 3, 1e6, sheet(4, 8), [0, 1, 0], 0.1, hips)
     out.append(("mesh_big_frame", big_frame))
+    # the server's encoder (C++): its planes deflated as literals and by libdeflate
+    for deflater in ("literals", "libdeflate"):
+        out.append((f"mesh_native_{deflater}", _native.encode_mesh_msg(
+            sheet(36, 9), 2000, 2.0, [0.0, 1.3, 0.0], 0.08, hips.reshape(12), True, 2,
+            deflater)))
+    v1 = json.loads(MESH_V1.read_text())["messages"]
+    out += [(f"mesh_v1_{k}_{'zlib' if m['flags'] else 'raw'}", base64.b64decode(m["b64"]))
+            for k, m in enumerate(v1)]
 
     # damaged messages: the expected refusal is whatever the Python decoder says
     good = dict(out)
@@ -125,6 +138,9 @@ def messages() -> list[tuple[str, bytes]]:
         ("bad_mesh_n", mesh[:24] + struct.pack("<H", 1) + mesh[26:]),
         ("bad_mesh_n_big", mesh[:24] + struct.pack("<H", P.MAX_MESH_N + 1) + mesh[26:]),
         ("bad_mesh_flags", mesh[:2] + struct.pack("<H", 4 | P.FLAG_ZLIB) + mesh[4:]),
+        ("bad_mesh_version", mesh[:1] + bytes([P.MESH_VERSION + 1]) + mesh[2:]),
+        ("bad_mesh_version_0", mesh[:1] + bytes([0]) + mesh[2:]),
+        ("bad_mesh_v1_payload_short", good["mesh_v1_1_raw"][:-2]),
         ("bad_mesh_zlib", mesh[:116] + b"\x78\x01garbage-not-deflate" + mesh[140:]),
         ("bad_mesh_payload_short", raw[:-2]),
         ("bad_mesh_payload_long", raw + b"\0\0"),
@@ -172,6 +188,14 @@ def replay_vector() -> dict[str, Any]:
     return {"b64": b64(data), "header": head, "records": expect}
 
 
+def replay_v1_vector() -> dict[str, Any]:
+    """An old replay (version-1 MESH records) and what today's reader finds in it."""
+    data = base64.b64decode(json.loads(MESH_V1.read_text())["replay_b64"])
+    head, recs = read_replay(data)
+    return {"b64": b64(data), "header": head,
+            "records": [{"record": 1, **expectation(rec)} for _, rec in recs]}
+
+
 def build() -> dict[str, Any]:
     return {
         "about": "Made by tests/web/web_vectors.py from clothball.game.wire.protocol; "
@@ -180,6 +204,7 @@ def build() -> dict[str, Any]:
         "binary": [{"name": name, "b64": b64(data), "expect": expectation(data)}
                    for name, data in messages()],
         "replay": replay_vector(),
+        "replay_v1": replay_v1_vector(),
     }
 
 

@@ -7,6 +7,10 @@ byte), and as axis and byte planes; with zlib and with libdeflate (``pip install
 its Python binding) at level 1. Medians of 7 runs; run it on a quiet machine.
 
 Usage: python tools/lab/mesh_coding.py [--n 48]
+
+It deflates one buffer over and over, which flatters every coder (the branch predictor
+learns the input): the figures of record are ``clothball bench --mesh``'s, the server's
+encoder over many cloth states in turn (docs/benchmarks/load.md, "MESH codings").
 """
 
 from __future__ import annotations
