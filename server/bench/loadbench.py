@@ -61,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from .. import loops
-from ..hostproc import free_port, get_json, start_redis
+from ..hostproc import free_port, get, get_json, start_redis
 from ..shared.listen import raise_open_files
 from .benchclients import HIST_BIN_S
 
@@ -870,12 +870,13 @@ def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
     s0 = [get_json(f"{http}/api/stats?reset=1", i["token"]) for i, http, _ in infos]
     srv0, thr0 = _cpu_seconds(servers), _threads_cpu_seconds(servers)
     cl0, w0 = clients.cpu_seconds(), time.perf_counter()
-    time.sleep(seconds)
+    pages = _probe_pages(infos[0][1], seconds)
     s1 = [get_json(f"{http}/api/stats") for _, http, _ in infos]
     srv1, thr1 = _cpu_seconds(servers), _threads_cpu_seconds(servers)
     cl1, dt = clients.cpu_seconds(), time.perf_counter() - w0
     c1 = clients.snap(mark=False)
     step = _server_step(rooms, _merged(s0), _merged(s1), args)
+    step.update(pages)
     step["rooms_per_host"] = [len(s["rooms"]) for s in s1]
     step["server_cpu_cores"] = (srv1 - srv0) / dt
     step["server_cpu_per_room"] = step["server_cpu_cores"] / rooms
@@ -919,6 +920,42 @@ def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
     step.update(_client_step(c0, c1, args))
     _judge(step, args)
     return step
+
+
+PAGE_EVERY_S = 0.1  # the host's own pages asked for this often while a step is measured
+PAGE_TIMEOUT_S = 2.0  # an answer later than this counts as this late (and as unanswered)
+
+
+def _probe_pages(http: str, seconds: float) -> dict[str, Any]:
+    """For ``seconds``, ``/healthz`` and ``/api/stats`` by turns every ``PAGE_EVERY_S``, as
+    an operator's monitoring would (issue 43: they must answer under full load): each one's
+    p50 and p99 answer time in ms and how many went unanswered."""
+    times: dict[str, list[float]] = {"healthz": [], "stats": []}
+    failed = dict.fromkeys(times, 0)
+    end = time.perf_counter() + seconds
+    k = 0
+    while True:
+        now = time.perf_counter()
+        if now >= end:
+            break
+        page = ("healthz", "stats")[k % 2]
+        k += 1
+        t0 = time.perf_counter()
+        try:
+            get(f"{http}/{'healthz' if page == 'healthz' else 'api/stats'}",
+                timeout=PAGE_TIMEOUT_S)
+            times[page].append(time.perf_counter() - t0)
+        except OSError:
+            failed[page] += 1
+            times[page].append(PAGE_TIMEOUT_S)
+        time.sleep(max(0.0, min(end, t0 + PAGE_EVERY_S) - time.perf_counter()))
+    out: dict[str, Any] = {}
+    for page, ts in times.items():
+        v = np.array(ts) * 1e3 if ts else None
+        out[f"{page}_p50_ms"] = None if v is None else float(np.percentile(v, 50))
+        out[f"{page}_p99_ms"] = None if v is None else float(np.percentile(v, 99))
+        out[f"{page}_unanswered"] = failed[page]
+    return out
 
 
 def _server_step(rooms: int, s0: dict[str, Any], s1: dict[str, Any], args: argparse.Namespace
@@ -1135,7 +1172,13 @@ def _load_line(s: dict[str, Any]) -> str:
             f"{s['frames_per_s']:.0f}/s  CPU server {s['server_cpu_cores']:.2f} "
             f"({s['server_cpu_per_room']:.3f}/room) clients {s['clients_cpu_cores']:.2f} cores"
             f"  load {s['load_average']:.1f}  {verdict}"
-            "\n      server cores by kind: " + ", ".join(
+            f"\n      pages: /healthz p50 {ms(s.get('healthz_p50_ms'))} p99 "
+            f"{ms(s.get('healthz_p99_ms'))} ms, /api/stats p50 {ms(s.get('stats_p50_ms'))} "
+            f"p99 {ms(s.get('stats_p99_ms'))} ms"
+            + (f" ({s['healthz_unanswered'] + s['stats_unanswered']} unanswered within "
+               f"{PAGE_TIMEOUT_S:g} s)" if s.get("healthz_unanswered", 0)
+               + s.get("stats_unanswered", 0) else "")
+            + "\n      server cores by kind: " + ", ".join(
                 f"{k.replace('_', ' ')} {v:.2f}" for k, v in s["server_cores_by_kind"].items())
             + f"; {_us(s['server_cpu_us_per_message'])} µs of server CPU a message ("
             + ", ".join(f"{k.replace('_', ' ')} {_us(v)}" for k, v in

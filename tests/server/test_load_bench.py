@@ -48,7 +48,8 @@ STEP_KEYS = {
     "clients_fell_behind", "held", "stopped_by", "why",
     "server_cores_by_kind", "server_cpu_us_per_message", "server_cpu_us_per_message_by_kind",
     "clients_cpu_per_room",
-    "server_affinity", "client_affinity",
+    "server_affinity", "client_affinity", "healthz_p50_ms", "healthz_p99_ms",
+    "healthz_unanswered", "stats_p50_ms", "stats_p99_ms", "stats_unanswered",
 }
 REASONS = {"lateness", "delivery", "server_cpu", "clients_cpu"}
 
@@ -98,6 +99,11 @@ def _check_step(step: dict, i: int, rooms: int, spectators: int, hip_hz: float,
         step["server_cpu_cores"] * 1e6 / messages)
     assert step["server_cpu_us_per_message_by_kind"] == pytest.approx(
         {k: v * 1e6 / messages for k, v in kinds.items()})
+    # the host's own pages, asked for by turns through the step: each answered, and the
+    # quantiles in order
+    assert step["healthz_unanswered"] == step["stats_unanswered"] == 0
+    for page in ("healthz", "stats"):
+        assert 0 < step[f"{page}_p50_ms"] <= step[f"{page}_p99_ms"]
     usable = sorted(os.sched_getaffinity(0))
     assert step["server_affinity"] and set(step["server_affinity"]) <= set(usable)
     assert step["client_affinity"] and set(step["client_affinity"]) <= set(usable)
