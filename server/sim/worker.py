@@ -485,20 +485,32 @@ class FrameWorker:
                 self.frame_loop.set_recording(room.slot, room.recording())
             if name == "record_start" and room.slot is not None:
                 self._tracks_seen[room.slot] = int(self.rooms_view["track_count"][room.slot])
+            elif name == "record_stop" and room.slot is not None and not room.recording():
+                self._tracks_seen.pop(room.slot, None)  # (its samples are looked at no more)
 
     def _drain_tracks(self) -> None:
+        """Each recording room's TRACK samples written since the last look, into its
+        recordings. The service thread wakes about once a frame (a MESH is due in some room
+        most frames) and a room has a new sample every 10 ms: the recording rooms' counts are
+        compared in one array operation and only the rooms with new samples looked at (a
+        look at every room every wake took 1.2 cores at 256 rooms on the H200)."""
+        recording = list(self._tracks_seen.items())  # (slot, seen); changed by other threads
+        if not recording:
+            return
+        slots, seen = np.array(recording, dtype=np.int64).T
+        totals = self.rooms_view["track_count"][slots].astype(np.int64)
         ring = LAYOUT["track_ring"]
-        for slot, room in list(self._by_slot.items()):
-            if not room.recording():
+        for k in np.nonzero(totals != seen)[0]:
+            slot, total, first = int(slots[k]), int(totals[k]), int(seen[k])
+            room = self._by_slot.get(slot)
+            if room is None or not room.recording():
                 continue
-            total = int(self.rooms_view["track_count"][slot])
-            seen = self._tracks_seen.get(slot, total)
-            lost = total - seen - ring
+            lost = total - first - ring
             if lost > 0:
                 log.warning("room %s: %d TRACK samples overwritten before recorded",
                             slot, lost)
-                seen = total - ring
-            for c in range(seen, total):
+                first = total - ring
+            for c in range(first, total):
                 t = self.rooms_view["track"][slot, c % ring].copy()
                 room.record(P.encode_track(int(t[0]), float(t[1]), t[2:5], t[5:8],
                                            t[8:20].reshape(4, 3), t[20:32].reshape(4, 3)))
