@@ -548,14 +548,37 @@ class Track:
     corners: np.ndarray  # (4, 3)
 
 
+# A TRACK message as a NumPy record (docs/protocol.md: the header, then the body), so that
+# a batch of samples is encoded in one pass (the engine records 100 a second a room).
+TRACK_RECORD = np.dtype([("type", "u1"), ("version", "u1"), ("flags", "<u2"), ("seq", "<u4"),
+                         ("time", "<f8"), ("frame", "<i8"), ("ball", "<f4", (6,)),
+                         ("hips", "<f4", (12,)), ("corners", "<f4", (12,))])
+
+
+def encode_tracks(samples: np.ndarray) -> bytes:
+    """TRACK messages, one per row of ``samples`` (k x 32: frame, server time, ball position
+    and velocity, hips 4 x 3, corners 4 x 3, as the frame loop's track ring holds them),
+    concatenated (``TRACK_SIZE`` bytes each)."""
+    rows = np.asarray(samples, dtype=np.float64).reshape(-1, 32)
+    out = np.zeros(len(rows), TRACK_RECORD)
+    frames = rows[:, 0].astype(np.int64)
+    out["type"], out["version"] = TRACK, PROTOCOL_VERSION
+    out["seq"] = frames & 0xFFFFFFFF
+    out["time"] = rows[:, 1]
+    out["frame"] = frames
+    out["ball"] = rows[:, 2:8]
+    out["hips"] = rows[:, 8:20]
+    out["corners"] = rows[:, 20:32]
+    return out.tobytes()
+
+
 def encode_track(frame: int, server_time: float, ball_position: Any, ball_velocity: Any,
                  hips: Any, corners: Any) -> bytes:
-    head = HEADER.pack(TRACK, PROTOCOL_VERSION, 0, frame & 0xFFFFFFFF, server_time)
-    return head + TRACK_BODY.pack(
-        frame, *ball_position, *ball_velocity,
-        *np.asarray(hips, dtype=np.float64).reshape(12),
-        *np.asarray(corners, dtype=np.float64).reshape(12),
-    )
+    return encode_tracks(np.concatenate((
+        [frame, server_time], np.asarray(ball_position, dtype=np.float64).reshape(3),
+        np.asarray(ball_velocity, dtype=np.float64).reshape(3),
+        np.asarray(hips, dtype=np.float64).reshape(12),
+        np.asarray(corners, dtype=np.float64).reshape(12))))
 
 
 def decode_track(data: bytes) -> Track:

@@ -510,10 +510,9 @@ class FrameWorker:
                 log.warning("room %s: %d TRACK samples overwritten before recorded",
                             slot, lost)
                 first = total - ring
-            for c in range(first, total):
-                t = self.rooms_view["track"][slot, c % ring].copy()
-                room.record(P.encode_track(int(t[0]), float(t[1]), t[2:5], t[5:8],
-                                           t[8:20].reshape(4, 3), t[20:32].reshape(4, 3)))
+            msgs = P.encode_tracks(self.rooms_view["track"][slot, np.arange(first, total) % ring])
+            for i in range(0, len(msgs), P.TRACK_SIZE):
+                room.record(msgs[i:i + P.TRACK_SIZE])
             self._tracks_seen[slot] = total
 
     def _encode_meshes(self) -> None:

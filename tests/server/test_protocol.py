@@ -298,3 +298,20 @@ def test_replay_file_round_trip(tmp_path) -> None:
     whole = gzip.decompress(path.read_bytes())
     with pytest.raises(ReplayError, match="truncated"):
         read_replay(gzip.compress(whole[:-3]))
+
+
+def test_tracks_are_the_documented_bytes_one_by_one_or_in_a_batch() -> None:
+    """``encode_tracks`` against the doc's layout packed field by field with ``struct``
+    (the header <BBHId, the body <q3f3f12f12f), for a batch and each row alone."""
+    import struct
+    rng = np.random.default_rng(7)
+    rows = rng.normal(size=(9, 32))
+    rows[:, 0] = rng.integers(0, 2**40, size=9)  # frames past 2^32: seq wraps
+    rows[:, 1] = np.abs(rows[:, 1]) * 100
+    want = b"".join(
+        struct.pack("<BBHId", P.TRACK, P.PROTOCOL_VERSION, 0, int(r[0]) & 0xFFFFFFFF, r[1])
+        + struct.pack("<q3f3f12f12f", int(r[0]), *r[2:32]) for r in rows)
+    assert P.encode_tracks(rows) == want
+    assert b"".join(P.encode_track(int(r[0]), r[1], r[2:5], r[5:8], r[8:20].reshape(4, 3),
+                                   r[20:32].reshape(4, 3)) for r in rows) == want
+    assert P.TRACK_RECORD.itemsize == P.TRACK_SIZE
