@@ -9,7 +9,8 @@
 #       each round (rounds split by /) the i-th label on cores 2i+2,2i+3, the rounds in turn
 #   HOST="base head"  each: one host on the GPU, `bench --load --workers $W --rooms-step $STEP
 #       --load-max-rooms $MAX --client-procs $PROCS $CPUS` (CPUS: e.g. "--server-cpus 0-9
-#       --client-cpus 10-15", the server and its load on cores of their own)
+#       --client-cpus 10-15", the server and its load on cores of their own; EXTRA: more
+#       bench flags, e.g. "--corner-rate 1000")
 #   GPU_TESTS / TESTS  as in tools/gpu_host.sh, on head, first
 #   SKIP_BUILD=1  a warm machine that has both builds (a second call within its warm time)
 #   BUILD="head"  build only these (no base: no label may use it)
@@ -89,6 +90,6 @@ for label in ${HOST:-}; do
   as "$label" timeout "${RUN_S:-120}" python3 -m clothball.game.cli bench --load \
     --server-backend cuda --workers "$W" --scene default --rooms-step "${STEP:-64}" \
     --load-max-rooms "${MAX:-128}" --load-seconds 5 --steps-past 1 --client-procs "${PROCS:-6}" \
-    ${CPUS:-} --json "$OUT/$name.json" \
+    ${CPUS:-} ${EXTRA:-} --json "$OUT/$name.json" \
     2>>"$OUT/bench.err" | tail -2
 done
