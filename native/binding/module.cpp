@@ -12,6 +12,7 @@
 namespace py = pybind11;
 void bind_batch(py::module_& m);  // binding/batch.cpp
 void bind_loop(py::module_& m);   // binding/loop.cpp
+void bind_load_clients(py::module_& m);  // binding/load_clients.cpp
 using cbind::Array;
 
 namespace {
@@ -105,6 +106,7 @@ PYBIND11_MODULE(_native, m) {
 
   bind_batch(m);
   bind_loop(m);
+  bind_load_clients(m);
 
   py::dict effects;
   effects["structural"] = unsigned(cb::STRUCTURAL);
