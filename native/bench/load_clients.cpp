@@ -10,6 +10,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cerrno>
 #include <cmath>
 #include <cstring>
@@ -122,8 +123,13 @@ void LoadClients::start() {
   std::lock_guard<std::mutex> lock(mu_);
   if (thread_.joinable() || closed_) throw std::runtime_error("the pump is started already");
   thread_ = std::thread([this] {
-    std::vector<epoll_event> evs(512);
+    std::vector<epoll_event> evs(4096);
+    double last = 0;
     for (;;) {
+      // Turns kTurnS apart at least: a turn takes every socket ready by then, so that the
+      // wake-ups do not grow with the clients (a latency is read up to kTurnS late).
+      const double early = last + kTurnS - monotonic_s();
+      if (early > 0) std::this_thread::sleep_for(std::chrono::duration<double>(early));
       int wait;
       {
         std::lock_guard<std::mutex> l(mu_);
@@ -133,25 +139,8 @@ void LoadClients::start() {
       const int got = epoll_wait(ep_, evs.data(), int(evs.size()), wait);
       std::lock_guard<std::mutex> l(mu_);
       if (stop_) return;
-      const double now = monotonic_s();
-      pace(now);
-      for (int e = 0; e < got; ++e) {
-        if (evs[std::size_t(e)].data.u64 == kWakeTag) {
-          std::uint64_t v;
-          (void)!::read(wake_, &v, sizeof v);
-          continue;
-        }
-        Client& c = *clients_[std::size_t(evs[std::size_t(e)].data.u64)];
-        if (c.n.closed) continue;
-        if (evs[std::size_t(e)].events & (EPOLLIN | EPOLLHUP | EPOLLERR)) read(c, now);
-        if (!c.n.closed && (evs[std::size_t(e)].events & EPOLLOUT)) flush(c);
-      }
-      for (int i : dirty_) {
-        Client& c = *clients_[std::size_t(i)];
-        c.queued = false;
-        if (!c.n.closed) flush(c);
-      }
-      dirty_.clear();
+      last = monotonic_s();
+      turn(last, evs.data(), got);
     }
   });
 }
@@ -161,20 +150,26 @@ void LoadClients::poll(double now, int wait_ms) {
     std::lock_guard<std::mutex> lock(mu_);
     if (thread_.joinable() || closed_) throw std::runtime_error("the pump runs on its thread");
   }
-  std::vector<epoll_event> evs(512);
+  std::vector<epoll_event> evs(4096);
   const int got = epoll_wait(ep_, evs.data(), int(evs.size()), wait_ms);
   std::lock_guard<std::mutex> lock(mu_);
+  turn(now, evs.data(), got);
+}
+
+// One turn, under the lock: the HIPs due, the sockets `evs` says are ready, then every
+// socket with bytes queued, each in one write.
+void LoadClients::turn(double now, const epoll_event* evs, int got) {
   pace(now);
   for (int e = 0; e < got; ++e) {
-    if (evs[std::size_t(e)].data.u64 == kWakeTag) {
+    if (evs[e].data.u64 == kWakeTag) {
       std::uint64_t v;
       (void)!::read(wake_, &v, sizeof v);
       continue;
     }
-    Client& c = *clients_[std::size_t(evs[std::size_t(e)].data.u64)];
+    Client& c = *clients_[std::size_t(evs[e].data.u64)];
     if (c.n.closed) continue;
-    if (evs[std::size_t(e)].events & (EPOLLIN | EPOLLHUP | EPOLLERR)) read(c, now);
-    if (!c.n.closed && (evs[std::size_t(e)].events & EPOLLOUT)) flush(c);
+    if (evs[e].events & (EPOLLIN | EPOLLHUP | EPOLLERR)) read(c, now);
+    if (!c.n.closed && (evs[e].events & EPOLLOUT)) flush(c);
   }
   for (int i : dirty_) {
     Client& c = *clients_[std::size_t(i)];

@@ -31,6 +31,8 @@
 #include <thread>
 #include <vector>
 
+struct epoll_event;
+
 namespace cb::bench {
 
 // docs/protocol.md's HIP (<BBHId3f): the bytes clothball.game.wire.protocol.encode_hip
@@ -45,6 +47,7 @@ constexpr double kFarBehindS = 0.05;     // the pacer this late: it starts again
 constexpr std::size_t kHoldMax = 4096;   // a frame longer than this is skipped as it comes
 constexpr std::size_t kOutMax = 1 << 16;   // unsent bytes a client may hold
 constexpr std::size_t kErrorKeep = 256;    // bytes of the newest error message kept
+constexpr double kTurnS = 5e-4;          // the pump's turns, this far apart at least
 
 // A player's hand: a slow sine up and down its seat's reach.
 struct Hand {
@@ -88,7 +91,7 @@ class LoadClients {
 
  private:
   struct Client;
-  void turn(double now);
+  void turn(double now, const epoll_event* evs, int got);
   void pace(double now);
   void read(Client& c, double now);
   std::size_t frames(Client& c, const std::uint8_t* p, std::size_t n, double now);
