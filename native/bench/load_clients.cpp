@@ -6,11 +6,11 @@
 #include <sys/epoll.h>
 #include <sys/eventfd.h>
 #include <sys/socket.h>
+#include <sys/uio.h>
 #include <time.h>
 #include <unistd.h>
 
 #include <algorithm>
-#include <chrono>
 #include <cerrno>
 #include <cmath>
 #include <cstring>
@@ -88,6 +88,10 @@ int LoadClients::add(int fd, const std::string& pending, const Hand* hand) {
     throw std::runtime_error("the load clients are closed");
   }
   fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) | O_NONBLOCK);
+  if (arrival_) {  // each read's receipt time from the kernel (read())
+    const int on = 1;
+    setsockopt(fd, SOL_SOCKET, SO_TIMESTAMPNS, &on, sizeof on);
+  }
   auto* c = new Client;
   c->fd = fd;
   c->index = int(clients_.size());
@@ -122,25 +126,40 @@ int LoadClients::add(int fd, const std::string& pending, const Hand* hand) {
 void LoadClients::start() {
   std::lock_guard<std::mutex> lock(mu_);
   if (thread_.joinable() || closed_) throw std::runtime_error("the pump is started already");
+  arrival_ = true;
+  const int on = 1;
+  for (Client* c : clients_)
+    if (!c->n.closed) setsockopt(c->fd, SOL_SOCKET, SO_TIMESTAMPNS, &on, sizeof on);
   thread_ = std::thread([this] {
     std::vector<epoll_event> evs(4096);
-    double last = 0;
+    double next = monotonic_s();
     for (;;) {
-      // Turns kTurnS apart at least: a turn takes every socket ready by then, so that the
-      // wake-ups do not grow with the clients (a latency is read up to kTurnS late).
-      const double early = last + kTurnS - monotonic_s();
-      if (early > 0) std::this_thread::sleep_for(std::chrono::duration<double>(early));
-      int wait;
+      bool idle;
       {
         std::lock_guard<std::mutex> l(mu_);
         if (stop_) return;
-        wait = timeout_ms(monotonic_s());
+        idle = clients_.empty();
       }
-      const int got = epoll_wait(ep_, evs.data(), int(evs.size()), wait);
+      if (idle) {  // nothing to pace or read: woken by an add (or close)
+        epoll_event ev;
+        (void)epoll_wait(ep_, &ev, 1, -1);
+        next = monotonic_s();
+      } else {
+        // A turn every kTurnS, one sleep each, every socket ready by then taken in it: the
+        // wake-ups (costly in a VM) do not grow with the clients. A HIP goes at the turn it
+        // falls due in; a CORNER's receipt time is the kernel's (read()).
+        next += kTurnS;
+        const double now = monotonic_s();
+        if (next < now) next = now;  // late: no burst of turns to catch up
+        timespec ts;
+        ts.tv_sec = time_t(next);
+        ts.tv_nsec = long((next - double(ts.tv_sec)) * 1e9);
+        clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr);
+      }
       std::lock_guard<std::mutex> l(mu_);
       if (stop_) return;
-      last = monotonic_s();
-      turn(last, evs.data(), got);
+      const int got = epoll_wait(ep_, evs.data(), int(evs.size()), 0);
+      turn(monotonic_s(), evs.data(), got);
     }
   });
 }
@@ -179,12 +198,6 @@ void LoadClients::turn(double now, const epoll_event* evs, int got) {
   dirty_.clear();
 }
 
-int LoadClients::timeout_ms(double now) const {
-  if (players_.empty()) return -1;  // nothing to pace: woken by a read or an add
-  const double wait = t_ - now;
-  return wait <= 0 ? 0 : int(std::ceil(wait * 1e3));
-}
-
 // Every player's HIPs due by `now`, round robin, evenly staggered over the period.
 void LoadClients::pace(double now) {
   if (players_.empty()) {
@@ -201,40 +214,68 @@ void LoadClients::pace(double now) {
     ++totals_.behind;
     t_ = now;
   }
+  // The slots due now; a socket written at its last slot of the turn (its frames due
+  // together in one write, each as soon as it is made: the time it carries is the send's).
+  const std::uint64_t due = t_ <= now ? std::uint64_t((now - t_) / gap) + 1 : 0;
   std::uint8_t f[kHipFrameBytes];
-  while (t_ <= now) {
+  for (std::uint64_t j = 0; j < due; ++j) {
     Client& c = *clients_[std::size_t(players_[k_ % n])];
     ++k_;
-    t_ += gap;
     if (c.n.closed || c.out.size() + kHipFrameBytes > kOutMax) continue;  // not sent
+    const double at = arrival_ ? monotonic_s() : now;  // the tests' turns: their clock
     const std::uint32_t seq = ++c.seq;
-    c.sent[seq & (kSentRing - 1)] = now;
+    c.sent[seq & (kSentRing - 1)] = at;
     const Hand& h = c.hand;
-    const double y = h.cy + 0.3 * std::sin(kPi * now + h.phase) * h.half_y;
+    const double y = h.cy + 0.3 * std::sin(kPi * at + h.phase) * h.half_y;
     std::uint8_t* p = f + net::write_head(f, net::kOpBinary, kHipBytes, kZeroKey);
     p = put(p, kHipType);
     p = put(p, loop::kProtocolVersion);
     p = put(p, std::uint16_t(0));
     p = put(p, seq);
-    p = put(p, now);
+    p = put(p, at);
     p = put(p, float(h.cx));
     p = put(p, float(y));
     put(p, float(h.cz));
-    send(c, f, kHipFrameBytes);
+    c.out.insert(c.out.end(), f, f + kHipFrameBytes);
     ++c.n.hips;
+    if (j + n >= due) flush(c);  // (else the socket comes again this turn)
   }
+  t_ += double(due) * gap;
 }
 
 void LoadClients::read(Client& c, double now) {
   std::uint8_t* buf = scratch_.data();
   const std::size_t held = c.hold.size();
   if (held) std::memcpy(buf, c.hold.data(), held);
-  const ssize_t r = recv(c.fd, buf + held, kRead, MSG_DONTWAIT);
+  iovec iov{buf + held, kRead};
+  alignas(cmsghdr) char ctl[CMSG_SPACE(sizeof(timespec))];
+  msghdr msg{};
+  msg.msg_iov = &iov;
+  msg.msg_iovlen = 1;
+  if (arrival_) {
+    msg.msg_control = ctl;
+    msg.msg_controllen = sizeof ctl;
+  }
+  const ssize_t r = recvmsg(c.fd, &msg, MSG_DONTWAIT);
   if (r == 0 || (r < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) {
     finish(c);  // the server hung up
     return;
   }
   if (r < 0) return;
+  // On its thread the pump reads a CORNER's receipt time from the kernel (when its newest
+  // segment arrived, CLOCK_REALTIME), not from the turn: the latency is then not read a
+  // turn late. The tests' turns (poll) keep the clock they are given.
+  for (cmsghdr* m = arrival_ ? CMSG_FIRSTHDR(&msg) : nullptr; m; m = CMSG_NXTHDR(&msg, m)) {
+    if (m->cmsg_level == SOL_SOCKET && m->cmsg_type == SCM_TIMESTAMPNS) {
+      timespec at;
+      std::memcpy(&at, CMSG_DATA(m), sizeof at);
+      timespec rt;
+      clock_gettime(CLOCK_REALTIME, &rt);
+      const double ago = double(rt.tv_sec - at.tv_sec) + double(rt.tv_nsec - at.tv_nsec) * 1e-9;
+      const double mono = monotonic_s();
+      if (ago >= 0 && ago < 1.0) now = mono - ago;
+    }
+  }
   c.n.bytes += std::uint64_t(r);
   const std::size_t n = held + std::size_t(r);
   const std::size_t used = frames(c, buf, n, now);

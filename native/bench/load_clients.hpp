@@ -22,7 +22,8 @@
 //
 // The clock is CLOCK_MONOTONIC in seconds: Python's time.perf_counter() on Linux, so that a
 // test can build the echoes the pump must read. `poll(now, wait_ms)` is one turn of the
-// loop; `start()` runs turns on a thread, the tests call poll() themselves.
+// loop; `start()` runs a turn every kTurnS on a thread (a CORNER's receipt time is then
+// the kernel's, SO_TIMESTAMPNS, not the turn's), the tests call poll() themselves.
 #pragma once
 #include <cstddef>
 #include <cstdint>
@@ -47,7 +48,10 @@ constexpr double kFarBehindS = 0.05;     // the pacer this late: it starts again
 constexpr std::size_t kHoldMax = 4096;   // a frame longer than this is skipped as it comes
 constexpr std::size_t kOutMax = 1 << 16;   // unsent bytes a client may hold
 constexpr std::size_t kErrorKeep = 256;    // bytes of the newest error message kept
-constexpr double kTurnS = 5e-4;          // the pump's turns, this far apart at least
+// The pump's thread takes a turn this often: not a multiple or divisor of the server's 1 ms
+// frame, so that the turns (and the HIPs sent in them) drift across its frames as real
+// clients' do, rather than keep one phase against them.
+constexpr double kTurnS = 0.73e-3;
 
 // A player's hand: a slow sine up and down its seat's reach.
 struct Hand {
@@ -99,7 +103,6 @@ class LoadClients {
   void send(Client& c, const std::uint8_t* p, std::size_t n);
   void flush(Client& c);
   void finish(Client& c);
-  int timeout_ms(double now) const;
 
   double period_;
   std::string error_prefix_;
@@ -116,6 +119,7 @@ class LoadClients {
   std::vector<int> dirty_;  // clients with frames queued in this turn
   std::thread thread_;
   bool stop_ = false, closed_ = false;
+  bool arrival_ = false;  // receipt times from the kernel (on the thread)
 };
 
 }  // namespace cb::bench
