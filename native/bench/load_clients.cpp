@@ -125,7 +125,8 @@ int LoadClients::add(int fd, const std::string& pending, const Hand* hand) {
 
 void LoadClients::start() {
   std::lock_guard<std::mutex> lock(mu_);
-  if (thread_.joinable() || closed_) throw std::runtime_error("the pump is started already");
+  if (closed_) throw std::runtime_error("the load clients are closed");
+  if (thread_.joinable()) throw std::runtime_error("the pump is started already");
   arrival_ = true;
   const int on = 1;
   for (Client* c : clients_)
@@ -167,7 +168,8 @@ void LoadClients::start() {
 void LoadClients::poll(double now, int wait_ms) {
   {
     std::lock_guard<std::mutex> lock(mu_);
-    if (thread_.joinable() || closed_) throw std::runtime_error("the pump runs on its thread");
+    if (closed_) throw std::runtime_error("the load clients are closed");
+    if (thread_.joinable()) throw std::runtime_error("the pump runs on its thread");
   }
   std::vector<epoll_event> evs(4096);
   const int got = epoll_wait(ep_, evs.data(), int(evs.size()), wait_ms);
@@ -401,7 +403,8 @@ void LoadClients::flush(Client& c) {
 void LoadClients::finish(Client& c) {
   if (c.n.closed) return;
   c.n.closed = true;
-  ::close(c.fd);  // also takes it out of the epoll set
+  epoll_ctl(ep_, EPOLL_CTL_DEL, c.fd, nullptr);  // (a close alone does not while a dup lives)
+  ::close(c.fd);
   c.fd = -1;
   c.out.clear();
   c.out.shrink_to_fit();

@@ -18,6 +18,7 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 from collections import Counter
 
 import numpy as np
@@ -349,11 +350,22 @@ def test_the_pump_refuses_a_bad_rate_in_one_line(args: tuple, says: str) -> None
         LoadClients(*args)
 
 
-def test_the_pump_refuses_a_closed_descriptor() -> None:
+def test_the_pump_refuses_a_closed_descriptor_and_calls_out_of_turn() -> None:
     pump = LoadClients(10.0, b"")
     with pytest.raises(ValueError, match="fd"):
         pump.add(-1, b"", None)
+    pump.start()
+    with pytest.raises(RuntimeError, match="runs on its thread"):
+        pump.poll(1.0, 0)
+    with pytest.raises(RuntimeError, match="started already"):
+        pump.start()
     pump.close()
+    pump.close()  # once is enough; twice says nothing
+    a, b = socket.socketpair()
+    with pytest.raises(RuntimeError, match="closed"):
+        pump.add(a.fileno(), b"", None)
+    a.close()
+    b.close()
 
 
 def _drain(sock: socket.socket) -> bytes:
@@ -502,3 +514,43 @@ def test_pump_refuses_a_masked_server_frame_and_says_so() -> None:
     assert benchclients._error_text(s["last_error"]).startswith("protocol: a masked frame")
     peer.close()
     pump.close()
+
+
+def _wait(pump: LoadClients, done) -> dict:
+    """Snapshots of a started pump until ``done(snap)`` (a deadline, not a timing claim)."""
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        s = pump.snap(False)
+        if done(s):
+            return s
+        time.sleep(0.01)
+    raise AssertionError(f"the pump did not get there: {s}")
+
+
+def test_started_pump_echoes_over_tcp_land_in_the_histogram_once() -> None:
+    """On its thread, over loopback TCP (the kernel's receipt times): the test, playing the
+    server, echoes each HIP it reads in a CORNER; every echo is one sample, none unknown or
+    mismatched, each at least 0 and under a second; the close at the end is sent."""
+    with socket.create_server(("127.0.0.1", 0)) as lsn:
+        mine = socket.create_connection(lsn.getsockname())
+        peer, _ = lsn.accept()
+    pump = LoadClients(50.0, benchclients.ERROR_PREFIX)
+    pump.add(mine.fileno(), b"", (0.0, 0.5, 0.0, 0.3, 0.0))
+    mine.close()
+    pump.start()
+    got = b""
+    while len(got) < 3 * (6 + P.HIP_SIZE):
+        got += peer.recv(4096)
+    hips = [P.decode_hip(bytes(f.data)) for f in _client_frames(got[:3 * (6 + P.HIP_SIZE)])]
+    assert [h.seq for h in hips] == [1, 2, 3]
+    for frame, h in enumerate(hips):
+        peer.sendall(_server_frame(Opcode.BINARY, _corner(frame, h.seq, h.time)))
+    s = _wait(pump, lambda s: s["corners"] == [3])
+    assert sum(s["hist"].values()) == 3 and max(s["hist"]) < K["hist_bins"]
+    assert s["echo_unknown"] == 0 and s["echo_mismatch"] == 0 and s["closed"] == [False]
+    pump.close()
+    rest = b""
+    while chunk := peer.recv(4096):
+        rest += chunk
+    assert _client_frames(got[3 * (6 + P.HIP_SIZE):] + rest)[-1].opcode is Opcode.CLOSE
+    peer.close()
