@@ -14,6 +14,7 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
+#include <memory>
 #include <stdexcept>
 
 #include "loop/corner_msg.hpp"
@@ -76,10 +77,7 @@ LoadClients::LoadClients(double hip_rate, std::string error_prefix)
   epoll_ctl(ep_, EPOLL_CTL_ADD, wake_, &ev);
 }
 
-LoadClients::~LoadClients() {
-  close();
-  for (Client* c : clients_) delete c;
-}
+LoadClients::~LoadClients() { close(); }
 
 int LoadClients::add(int fd, const std::string& pending, const Hand* hand) {
   std::lock_guard<std::mutex> lock(mu_);
@@ -92,10 +90,10 @@ int LoadClients::add(int fd, const std::string& pending, const Hand* hand) {
     const int on = 1;
     setsockopt(fd, SOL_SOCKET, SO_TIMESTAMPNS, &on, sizeof on);
   }
-  auto* c = new Client;
+  clients_.push_back(std::make_unique<Client>());
+  Client* c = clients_.back().get();
   c->fd = fd;
-  c->index = int(clients_.size());
-  clients_.push_back(c);
+  c->index = int(clients_.size()) - 1;
   if (hand != nullptr) {
     c->player = true;
     c->hand = *hand;
@@ -129,7 +127,7 @@ void LoadClients::start() {
   if (thread_.joinable()) throw std::runtime_error("the pump is started already");
   arrival_ = true;
   const int on = 1;
-  for (Client* c : clients_)
+  for (const auto& c : clients_)
     if (!c->n.closed) setsockopt(c->fd, SOL_SOCKET, SO_TIMESTAMPNS, &on, sizeof on);
   thread_ = std::thread([this] {
     std::vector<epoll_event> evs(4096);
@@ -418,7 +416,7 @@ void LoadClients::snap(bool mark, std::vector<ClientCounts>& counts, Totals& tot
   std::lock_guard<std::mutex> lock(mu_);
   counts.clear();
   counts.reserve(clients_.size());
-  for (const Client* c : clients_) counts.push_back(c->n);
+  for (const auto& c : clients_) counts.push_back(c->n);
   totals = totals_;
   hist.clear();
   for (std::size_t i = 0; i < hist_.size(); ++i)
@@ -435,7 +433,7 @@ void LoadClients::close() {
     const std::uint8_t status[2] = {0x03, 0xE8};  // 1000, normal closure
     const std::size_t hs = net::write_head(f, net::kOpClose, 2, kZeroKey);
     std::memcpy(f + hs, status, 2);
-    for (Client* c : clients_) {
+    for (const auto& c : clients_) {
       if (c->n.closed) continue;
       c->out.insert(c->out.end(), f, f + hs + 2);
       flush(*c);  // best effort: what does not go at once is dropped with the socket

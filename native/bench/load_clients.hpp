@@ -27,6 +27,7 @@
 #pragma once
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -108,7 +109,7 @@ class LoadClients {
   std::string error_prefix_;
   int ep_ = -1, wake_ = -1;
   std::mutex mu_;  // everything below: the pump's turn, add and snap
-  std::vector<Client*> clients_;
+  std::vector<std::unique_ptr<Client>> clients_;
   std::vector<int> players_;  // indices into clients_
   std::vector<std::uint64_t> hist_;
   Totals totals_;
