@@ -14,6 +14,7 @@ void bind_batch(py::module_& m);  // binding/batch.cpp
 void bind_loop(py::module_& m);   // binding/loop.cpp
 void bind_pump(py::module_& m);   // binding/pump.cpp
 void bind_follow(py::module_& m); // binding/pump.cpp
+void bind_load_clients(py::module_& m);  // binding/load_clients.cpp
 using cbind::Array;
 
 namespace {
@@ -109,6 +110,7 @@ PYBIND11_MODULE(_native, m) {
   bind_loop(m);
   bind_pump(m);
   bind_follow(m);
+  bind_load_clients(m);
 
   py::dict effects;
   effects["structural"] = unsigned(cb::STRUCTURAL);

@@ -627,7 +627,7 @@ bool Pump::take_hip(Conn& c, const std::uint8_t* p, std::size_t n) {
     return false;
   }
   // docs/protocol.md's HIP (<BBHId3f): well formed, else the engine answers it
-  if (n != kHipBytes || p[0] != 1 || p[1] != lp::kProtocolVersion || p[2] != 0 || p[3] != 0)
+  if (n != kHipBytes || p[0] != lp::kHipType || p[1] != lp::kProtocolVersion || p[2] != 0 || p[3] != 0)
     return false;
   std::uint32_t seq;
   double time;

@@ -28,6 +28,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "loop/hip_msg.hpp"
 #include "net/follow.hpp"
 
 namespace cb::loop {
@@ -46,7 +47,7 @@ constexpr int kRetries = 4;                  // this many times
 constexpr double kMeshLookS = 0.004;         // the watched rooms' boards looked at this often
 constexpr double kTimerMaxHz = 500.0;        // above: CORNERs on the frame wake-up
 constexpr double kBlockRetryS = 0.5;         // between two asks for a missing block
-constexpr std::size_t kHipBytes = 28;        // docs/protocol.md's HIP
+using loop::kHipBytes;
 constexpr double kCoalesceS = 0.001;         // the pump's tick while it has timers
 
 // A lane (server/shared/lanes.py LaneSpec): a seated player's hand and CORNER, and any

@@ -11,9 +11,11 @@ second in and out of the server, spectator mesh rates, and CPU use of each proce
 ``clothball bench --load``: how many rooms the server holds. Rooms of 4 players (as the
 desktop client: HIP at ``--hip-rate``, 120 Hz, ``corner_rate`` ``--corner-rate``, 120, MESH
 on) and ``--load-spectators`` spectators each are added a step at a time (1 room, then
-``--rooms-step`` K more each step) and measured for ``--load-seconds``. The clients are the
-lean ones of ``server/bench/benchclients.py``, many rooms to a process (``--client-procs``), so that
-they cost a small part of what they measure; their CPU is reported beside the server's.
+``--rooms-step`` K more each step) and measured for ``--load-seconds``. The clients are
+``server/bench/benchclients.py``'s, many rooms to a process (``--client-procs``), set up in
+Python and then driven by a native pump (``native/bench/load_clients.hpp``: no Python per
+message), so that they cost a small part of what they measure; their CPU is reported beside
+the server's.
 A step holds while every room's frame lateness p99 is within ``--lateness-target`` (2 ms)
 and the players receive at least 90 % of the CORNER rate they asked; the first step that
 does not hold ends the run, saying what stopped it (lateness, delivery, server CPU
@@ -604,7 +606,7 @@ def _server_env(args: argparse.Namespace) -> dict[str, str]:
 
 
 class _Clients:
-    """The lean client processes (``server/bench/benchclients.py``): rooms are given to them in
+    """The client processes (``server/bench/benchclients.py``): rooms are given to them in
     turn; each answers one JSON line per command."""
 
     def __init__(self, args: argparse.Namespace, n: int,

@@ -2,17 +2,20 @@
 measures each step from the server's own counters, /proc and its lean clients, and reports
 them. Speed is not asserted here (docs/benchmarks/load.md has the figures).
 
-The lean client's wire handling is checked against websockets' own frame codec (an
-independent implementation of RFC 6455), its latency quantiles against NumPy's."""
+The clients' native pump (native/bench/load_clients.hpp) is checked on socket pairs, the
+test playing the server: its frames against websockets' own codec (an independent
+implementation of RFC 6455) and the HIP codec, its latency samples against the send times it
+wrote, its quantiles against NumPy's. No timing is asserted: the pump is given its clock."""
 
 from __future__ import annotations
 
-import asyncio
 import inspect
 import json
 import math
 import os
 import shutil
+import socket
+import struct
 import subprocess
 import sys
 import time
@@ -20,8 +23,10 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from clothball._native import LOAD_CLIENTS, LoadClients
 from clothball.game import cli
 from clothball.game.wire import protocol as P
+from clothball.game.wire.wsframe import OP_BINARY, ZERO_KEY, frame_header
 from clothball.server.bench import benchclients, loadbench
 from clothball.server.room import Room
 from websockets.frames import Frame, Opcode
@@ -296,8 +301,8 @@ def test_latency_quantiles_match_numpy_within_a_bin() -> None:
     rng = np.random.default_rng(7)
     x = rng.lognormal(np.log(4e-3), 0.6, 20_000)  # seconds, a few ms like HIP -> CORNER
     hist: dict[int, int] = {}
-    for v in x:  # binned as the lean client bins them
-        i = min(int(v / benchclients.HIST_BIN_S), benchclients.HIST_BINS)
+    for v in x:  # binned as the pump bins them
+        i = min(int(v / benchclients.HIST_BIN_S), int(LOAD_CLIENTS["hist_bins"]))
         hist[i] = hist.get(i, 0) + 1
     for q in (0.5, 0.99):
         want = float(np.percentile(x, q * 100, method="inverted_cdf")) * 1e3
@@ -333,86 +338,229 @@ def _client_frames(data: bytes) -> list[Frame]:
     return frames
 
 
-class _Transport(asyncio.Transport):
-    """What a client writes, kept."""
+K = LOAD_CLIENTS  # the pump's wire constants and histogram bins
+MESH_SMALL = bytes([P.MESH]) + bytes(100)  # length < 126
+MESH_MID = bytes([P.MESH]) + bytes(5000)  # 16-bit length
+MESH_BIG = bytes([P.MESH]) + bytes(70_000)  # 64-bit length
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.out = bytearray()
 
-    def write(self, data: bytes) -> None:
-        self.out += data
+def test_the_pump_speaks_the_codec_s_wire() -> None:
+    assert (K["hip_type"], K["corner_type"], K["mesh_type"]) == (P.HIP, P.CORNER, P.MESH)
+    assert (K["hip_bytes"], K["corner_bytes"]) == (P.HIP_SIZE, P.CORNER_SIZE)
+    assert K["protocol_version"] == P.PROTOCOL_VERSION
+    assert benchclients.HIST_BIN_S == K["hist_bin_s"] == 1e-5
+    assert benchclients.ERROR_PREFIX == P.encode_json(P.error_message("x", "m")).encode()[:15]
 
-    def is_closing(self) -> bool:
-        return False
 
-    def close(self) -> None:
-        pass
+@pytest.mark.parametrize(("args", "says"), [((0.0, b""), "hip_rate must be"),
+                                            ((math.nan, b""), "hip_rate must be"),
+                                            ((1001.0, b""), "hip_rate must be")])
+def test_the_pump_refuses_a_bad_rate_in_one_line(args: tuple, says: str) -> None:
+    with pytest.raises(ValueError, match=says):
+        LoadClients(*args)
+
+
+def test_the_pump_refuses_a_closed_descriptor_and_calls_out_of_turn() -> None:
+    pump = LoadClients(10.0, b"")
+    with pytest.raises(ValueError, match="fd"):
+        pump.add(-1, b"", None)
+    pump.start()
+    with pytest.raises(RuntimeError, match="runs on its thread"):
+        pump.poll(1.0, 0)
+    with pytest.raises(RuntimeError, match="started already"):
+        pump.start()
+    pump.close()
+    pump.close()  # once is enough; twice says nothing
+    a, b = socket.socketpair()
+    with pytest.raises(RuntimeError, match="closed"):
+        pump.add(a.fileno(), b"", None)
+    a.close()
+    b.close()
+
+
+def _drain(sock: socket.socket) -> bytes:
+    """What the pump wrote so far (it writes within its turn: nothing is on the way)."""
+    sock.setblocking(False)
+    out = b""
+    while True:
+        try:
+            got = sock.recv(1 << 20)
+        except BlockingIOError:
+            return out
+        if not got:
+            return out
+        out += got
+
+
+def _pump_until(pump: LoadClients, now: float, done) -> dict:
+    """Turns of the pump at ``now`` until ``done(snap)`` (bytes still in the socket)."""
+    for _ in range(1000):
+        s = pump.snap(False)
+        if done(s):
+            return s
+        pump.poll(now, 100)
+    raise AssertionError(f"the pump did not get there: {s}")
+
+
+def test_pump_sends_each_player_s_hips_staggered_as_masked_frames() -> None:
+    """Two players at 100 Hz: the pacer sends them in turn, 5 ms apart, each player's HIPs
+    stamped with the pump's clock at the turn; the bytes are a masked client frame (zero key)
+    around the codec's HIP, which websockets reads back as a server does."""
+    hands = [(0.1, 0.5, -0.2, 0.3, 0.0), (-0.1, 0.6, 0.2, 0.25, math.pi / 2)]
+    pairs = [socket.socketpair() for _ in hands]
+    pump = LoadClients(100.0, benchclients.ERROR_PREFIX)
+    for (mine, _), hand in zip(pairs, hands, strict=True):
+        pump.add(mine.fileno(), b"", hand)
+        mine.close()  # the pump holds its own descriptor
+    t0 = 1000.0
+    turns = [t0, t0 + 0.006, t0 + 0.0101, t0 + 0.0302]  # the last late: three HIPs due
+    for now in turns:
+        pump.poll(now, 0)
+    s = pump.snap(False)
+    # t0: player 0; +5 ms: player 1; +10: 0; +15, +20, +25, +30: 1, 0, 1, 0
+    assert s["hips"] == [4, 3] and s["behind"] == 0
+    stamps = [[t0, t0 + 0.0101, t0 + 0.0302, t0 + 0.0302], [t0 + 0.006, t0 + 0.0302, t0 + 0.0302]]
+    for (_, peer), hand, want in zip(pairs, hands, stamps, strict=True):
+        data = _drain(peer)
+        head = frame_header(OP_BINARY, P.HIP_SIZE, masked=True) + ZERO_KEY
+        cx, cy, cz, hy, phase = hand
+        expect = b"".join(
+            head + P.encode_hip((cx, cy + 0.3 * math.sin(math.pi * t + phase) * hy, cz), seq, t)
+            for seq, t in enumerate(want, start=1))
+        assert data == expect  # the bytes benchclients' Python wrote, bit for bit
+        frames = _client_frames(data)
+        assert all(f.opcode is Opcode.BINARY and f.fin for f in frames)
+        hips = [P.decode_hip(bytes(f.data)) for f in frames]
+        assert [h.seq for h in hips] == [1, 2, 3, 4][:len(want)]
+        assert [h.time for h in hips] == want
+        peer.close()
+    pump.close()
 
 
 @pytest.mark.parametrize("chunk", [1, 3, 7, 64, 1000, 1 << 20])
-def test_lean_client_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
-    """CORNERs, MESHes of every websocket length form (counted, not read), text, a ping,
-    fed in chunks of every size: every message counted once; a latency sample once per HIP
-    echoed, from the time the client sent that seq; an echo of another time, or of a seq
-    never sent, counted; the ping answered with a pong websockets reads back."""
-    mesh_small = bytes([P.MESH]) + bytes(100)  # length < 126
-    mesh_mid = bytes([P.MESH]) + bytes(5000)  # 16-bit length
-    mesh_big = bytes([P.MESH]) + bytes(70_000)  # 64-bit length
+def test_pump_reads_a_server_stream_cut_anywhere(chunk: int) -> None:
+    """CORNERs, MESHes of every websocket length form (counted, not read), text (an error,
+    a fragmented message, a long one), a ping and a close, written by a peer playing the
+    server in chunks of every size: every message counted once; a latency sample once per
+    HIP echoed, in the bin of the pump's clock less the time it sent that seq; an echo of
+    another time, or of a seq never sent, counted; the ping answered with a pong and the
+    close with a close, which websockets reads back; the client then counted closed."""
+    mine, peer = socket.socketpair()
+    pump = LoadClients(1000.0, benchclients.ERROR_PREFIX)
+    pump.add(mine.fileno(), b"", (0.0, 0.5, 0.0, 0.3, 0.0))
+    mine.close()
+    t0 = 5000.0
+    pump.poll(t0, 0)  # HIP 1, sent at t0
+    pump.poll(t0 + 0.0015, 0)  # HIP 2, at t0 + 1.5 ms; the next is due at t0 + 2 ms
+    hips = _client_frames(_drain(peer))
+    s1, s2 = (P.decode_hip(bytes(f.data)).time for f in hips)
+    assert (s1, s2) == (t0, t0 + 0.0015)
+    now = t0 + 0.00185  # every read below: no HIP is due yet
+    error = P.encode_json(P.error_message("x", "m")).encode()
+    stream = b"".join([
+        _server_frame(Opcode.BINARY, _corner(10, 0, math.nan)),  # no HIP applied yet
+        _server_frame(Opcode.BINARY, MESH_MID),
+        _server_frame(Opcode.BINARY, _corner(11, 1, s1)),
+        _server_frame(Opcode.TEXT, error),
+        _server_frame(Opcode.BINARY, _corner(12, 1, s1)),  # the same HIP: no new sample
+        _server_frame(Opcode.BINARY, MESH_BIG),
+        _server_frame(Opcode.PING, b"hi"),
+        Frame(Opcode.TEXT, b'{"type":"ev', fin=False).serialize(mask=False),
+        Frame(Opcode.CONT, b'ent"}', fin=True).serialize(mask=False),
+        _server_frame(Opcode.BINARY, MESH_SMALL),
+        _server_frame(Opcode.TEXT, json.dumps({"type": "scores", "x": "y" * 9000}).encode()),
+        _server_frame(Opcode.BINARY, _corner(13, 2, s2 + 7.0)),  # not the time sent
+        _server_frame(Opcode.BINARY, _corner(14, 77, 0.0)),  # never sent
+    ])
+    for i in range(0, len(stream), chunk):
+        peer.sendall(stream[i:i + chunk])
+        pump.poll(now, 100)
+    s = _pump_until(pump, now, lambda s: s["bytes"] == [len(stream)])
+    assert s["corners"] == [5] and s["meshes"] == [3] and s["frame"] == [14]
+    assert s["texts"] == [3] and s["errors"] == [1] and s["closed"] == [False]
+    assert benchclients._error_text(s["last_error"]) == "x: m"
+    assert s["echo_mismatch"] == 1 and s["echo_unknown"] == 1
+    # HIPs 1 and 2, once each, from their send times, binned as benchclients binned them
+    assert s["hist"] == Counter(int((now - t) / benchclients.HIST_BIN_S) for t in (s1, s2))
+    assert s["hips"] == [2]
+    (pong,) = _client_frames(_drain(peer))
+    assert pong.opcode is Opcode.PONG and pong.data == b"hi"
+    # A mark clears the histogram, not the counters.
+    assert pump.snap(True)["hist"] and pump.snap(False)["hist"] == {}
+    peer.sendall(_server_frame(Opcode.CLOSE, struct.pack(">H", 1001)))
+    s = _pump_until(pump, now, lambda s: s["closed"] == [True])
+    (close,) = _client_frames(_drain(peer))
+    assert close.opcode is Opcode.CLOSE and close.data == struct.pack(">H", 1001)
+    assert peer.recv(1) == b""  # and it hung up
+    peer.close()
+    pump.close()
 
-    async def feed() -> tuple[benchclients.Conn, _Transport]:
-        hist = [0] * (benchclients.HIST_BINS + 1)
-        conn = benchclients.Conn(hist)
-        t = _Transport()
-        conn.connection_made(t)
-        conn._upgraded.set_result(None)
-        conn.hand = (0.0, 0.5, 0.0, 0.3, 0.0)
-        t1 = time.perf_counter() - 0.003  # sent 3 ms ago at least
-        conn.send_hip(t1)
-        conn.send_hip(t1 + 1e-4)
-        stream = b"".join([
-            _server_frame(Opcode.BINARY, _corner(10, 0, math.nan)),  # no HIP applied yet
-            _server_frame(Opcode.BINARY, mesh_mid),
-            _server_frame(Opcode.BINARY, _corner(11, 1, t1)),
-            _server_frame(Opcode.TEXT, json.dumps({"type": "error", "code": "x",
-                                                   "message": "m"}).encode()),
-            _server_frame(Opcode.BINARY, _corner(12, 1, t1)),  # the same HIP: no new sample
-            _server_frame(Opcode.BINARY, mesh_big),
-            _server_frame(Opcode.PING, b"hi"),
-            _server_frame(Opcode.BINARY, mesh_small),
-            _server_frame(Opcode.BINARY, _corner(13, 2, t1 + 7.0)),  # not the time sent
-            _server_frame(Opcode.BINARY, _corner(14, 77, 0.0)),  # never sent
-        ])
-        for i in range(0, len(stream), chunk):
-            conn.data_received(stream[i:i + chunk])
-        return conn, t
 
-    conn, t = asyncio.run(feed())
-    assert conn.corners == 5 and conn.meshes == 3 and conn.frame == 14
-    assert conn.texts == 1 and conn.errors == 1 and conn.last_error == "x: m"
-    assert conn.echo_mismatch == 1 and conn.echo_unknown == 1
-    bins = [i for i, c in enumerate(conn.hist) for _ in range(c)]
-    assert len(bins) == 2  # HIPs 1 and 2, once each, from their send times
-    assert min(bins) * benchclients.HIST_BIN_S >= 0.003 - 1e-4 - benchclients.HIST_BIN_S
-    frames = _client_frames(bytes(t.out))
-    assert [f.opcode for f in frames] == [Opcode.BINARY, Opcode.BINARY, Opcode.PONG]
-    assert frames[2].data == b"hi"
+def test_pump_reads_the_bytes_setup_read_past_its_last_reply() -> None:
+    """What Python read past the setup's last reply (here a whole CORNER and half of the
+    next) is the pump's first bytes: counted as if read from the socket."""
+    mine, peer = socket.socketpair()
+    pump = LoadClients(10.0, b"")
+    stream = _server_frame(Opcode.BINARY, _corner(3, 0, math.nan)) * 2
+    cut = len(stream) - 50
+    pump.add(mine.fileno(), stream[:cut], None)
+    mine.close()
+    peer.sendall(stream[cut:])
+    s = _pump_until(pump, 1.0, lambda s: s["bytes"] == [len(stream)])
+    assert s["corners"] == [2] and s["frame"] == [3] and s["hips"] == [0]
+    peer.close()
+    s = _pump_until(pump, 1.0, lambda s: s["closed"] == [True])  # a hang-up: closed
+    pump.close()
 
 
-def test_lean_client_hip_is_a_masked_frame_the_server_decodes() -> None:
-    async def one() -> bytes:
-        conn = benchclients.Conn([0] * (benchclients.HIST_BINS + 1))
-        t = _Transport()
-        conn.connection_made(t)
-        conn.hand = (0.1, 0.5, -0.2, 0.3, 0.0)
-        conn.send_hip(12.5)
-        return bytes(t.out)
+def test_pump_refuses_a_masked_server_frame_and_says_so() -> None:
+    mine, peer = socket.socketpair()
+    pump = LoadClients(10.0, b"")
+    pump.add(mine.fileno(), b"", None)
+    mine.close()
+    peer.sendall(Frame(Opcode.BINARY, b"\x03abc").serialize(mask=True))
+    s = _pump_until(pump, 1.0, lambda s: s["closed"] == [True])
+    assert s["errors"] == [1] and s["last_error"] == b"protocol: a masked frame from the server"
+    assert benchclients._error_text(s["last_error"]).startswith("protocol: a masked frame")
+    peer.close()
+    pump.close()
 
-    data = asyncio.run(one())
-    (frame,) = _client_frames(data)
-    assert frame.opcode is Opcode.BINARY and frame.fin
-    hip = P.decode_hip(bytes(frame.data))
-    assert hip.seq == 1 and hip.time == 12.5
-    y = 0.5 + 0.3 * math.sin(math.pi * 12.5) * 0.3
-    np.testing.assert_allclose(hip.position, [0.1, y, -0.2], rtol=1e-6)
-    assert 6 + P.HIP_SIZE == len(data)  # 2 header bytes, the mask key, the HIP
+
+def _wait(pump: LoadClients, done) -> dict:
+    """Snapshots of a started pump until ``done(snap)`` (a deadline, not a timing claim)."""
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        s = pump.snap(False)
+        if done(s):
+            return s
+        time.sleep(0.01)
+    raise AssertionError(f"the pump did not get there: {s}")
+
+
+def test_started_pump_echoes_over_tcp_land_in_the_histogram_once() -> None:
+    """On its thread, over loopback TCP (the kernel's receipt times): the test, playing the
+    server, echoes each HIP it reads in a CORNER; every echo is one sample, none unknown or
+    mismatched, each at least 0 and under a second; the close at the end is sent."""
+    with socket.create_server(("127.0.0.1", 0)) as lsn:
+        mine = socket.create_connection(lsn.getsockname())
+        peer, _ = lsn.accept()
+    pump = LoadClients(50.0, benchclients.ERROR_PREFIX)
+    pump.add(mine.fileno(), b"", (0.0, 0.5, 0.0, 0.3, 0.0))
+    mine.close()
+    pump.start()
+    got = b""
+    while len(got) < 3 * (6 + P.HIP_SIZE):
+        got += peer.recv(4096)
+    hips = [P.decode_hip(bytes(f.data)) for f in _client_frames(got[:3 * (6 + P.HIP_SIZE)])]
+    assert [h.seq for h in hips] == [1, 2, 3]
+    for frame, h in enumerate(hips):
+        peer.sendall(_server_frame(Opcode.BINARY, _corner(frame, h.seq, h.time)))
+    s = _wait(pump, lambda s: s["corners"] == [3])
+    assert sum(s["hist"].values()) == 3 and max(s["hist"]) < K["hist_bins"]
+    assert s["echo_unknown"] == 0 and s["echo_mismatch"] == 0 and s["closed"] == [False]
+    pump.close()
+    rest = b""
+    while chunk := peer.recv(4096):
+        rest += chunk
+    assert _client_frames(got[3 * (6 + P.HIP_SIZE):] + rest)[-1].opcode is Opcode.CLOSE
+    peer.close()
