@@ -46,6 +46,14 @@ class Samples:
         """The ring position after the newest sample, counted from the ring's start."""
         return self.count
 
+    def key(self) -> tuple[int, int, int]:
+        """What ``newest()`` gives depends on only this (the ring, its end, how many samples
+        are kept): views of one ring with equal keys hold the same samples, and figures made
+        from one serve the others (``/api/stats``: every room of a frame loop shares its
+        lateness ring; 256 rooms' percentiles of 100 000 samples each held the event loop
+        up for seconds)."""
+        return self._a.ctypes.data, self._end(), len(self)  # (views share the memory)
+
     def newest(self, n: int | None = None) -> np.ndarray:
         k = len(self) if n is None else max(0, min(n, len(self)))
         end = self._end()

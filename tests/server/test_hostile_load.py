@@ -593,3 +593,22 @@ def test_the_status_line_names_the_cluster_it_is_in(tmp_path) -> None:
     with redis_server(tmp_path) as redis:
         text = started_and_stopped(host_cmd(tmp_path, redis.url))
         assert f"in the cluster at {redis.url} as ws://" in text, text
+
+
+def test_a_frame_loops_rooms_share_their_lateness_figures() -> None:
+    """``/api/stats`` makes a frame loop's lateness figures once for the rooms whose views
+    of its ring hold the same samples (``Samples.key``), and each room's are still its own
+    where they differ: views made over one ring at different starts."""
+    import numpy as np
+    from clothball.server.sim.worker import RingSamples
+
+    engine = np.zeros(1, dtype=[("lateness_count", "<u8"), ("lateness", "<f8", (64,))])
+    a, b = RingSamples(engine), RingSamples(engine)
+    engine["lateness"][0][:10] = np.arange(10)
+    engine["lateness_count"][0] = 10
+    assert a.key() == b.key() and np.array_equal(a.newest(), b.newest())
+    b.clear()
+    engine["lateness"][0][10:12] = [7.0, 8.0]
+    engine["lateness_count"][0] = 12
+    assert a.key() != b.key()
+    assert list(b.newest()) == [7.0, 8.0] and len(a.newest()) == 12
