@@ -40,7 +40,7 @@ if [ "${SKIP_BUILD:-0}" != 1 ]; then
   wait
   echo "builds (CPU + CUDA sm_90, both at once): $((SECONDS - start)) s" | tee -a "$OUT/gpu.txt"
 fi
-for t in head base; do
+for t in ${BUILD:-head base}; do
   [ -d /tmp/$t-site/clothball ] || { echo "$t build failed"; tail -20 "$OUT/build_$t.log"; }
 done
 if [ -d .base/server/bench ] && [ -d /tmp/head-site/clothball ]; then
