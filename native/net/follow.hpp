@@ -35,6 +35,33 @@ inline void append(std::string& out, const void* p, std::size_t n) {
   out.append(static_cast<const char*>(p), n);
 }
 
+// A frame's start not yet whole, carried from one feed to the next: `view` gives the bytes
+// to read now (those carried, then the new ones), `keep` what was left unread.
+class Carry {
+ public:
+  void view(const std::uint8_t* data, std::size_t n, const std::uint8_t*& buf,
+            std::size_t& end) {
+    if (partial_.empty()) {
+      buf = data;
+      end = n;
+      return;
+    }
+    partial_.append(reinterpret_cast<const char*>(data), n);
+    scratch_.swap(partial_);
+    partial_.clear();
+    buf = reinterpret_cast<const std::uint8_t*>(scratch_.data());
+    end = scratch_.size();
+  }
+  void keep(const std::uint8_t* buf, std::size_t i, std::size_t end) {
+    if (i < end) partial_.assign(reinterpret_cast<const char*>(buf + i), end - i);
+    scratch_.clear();
+  }
+  bool empty() const { return partial_.empty(); }
+
+ private:
+  std::string partial_, scratch_;
+};
+
 class ClientTap {
  public:
   // take(payload, n): true when taken (the frame leaves the stream).
@@ -43,15 +70,9 @@ class ClientTap {
 
   // Follows `data` and appends what goes on to `out`.
   void feed(const std::uint8_t* data, std::size_t n, std::string& out, const Take& take) {
-    const std::uint8_t* buf = data;
-    std::size_t end = n;
-    if (!partial_.empty()) {
-      partial_.append(reinterpret_cast<const char*>(data), n);
-      scratch_.swap(partial_);
-      partial_.clear();
-      buf = reinterpret_cast<const std::uint8_t*>(scratch_.data());
-      end = scratch_.size();
-    }
+    const std::uint8_t* buf;
+    std::size_t end;
+    carry_.view(data, n, buf, end);
     std::size_t i = 0;
     while (i < end) {
       if (skip_) {
@@ -82,15 +103,14 @@ class ClientTap {
       i += h.size;
       skip_ = h.length;
     }
-    if (i < end) partial_.assign(reinterpret_cast<const char*>(buf + i), end - i);
-    scratch_.clear();
+    carry_.keep(buf, i, end);
   }
 
  private:
   std::size_t max_take_;
   std::uint64_t skip_ = 0;
   bool fragmented_ = false;
-  std::string partial_, scratch_;
+  Carry carry_;
 };
 
 class ServerFollow {
@@ -145,20 +165,14 @@ class ServerFollow {
   // Whether the gateway may write a message of its own now: a websocket stream, open,
   // between two of the engine's messages.
   bool between_messages() const {
-    return websocket && !closed && !skip_ && partial_.empty() && !fragmented_;
+    return websocket && !closed && !skip_ && carry_.empty() && !fragmented_;
   }
 
  private:
   void frames(const std::uint8_t* data, std::size_t n, std::string& out, const OnLane& on_lane) {
-    const std::uint8_t* buf = data;
-    std::size_t end = n;
-    if (!partial_.empty()) {
-      partial_.append(reinterpret_cast<const char*>(data), n);
-      scratch_.swap(partial_);
-      partial_.clear();
-      buf = reinterpret_cast<const std::uint8_t*>(scratch_.data());
-      end = scratch_.size();
-    }
+    const std::uint8_t* buf;
+    std::size_t end;
+    carry_.view(data, n, buf, end);
     std::size_t i = 0;
     for (;;) {
       if (skip_) {
@@ -205,8 +219,7 @@ class ServerFollow {
         peek_left_ = peek_binary_ ? kBinaryHead : std::size_t(std::min<std::uint64_t>(h.length, kPeek));
       }
     }
-    if (i < end) partial_.assign(reinterpret_cast<const char*>(buf + i), end - i);
-    scratch_.clear();
+    carry_.keep(buf, i, end);
   }
 
   void seen_binary(const std::uint8_t* p) {
@@ -274,7 +287,8 @@ class ServerFollow {
     return std::string_view::npos;
   }
 
-  std::string head_, partial_, scratch_, peek_;
+  std::string head_, peek_;
+  Carry carry_;
   std::uint64_t skip_ = 0;
   bool fragmented_ = false, peeking_ = false, peek_binary_ = false;
   std::size_t peek_left_ = 0;

@@ -168,8 +168,7 @@ std::int64_t Pump::add(int client_fd, int engine_fd, std::string to_engine, bool
       epoll_ctl(ep_, EPOLL_CTL_ADD, engine ? engine_fd : client_fd, &ev);
     }
     interest(r);
-    r.dirty = true;
-    dirty_.push_back(&r);
+    mark(r);
   });
   return id;
 }
@@ -302,8 +301,7 @@ void Pump::finish(std::int64_t conn, std::string tail) {
     Conn& c = *it->second;
     if (!c.c_shut && !c.finishing) c.to_client += tail;
     c.finishing = true;
-    c.dirty = true;
-    dirty_.push_back(&c);
+    mark(c);
   });
 }
 
@@ -394,6 +392,14 @@ void Pump::on_cmd() {
   for (auto& f : cmds) f();
 }
 
+// `c` is written at the end of this pass (once, whatever came for it).
+void Pump::mark(Conn& c) {
+  if (!c.dirty) {
+    c.dirty = true;
+    dirty_.push_back(&c);
+  }
+}
+
 void Pump::interest(Conn& c) {
   if (c.dead) return;
   std::uint32_t cm = 0, em = 0;
@@ -439,8 +445,7 @@ void Pump::on_client(Conn& c, std::uint32_t ev) {
   if (r == 0) {
     c.c_eof = true;
     interest(c);
-    c.dirty = true;  // the end goes on to the engine once what is queued has
-    dirty_.push_back(&c);
+    mark(c);  // the end goes on to the engine once what is queued has
     close_if_done(c);
     return;
   }
@@ -454,10 +459,7 @@ void Pump::on_client(Conn& c, std::uint32_t ev) {
   }
   if (c.e_buffered()) {
     if (c.e_buffered() > kWriteHigh) c.c_paused = true;
-    if (!c.dirty) {
-      c.dirty = true;
-      dirty_.push_back(&c);
-    }
+    mark(c);
   }
   if (!c.dirty) interest(c);  // (else the pass's flush sets it, once)
 }
@@ -494,10 +496,7 @@ void Pump::on_engine(Conn& c, std::uint32_t ev) {
     flush_pending(c);
   if (c.c_buffered()) {
     if (c.c_buffered() > kWriteHigh) c.e_paused = true;
-    if (!c.dirty) {
-      c.dirty = true;
-      dirty_.push_back(&c);
-    }
+    mark(c);
   }
   if (!c.dirty) interest(c);  // (else the pass's flush sets it, once)
 }
@@ -731,10 +730,7 @@ void Pump::write_lane(Conn& c, int kind, const std::uint8_t* payload, std::size_
     append(c.to_client, payload, n);
     c.srv.sent_binary(payload, n);
     out_.fetch_add(1, std::memory_order_relaxed);
-    if (!c.dirty) {
-      c.dirty = true;
-      dirty_.push_back(&c);
-    }
+    mark(c);
   } else {
     c.pending[kind].assign(reinterpret_cast<const char*>(payload), n);
     c.has_pending[kind] = true;

@@ -146,6 +146,7 @@ class Pump {
   int wait(epoll_event* evs, int max);
   void schedule(double at, std::int64_t conn, std::uint64_t gen);
   void interest(Conn& c);
+  void mark(Conn& c);
   bool flush(Conn& c);
   void engine_ended(Conn& c);
   void close_if_done(Conn& c);
