@@ -198,7 +198,9 @@ void Pump::open_lane(std::int64_t conn, LaneSpec spec) {
       }
     }
     if (sp.board >= 0) {
-      watched_[{sp.board, std::size_t(sp.slot) * sp.board_slot}].conns.insert(c.id);
+      Watch& w = watched_[{sp.board, std::size_t(sp.slot) * sp.board_slot}];
+      w.conns.insert(c.id);
+      w.slot_bytes = sp.board_slot;
       if (!mesh_timer_) {
         mesh_timer_ = true;
         schedule(now, 0, 0);
@@ -518,9 +520,9 @@ void Pump::engine_ended(Conn& c) {
   emit(std::move(e));
 }
 
-// Writes what is queued for each side; false when the connection died.
-bool Pump::flush(Conn& c) {
-  if (c.dead) return false;
+// Writes what is queued for each side (the connection may die of it).
+void Pump::flush(Conn& c) {
+  if (c.dead) return;
   auto write_side = [this, &c](int fd, std::string& q, std::size_t& off) -> bool {
     while (off < q.size()) {
       const ssize_t w = ::send(fd, q.data() + off, q.size() - off, MSG_NOSIGNAL);
@@ -541,7 +543,7 @@ bool Pump::flush(Conn& c) {
   };
   if (!write_side(c.cfd, c.to_client, c.c_off)) {
     kill(c);
-    return false;
+    return;
   }
   if (!c.e_ended && !write_side(c.efd, c.to_engine, c.e_off)) {
     engine_ended(c);
@@ -558,7 +560,6 @@ bool Pump::flush(Conn& c) {
   }
   interest(c);
   close_if_done(c);
-  return !c.dead;
 }
 
 // Both ways have ended (the client's end passed on, the engine's and its tail written):
@@ -753,16 +754,7 @@ void Pump::look_meshes() {
     Watch& w = it->second;
     Shared* s = shared(board_id);
     if (s == nullptr || !s->board || w.conns.empty()) continue;
-    const Conn* first = nullptr;
-    for (std::int64_t id : w.conns) {
-      auto ci = conns_.find(id);
-      if (ci != conns_.end() && ci->second->lane) {
-        first = ci->second.get();
-        break;
-      }
-    }
-    if (first == nullptr) continue;
-    const std::size_t slot_bytes = first->lane->spec.board_slot;
+    const std::size_t slot_bytes = w.slot_bytes;
     if (slot_bytes <= lp::kBoardHead || offset + slot_bytes > s->bytes) continue;
     mesh_buf_.resize(slot_bytes - lp::kBoardHead);
     std::int64_t frame = -1;

@@ -133,6 +133,7 @@ class Pump {
   struct Watch {
     std::set<std::int64_t> conns;
     std::int64_t sent = -1;
+    std::size_t slot_bytes = 0;  // of the board's slots (the lanes' board_slot)
   };
 
   void run();
@@ -147,7 +148,7 @@ class Pump {
   void schedule(double at, std::int64_t conn, std::uint64_t gen);
   void interest(Conn& c);
   void mark(Conn& c);
-  bool flush(Conn& c);
+  void flush(Conn& c);
   void engine_ended(Conn& c);
   void close_if_done(Conn& c);
   void kill(Conn& c);

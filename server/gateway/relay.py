@@ -205,7 +205,6 @@ class _Client(asyncio.Protocol):
         self.early: bytearray = bytearray()  # read before the engine answered
         self.head = asyncio.Event()  # a request's head is in ``early`` (or the client ended)
         self.eof = False
-        self.handed = False  # its socket is the pump's
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -234,7 +233,6 @@ class _Client(asyncio.Protocol):
         # with it (abort closes, never shuts down, so the connection stays open).
         t.pause_reading()
         client = os.dup(t.get_extra_info("socket").fileno())
-        self.handed = True
         self.gw.pump.add(client, sock.detach(), line + bytes(self.early), self.eof)
         self.early = bytearray()
         t.abort()
