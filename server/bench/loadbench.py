@@ -47,6 +47,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -926,26 +927,22 @@ def _measure(args: argparse.Namespace, servers: list[subprocess.Popen[str]],
 
 PAGE_EVERY_S = 0.1  # the host's own pages asked for this often while a step is measured
 PAGE_TIMEOUT_S = 2.0  # an answer later than this counts as this late (and as unanswered)
+PAGES = {"healthz": "/healthz", "stats": "/api/stats"}  # (the step's keys: their names)
 
 
 def _probe_pages(http: str, seconds: float) -> dict[str, Any]:
     """For ``seconds``, ``/healthz`` and ``/api/stats`` by turns every ``PAGE_EVERY_S``, as
     an operator's monitoring would (issue 43: they must answer under full load): each one's
     p50 and p99 answer time in ms and how many went unanswered."""
-    times: dict[str, list[float]] = {"healthz": [], "stats": []}
-    failed = dict.fromkeys(times, 0)
+    times: dict[str, list[float]] = {page: [] for page in PAGES}
+    failed = dict.fromkeys(PAGES, 0)
     end = time.perf_counter() + seconds
-    k = 0
-    while True:
-        now = time.perf_counter()
-        if now >= end:
-            break
-        page = ("healthz", "stats")[k % 2]
-        k += 1
+    turns = itertools.cycle(PAGES.items())
+    while time.perf_counter() < end:
+        page, path = next(turns)
         t0 = time.perf_counter()
         try:
-            get(f"{http}/{'healthz' if page == 'healthz' else 'api/stats'}",
-                timeout=PAGE_TIMEOUT_S)
+            get(f"{http}{path}", timeout=PAGE_TIMEOUT_S)
             times[page].append(time.perf_counter() - t0)
         except OSError:
             failed[page] += 1
