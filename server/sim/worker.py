@@ -27,6 +27,7 @@ import queue
 import secrets
 import struct
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -45,6 +46,12 @@ from .results import FrameResult, Samples
 log = logging.getLogger("clothball.server")
 
 MESH_THREADS = max(1, min(4, (os.cpu_count() or 1) // 4))  # a worker's MESH encoders
+# The service thread's passes are at least this far apart. A room's MESH is due every 33
+# frames and rooms are out of phase, so some room's is due nearly every 1 ms frame: a pass
+# each frame woke each worker's Python thread 1 000 times a second, each time taking the
+# interpreter lock from the event loop. A MESH waits at most this much more (a spectator's
+# 30 Hz is 33 ms); a TRACK ring holds 0.64 s.
+SERVICE_PERIOD_S = 0.005
 LAYOUT: dict[str, Any] = _native.frame_block_layout()
 EVENT = LAYOUT["events"]
 
@@ -464,9 +471,11 @@ class FrameWorker:
         try:
             while not self._stop.is_set():
                 self.frame_loop.wait_service(0.05)
+                began = time.monotonic()
                 self._drain_tracks()
                 self._drain_inbox()
                 self._encode_meshes()
+                self._stop.wait(SERVICE_PERIOD_S - (time.monotonic() - began))
         except Exception:  # pragma: no cover - a bug: recordings and meshes stop
             log.exception("frame loop service thread failed")
 
