@@ -14,6 +14,7 @@ import logging
 import math
 import os
 import secrets
+import tempfile
 import time
 import urllib.parse
 from collections.abc import Awaitable, Callable
@@ -28,10 +29,11 @@ from websockets.asyncio.server import Server, serve
 from ..game.sim.scene import ASSETS, Scene
 from .conn import Conn
 from .directory import IO_TIMEOUT_S, MIN_READ_GAP_S, PUBLISH_S, Directory, HostEntry, OnDemand
+from .gateway.relay import Gateway
 from .headroom import WINDOW_S, Headroom
 from .http import HttpSurface
 from .lanes.control import GatewayControl
-from .lanes.local import LocalLinks
+from .lanes.local import LocalLink
 from .limits import DEFAULT, Limits
 from .lobby import Lobby
 from .room import Room, RoomSettings
@@ -108,7 +110,7 @@ class GameServer:
         self.engine_socket = c.engine_socket
         self.advertise = c.advertise
         self.host_id = c.host_id or secrets.token_hex(6)
-        self._gateways: Server | None = None
+        self._own: Gateway | None = None  # its own port's gateway, in this process
         self._control: GatewayControl | None = None  # the gateways' control socket
         self.limits = c.limits or DEFAULT
         if c.hello_timeout is not None:
@@ -135,9 +137,9 @@ class GameServer:
             self.storage.check_now()
         # Every room of a scene is a slot of that scene's worker: one call steps them all.
         self.sims = SimPool(epoch=self.epoch, spool_dir=spool_dir_for(self.data_dir))
-        # The lanes the engine serves itself (server.lanes): its own clients' HIPs, CORNERs
-        # and MESH, by the lane code its gateways run.
-        self.lane_links = LocalLinks(self.sims.local_shares, self.sims.set_wake)
+        # The Unix socket every connection comes in by: the host's (engine_socket, shared
+        # with its gateway processes), else one of its own in a private directory.
+        self.socket_path = c.engine_socket
         self._share_host_token()
         self.lobby = Lobby(scenes, self, backend=backend, max_rooms=self.limits.max_rooms,
                            sims=self.sims, hooks=_LobbyHooks(self))
@@ -164,6 +166,11 @@ class GameServer:
         self.stats = {"messages_in": 0, "messages_out": 0, "lane_messages_in": 0,
                       "lane_messages_out": 0, "bad_messages": 0, "rounds_saved": 0,
                       "rounds_not_saved": 0, "refused_connections": 0, "rooms_stopped": 0}
+        # Its own port (the public port of one process; its bots' beside gateways) is
+        # served by a gateway in this process, relaying to its Unix socket like any other
+        # gateway: one data plane, the native pump's lanes, for every client
+        # (docs/architecture.md). Its lanes read the frame loops' memory in place.
+        self.lane_link = LocalLink(self.sims.local_shares, self.sims.set_wake, self.stats)
         self._cpu0 = time.process_time()
         self._wall0 = time.perf_counter()
         self.http = HttpSurface(self)
@@ -174,21 +181,24 @@ class GameServer:
         """Listen and open the main room. A failure to listen (``OSError``: port taken,
         address not here) closes the replay index it opened, so nothing is left open."""
         try:
-            self.lane_links.start()
-            self._server = await self._listen(self.port)
+            if self.socket_path is None:
+                self.socket_path = Path(tempfile.mkdtemp(prefix="clothball-engine-")) \
+                    / "engine.sock"
+            self._server = await self._listen_gateways(self.socket_path)
             if self.engine_socket is not None:
-                self._gateways = await self._listen_gateways(self.engine_socket)
                 self._control = GatewayControl(lanes.ctl_path(self.engine_socket),
                                                self.sims.shares, self.stats,
                                                self.sims.set_wake)
                 await self._control.start()
+            self._own = Gateway(self.host, self.port, self.socket_path, link=self.lane_link,
+                                reuse_port=False)
+            await self._own.start()
         except BaseException:
-            if self._server is not None:
-                self._server.close()
-            self.lane_links.stop()
+            await self._close_listeners()
             self.storage.close()
             raise
-        sock = next(iter(self._server.sockets))
+        assert self._own.server is not None
+        sock = next(iter(self._own.server.sockets))
         self.port = sock.getsockname()[1]
         # What a room of each scene costs here, for admission (a fraction of a second).
         await asyncio.to_thread(self.headroom.measure, self.scenes.values())
@@ -244,14 +254,32 @@ class GameServer:
         path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
-        srv = await self._listen(None, path=str(path), unix=True)
+        srv = await self._listen(path=str(path), unix=True)
         os.chmod(path, 0o600)
         return srv
 
-    async def _listen(self, port: int | None, **extra: Any) -> Server:
-        where = {} if port is None else {"host": self.host, "port": port}
+    async def _close_listeners(self) -> None:
+        """Its own gateway (every connection through it cut), the control socket, the
+        Unix socket's listener (its connections closed) and its directory."""
+        own, self._own = self._own, None
+        if own is not None:
+            await own.stop()
+        control, self._control = self._control, None
+        if control is not None:
+            await control.stop()
+        if self._server is not None:
+            self._server.close(close_connections=True)
+            await self._server.wait_closed()
+        if self.socket_path is not None:
+            # Its directory too (made for this run), so that a host killed with SIGKILL,
+            # whose engine stops on the kernel's SIGTERM, leaves nothing behind.
+            with contextlib.suppress(OSError):
+                self.socket_path.unlink()
+                self.socket_path.parent.rmdir()
+
+    async def _listen(self, **extra: Any) -> Server:
         return await serve(
-            self.ws.handler, **where, process_request=self.http.process_request,
+            self.ws.handler, process_request=self.http.process_request,
             max_size=self.limits.max_message_bytes, max_queue=64, compression=None,
             create_connection=Connection,
             ping_interval=self.limits.ping_interval, ping_timeout=self.limits.ping_timeout,
@@ -381,23 +409,15 @@ class GameServer:
         """Stop accepting, close every connection and room, finish the writes under way."""
         self.ready = False
         self.http.abort_downloads()
-        for srv in (self._gateways, self._server):
-            if srv is not None:
-                srv.close(close_connections=True)
-        if self._control is not None:
-            await self._control.stop()
+        own, self._own = self._own, None
+        if own is not None:
+            await own.stop()  # (its pump: every client's connection through it cut at once)
+        if self._server is not None:
+            self._server.close(close_connections=True)
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        for srv in (self._gateways, self._server):
-            if srv is not None:
-                await srv.wait_closed()
-        if self.engine_socket is not None:
-            # Its directory too (made for this host's run), so that a host killed with
-            # SIGKILL, whose engine stops on the kernel's SIGTERM, leaves nothing behind.
-            with contextlib.suppress(OSError):
-                self.engine_socket.unlink()
-                self.engine_socket.parent.rmdir()
+        await self._close_listeners()
         if self.directory is not None:
             self._reads.cancel()
             self._publications.cancel()
@@ -407,7 +427,7 @@ class GameServer:
                 log.warning("could not leave the room directory: %s", e)
         self._dir_pool.shutdown(wait=False)
         await self.lobby.close()
-        self.lane_links.stop()
+        await self.lane_link.stop()  # (after the pump: the frame loops outlive it)
         await asyncio.to_thread(self.sims.close)
         if self._saves:
             await asyncio.gather(*self._saves, return_exceptions=True)
@@ -613,11 +633,6 @@ class GameServer:
                                          for n, s in self.scenes.items()}},
             **self.stats,
             "messages_out": self.stats["messages_out"] + sum(c.sent for c in self.clients),
-            # the lanes' part: its gateways' (reported) and the engine's own
-            "lane_messages_in": self.stats["lane_messages_in"]
-            + self.lane_links.counts["messages_in"],
-            "lane_messages_out": self.stats["lane_messages_out"]
-            + self.lane_links.counts["messages_out"],
             "rooms": rooms,
         }
 

@@ -1,20 +1,17 @@
 """One client connection: coalescing sender, rate limits and error replies.
 
-Outgoing data waits in three places, never in a growing queue of state:
+Outgoing control messages (JSON: replies, room state, events) wait in a bounded FIFO; a
+client that lets it fill up (``Limits.max_control_queue``) is too slow and is dropped.
 
-* control messages (JSON: replies, room state, events) in a bounded FIFO; a client that
-  lets it fill up (``Limits.max_control_queue``) is too slow and is dropped;
-* the newest CORNER message (one slot: a newer frame replaces an unsent one);
-* the newest MESH message (one slot, likewise).
+Its binary messages never pass here: every client comes through a gateway (a gateway
+process, or the engine's own port's, in this process), whose native pump serves its lane
+(``server.shared.lanes``: the seat's hand in, its CORNER at ``corner_rate`` and its room's
+MESH out, from the frame loop's memory), opened by a lane message in its stream
+(``open_lane``).
 
-Its CORNERs and MESHes come from its lane (``server.lanes``: the seat's hand in, its CORNER
-at ``corner_rate`` and its room's MESH out, from the frame loop's memory), which its gateway
-serves where it can (a lane message in its stream) and the engine's ``LocalLinks`` serve
-otherwise (``open_lane``).
-
-A single sender task writes them in that order, waiting for the socket to drain. A client
-whose socket stays backed up for ``Limits.slow_drop_s`` seconds is dropped. Every number
-here is a ``server.limits.Limits`` field (``docs/security.md``).
+A single sender task writes the control messages, waiting for the socket to drain. A
+client whose socket stays backed up for ``Limits.slow_drop_s`` seconds is dropped. Every
+number here is a ``server.limits.Limits`` field (``docs/security.md``).
 """
 
 from __future__ import annotations
@@ -32,7 +29,6 @@ from websockets.exceptions import ConnectionClosed
 
 from ..game.net.tap import TapConnection
 from ..game.wire import protocol as P
-from .lanes.lane import Lane, Links
 from .limits import DEFAULT, Limits
 from .shared.bucket import TokenBucket
 from .shared.lanes import LaneSpec, lane_message
@@ -77,16 +73,15 @@ class Conn:
 
     def __init__(self, ws: ServerConnection, limits: Limits = DEFAULT, *,
                  address: str | None = None, house: bool = False,
-                 links: Links | None = None) -> None:
+                 own_gateway: bool = False) -> None:
         """``address``: the client's, where a trusted proxy forwarded it (else the
         socket's peer); ``house``: one of the server's own bots (no per-address slot);
-        ``links``: the engine's, for the lanes it serves itself."""
+        ``own_gateway``: it came through the engine's own port's gateway (in this
+        process: its lanes read the frame loops' memory whether or not it is shared)."""
         self.id = secrets.token_urlsafe(6)
         self.ws = ws
-        # The engine's connections write binary messages at once where they can
-        # (game.net.tap); its transport, for the backlog checks and a cut.
-        self._tap = ws if isinstance(ws, TapConnection) else None
-        self.transport: Any = None if self._tap is None else self._tap.stream
+        # Its transport, for the backlog checks and a cut.
+        self.transport: Any = ws.stream if isinstance(ws, TapConnection) else None
         self.limits = limits
         addr = ws.remote_address
         self.address: str = address or (str(addr[0]) if addr else "?")
@@ -98,16 +93,13 @@ class Conn:
         self.name = "guest"
         self.want_mesh = True
         self.corner_interval = 0.0  # s between CORNER messages (client's corner_rate)
-        # Its gateway serves lanes it can map (server.shared.lanes); else the engine does.
+        # Its gateway serves lanes (server.shared.lanes), in memory it can map.
         self.gateway_lanes = bool(getattr(ws, "lanes", False))
-        self.links = links
-        self.lane: Lane | None = None  # the lane the engine serves it
+        self.own_gateway = own_gateway
         self.relayed_lane = False  # its gateway serves its lane
         self.hello_done = False
         self.closed = False
         self._control: collections.deque[str] = collections.deque()
-        self._corner: bytes | None = None
-        self._mesh: bytes | None = None
         self._wake = asyncio.Event()
         self.control_bucket = TokenBucket(limits.control_rate, limits.control_burst)
         self.binary_bucket = TokenBucket(limits.binary_rate, limits.binary_burst)
@@ -116,11 +108,9 @@ class Conn:
         self.rate_drops: collections.deque[float] = collections.deque()
         self.sent = 0
         self.received = 0
-        self.corners_replaced = 0
         self._backed_up_since: float | None = None
         self._sending_since: float | None = None
         self._closing: asyncio.Future[None] | None = None
-        self._idle = False  # the sender waits for work: nothing queued, nothing being sent
         self._sender = asyncio.create_task(self._send_loop())
 
     # --- offering data --------------------------------------------------------------------
@@ -133,7 +123,8 @@ class Conn:
         self._control.append(P.encode_json(msg))
         self._wake.set()
 
-    def _stuck(self) -> bool:
+    def stuck(self) -> bool:
+        """A message has waited on its socket past ``slow_drop_s``: dropped (True)."""
         since = self._sending_since
         if since is not None and time.monotonic() - since > self.limits.slow_drop_s:
             self.drop("too slow: one message has waited for the socket too long")
@@ -141,70 +132,19 @@ class Conn:
         return False
 
     def open_lane(self, spec: LaneSpec | None, shared: bool) -> None:
-        """Its lane from now on (None: none): served by its gateway where it has one that
-        serves lanes and the room's memory is ``shared`` with it (a lane message in its
-        stream), else by the engine's own lane code."""
-        if self.lane is not None:
-            self.lane.close()
-            self.lane = None
-        if spec is not None and self.gateway_lanes and shared:
+        """Its lane from now on (None: none), served by its gateway's pump: a lane message
+        in its stream. A gateway process maps the room's memory only where it is
+        ``shared`` (a memfd); the engine's own gateway reads it in place. Where neither
+        can, it has no lane: its HIPs reach the room (``Room.on_hip``), and it gets no
+        CORNER or MESH (a host whose file size limit keeps the memory from being shared
+        runs one process: ``clothball host``)."""
+        if spec is not None and self.gateway_lanes and (shared or self.own_gateway):
             self.relayed_lane = True
             self.send_json(lane_message(spec))
             return
         if self.relayed_lane:
             self.relayed_lane = False
             self.send_json(lane_message(None))
-        if spec is not None and self.links is not None:
-            self.lane = Lane(spec, self.links, self._lane_write,
-                             lambda: None if self.room is None else self.room.id)
-
-    def _lane_write(self, kind: str, head: bytes, payload: bytes) -> None:
-        """Its lane's CORNER or MESH (``head``: the frame header a gateway writes; here the
-        connection frames it)."""
-        assert self.links is not None
-        self.links.counts["messages_out"] += 1
-        if kind == "corner":
-            self.offer_corner(payload)
-        else:
-            self.offer_mesh(payload)
-
-    def take_hip(self, data: bytes) -> bool:
-        """A HIP its lane writes into the seat's hand (False: the engine answers it)."""
-        return self.lane is not None and self.lane.take(data)
-
-    def offer_corner(self, data: bytes) -> None:
-        if self.closed:
-            return
-        if self._sending_since is not None and self._stuck():  # (no call while not sending)
-            return
-        if self._send_now(data):
-            return
-        if self._corner is not None:
-            self.corners_replaced += 1
-        self._corner = data
-        self._wake.set()
-
-    def offer_mesh(self, data: bytes) -> None:
-        if self.closed or not self.want_mesh or (self._sending_since is not None
-                                                 and self._stuck()):
-            return
-        if self._send_now(data):
-            return
-        self._mesh = data
-        self._wake.set()
-
-    def _send_now(self, data: bytes) -> bool:
-        """Write a binary message at once when the sender is idle and the socket takes it
-        without waiting (nothing buffered): the same bytes, in the same order, as the sender
-        task would write one pass of the event loop later, without waking it (4 000 CORNER
-        messages a second in the server bench). Otherwise (something queued or being
-        sent, a backed-up socket, a closing connection) False: the sender task does it."""
-        if not self._idle or self._control or self._corner is not None or self._mesh is not None:
-            return False
-        if self._tap is None or not self._tap.send_now(data):
-            return False
-        self.sent += 1
-        return True
 
     def error(self, err: P.ProtocolError | str, message: str = "", re: object = None) -> None:
         """Send an error reply, unless this client has had too many lately."""
@@ -234,21 +174,10 @@ class Conn:
         ws = self.ws
         try:
             while True:
-                self._idle = True
-                try:
-                    await self._wake.wait()
-                finally:
-                    self._idle = False
+                await self._wake.wait()
                 self._wake.clear()
-                while True:
-                    if self._control:
-                        msg: str | bytes = self._control.popleft()
-                    elif self._corner is not None:
-                        msg, self._corner = self._corner, None
-                    elif self._mesh is not None:
-                        msg, self._mesh = self._mesh, None
-                    else:
-                        break
+                while self._control:
+                    msg = self._control.popleft()
                     self._sending_since = time.monotonic()
                     await ws.send(msg)
                     self._sending_since = None

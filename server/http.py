@@ -283,13 +283,11 @@ class HttpSurface:
             self.srv.house_key.encode())
 
     def _private(self, connection: ServerConnection) -> bool:
-        """Whether ``connection`` came to a host engine's own TCP port rather than through
-        its gateways' Unix socket (a path there, an address here)."""
-        if self.srv.engine_socket is None:
-            return False
-        transport = getattr(connection, "transport", None)
-        return transport is not None and isinstance(transport.get_extra_info("sockname"),
-                                                    tuple)
+        """Whether ``connection`` came to a host engine's own TCP port (its bots', served
+        by the engine's own gateway: the port its PROXY line names) rather than to the
+        public port of its gateway processes."""
+        return self.srv.engine_socket is not None and \
+            getattr(connection, "local_port", None) == self.srv.port
 
     def _is_host(self, request: Request) -> bool:
         """The request carries the host's token (compared in constant time)."""

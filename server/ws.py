@@ -62,6 +62,7 @@ class Connection(TapConnection, ServerConnection):
     _line: bytearray | None = None
     _peer: tuple[str, int] | None = None
     lanes = False  # the gateway serves this client's lane (server.shared.lanes)
+    local_port: int | None = None  # the port the client connected to (its PROXY line's)
 
     def connection_made(self, transport: Any) -> None:
         super().connection_made(transport)
@@ -81,6 +82,7 @@ class Connection(TapConnection, ServerConnection):
         try:
             self._peer = proxyline.decode(bytes(line))
             self.lanes = proxyline.lanes(bytes(line))
+            self.local_port = proxyline.local_port(bytes(line))
         except proxyline.BadLine as e:
             log.warning("gateway connection refused: %s", e)
             self.stream.abort()
@@ -167,7 +169,8 @@ class WsEndpoint:
         # The client's address (forwarded by a trusted proxy) and whether it is one of the
         # server's own bots: what server.http found at the upgrade.
         conn = Conn(ws, self.srv.limits, address=getattr(ws, "client_address", None),
-                    house=getattr(ws, "house", False), links=self.srv.lane_links)
+                    house=getattr(ws, "house", False),
+                    own_gateway=getattr(ws, "local_port", None) == self.srv.port)
         self.srv.clients.add(conn)
         sock = conn.transport.get_extra_info("socket") if conn.transport is not None else None
         if sock is not None:
@@ -235,12 +238,15 @@ class WsEndpoint:
         """Closes lobby connections that have sent no request (pings and binary messages do
         not count) for ``Limits.lobby_idle_s`` (1008, saying so), so that idle clients
         cannot hold the server's slots; players and spectators are not idle in this sense
-        (they watch). Runs until the server stops."""
+        (they watch). Drops a client one of whose messages has waited on its socket past
+        ``Limits.slow_drop_s``. Runs until the server stops."""
         while True:
             limit = self.srv.limits.lobby_idle_s
-            await asyncio.sleep(min(5.0, limit / 4))
+            await asyncio.sleep(min(5.0, limit / 4, self.srv.limits.slow_drop_s / 2))
             now = time.monotonic()
             for c in list(self.srv.clients):
+                if c.stuck():
+                    continue
                 if c.role == "lobby" and c.hello_done and now - c.last_in > limit:
                     c.drop(f"idle: no request but pings for {limit:g} s in the lobby")
 
@@ -320,8 +326,6 @@ class WsEndpoint:
             conn.fail("internal error")
 
     def _on_binary(self, conn: Conn, data: bytes) -> None:
-        if conn.take_hip(data):  # its lane wrote it into the seat's hand, as a gateway's does
-            return
         if not conn.binary_bucket.take():
             self.srv.stats["bad_messages"] += 1
             conn.error("rate_limited", f"at most {conn.binary_bucket.rate:g} binary "

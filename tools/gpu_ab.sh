@@ -4,7 +4,8 @@
 # -C .base`, then carry .base and .whl), both built with CUDA for sm_90.
 #   TWO_CORE="base head base head"  each: one process on 2 cores (taskset -c 2,3), the CPU
 #       engine, `bench --load --workers 1 --scene default --server-n 16 --rooms-step 2`, the
-#       2-core machine's no-regression check on a quiet machine
+#       2-core machine's no-regression check on a quiet machine (TWO_MAX rooms at most, 20;
+#       TWO_S seconds a run, 150)
 #   PAR_ROUNDS="base head base head/head base head base"  the same run, several at once: in
 #       each round (rounds split by /) the i-th label on cores 2i+2,2i+3, the rounds in turn
 #   HOST="base head"  each: one host on the GPU, `bench --load --workers $W --rooms-step $STEP
@@ -60,9 +61,9 @@ as() {  # $1: label (base, head, head:VAR=value); the rest: the command
   esac
 }
 two_core() {  # $1: run name, $2: label, $3: the cores
-  as "$2" timeout 150 taskset -c "$3" python3 -m clothball.game.cli bench --load \
+  as "$2" timeout "${TWO_S:-150}" taskset -c "$3" python3 -m clothball.game.cli bench --load \
     --server-backend cpu --workers 1 --scene default --server-n 16 --rooms-step 2 \
-    --load-max-rooms 20 --load-seconds 5 --steps-past 1 --client-procs 1 --json "$OUT/$1.json" \
+    --load-max-rooms "${TWO_MAX:-20}" --load-seconds 5 --steps-past 1 --client-procs 1 --json "$OUT/$1.json" \
     2>>"$OUT/bench.err" | tail -2 >"$OUT/$1.txt"
   echo "== $1 ($2, cores $3): $(tail -1 "$OUT/$1.txt")"
 }

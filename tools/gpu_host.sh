@@ -2,12 +2,11 @@
 # The GPU run of one `clothball host` (issue 33): build with CUDA, optionally the server
 # suites on the CUDA engine, then `bench --load` on CUDA, default scene, real client rates:
 # --workers 1 (one process) against --workers W (an engine and W-1 gateways on one port),
-# with the gateways' lanes on and off (CLOTHBALL_GATEWAY_LANES=0: every message relayed to
-# the engine), the same machine in the same run; at 120 Hz corners, then at 1 kHz.
+# the same machine in the same run; at 120 Hz corners, then at 1 kHz.
 # Usage (on a GPU machine, websockets etc. carried in .whl/):
 #   OUT=results bash tools/gpu_host.sh
 # Environment: W (default 16), STEP, MAX (120 Hz), STEP1K, MAX1K (1 kHz), RUN_S (each run's
-# limit), RUNS (default "w1 wW wW_off"), RATES (default "120 1000"; empty: no load runs), TESTS (server test
+# limit), RUNS (default "w1 wW"), RATES (default "120 1000"; empty: no load runs), TESTS (server test
 # files run first on the CUDA engine, e.g. "tests/server/test_workers.py"), GPU_TESTS (test
 # paths whose GPU cases run before them: -k "cuda or batch", or GPU_K), SKIP_BUILD=1 (a warm machine
 # that has the build), FLAGS (more `bench --load` flags for every run, e.g. "--client-procs 6").
@@ -48,11 +47,10 @@ for rate in ${RATES-120 1000}; do  # RATES="" (set, empty): tests only
   if [ "$rate" = 120 ]; then flags=(--rooms-step "${STEP:-16}" --load-max-rooms "${MAX:-160}")
   else flags=(--corner-rate "$rate" --rooms-step "${STEP1K:-8}" --load-max-rooms "${MAX1K:-48}")
   fi
-  for run in ${RUNS:-w1 wW wW_off}; do
+  for run in ${RUNS:-w1 wW}; do
     case $run in
       w1) load "${rate}hz_w1" --workers 1 "${flags[@]}" ;;
       wW) load "${rate}hz_w$W" --workers "$W" "${flags[@]}" ;;
-      wW_off) CLOTHBALL_GATEWAY_LANES=0 load "${rate}hz_w${W}_nolanes" --workers "$W" "${flags[@]}" ;;
     esac
   done
 done

@@ -16,6 +16,7 @@ import asyncio
 import json
 import logging
 import os
+import resource
 import shutil
 import signal
 import socket
@@ -233,6 +234,17 @@ def _stop_on_signals(lifeline_fd: int | None = None) -> asyncio.Event:
 RESTART_S = 1.0  # a process that died is started again after this long
 
 
+# A frame loop's block and mesh board are memfds that gateway processes map; a file size
+# limit below their size keeps them in the engine's memory alone (64 rooms' block and board
+# are a few MiB at n = 48, 8 at n = 128).
+SHARED_MEMORY_BYTES = 64 << 20
+
+
+def _can_share_memory() -> bool:
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return soft == resource.RLIM_INFINITY or soft >= SHARED_MEMORY_BYTES
+
+
 def default_workers(cpus: int | None = None) -> int:
     """This host's processes when ``--workers`` is not given: one per core, but one process
     on a machine of 1 or 2 cores. There the engine's frame loop and event loop need both
@@ -253,6 +265,12 @@ def run(args: argparse.Namespace) -> int:
     if args.parent is not None:
         lifeline.arm(args.parent)
     raise_open_files()  # every client is a socket or two in each process (issue 43)
+    if workers > 1 and args.engine_socket is None and not _can_share_memory():
+        print(f"clothball host: the file size limit (ulimit -f) is below "
+              f"{SHARED_MEMORY_BYTES >> 20} MiB, so the rooms' memory cannot be shared with "
+              "gateway processes: running one process (raise the limit for --workers)",
+              flush=True)
+        workers = 1
     if args.engine_socket is not None or workers == 1:
         return loops.run(serve(args))
     return supervise(args, workers)

@@ -94,6 +94,24 @@ void bind_pump(py::module_& m) {
             }
           },
           py::arg("maps"), "(id, board?, memfd, bytes) each; the fds stay the caller's")
+      .def(
+          "set_local_maps",
+          [](cn::Pump& p, const std::vector<std::tuple<std::int64_t, bool, py::buffer>>& maps) {
+            std::vector<cn::Pump::MapIn> in;
+            for (const auto& [id, board, buf] : maps) {
+              const py::buffer_info info = buf.request(true);
+              in.push_back({id, board, -1, std::size_t(info.size * info.itemsize), info.ptr});
+            }
+            try {
+              p.set_maps(in);
+            } catch (const std::runtime_error& e) {
+              throw py::value_error(e.what());
+            }
+          },
+          py::arg("maps"),
+          "(id, board?, writable buffer) each, in this process: the pump reads and writes "
+          "that memory as it is; the caller keeps it alive until the pump has stopped or "
+          "been given maps without it")
       .def("drop_maps", &cn::Pump::drop_maps)
       .def("set_wake", &cn::Pump::set_wake, py::arg("fd"))
       .def("no_wake", &cn::Pump::no_wake)

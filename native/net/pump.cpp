@@ -219,11 +219,16 @@ void Pump::close_lane(std::int64_t conn) {
 
 void Pump::set_maps(const std::vector<MapIn>& maps) {
   std::unordered_map<std::int64_t, Shared> made;
-  auto undo = [&made] {
-    for (auto& kv : made) munmap(kv.second.base, kv.second.bytes);
+  auto release = [](const Shared& s) {
+    if (s.owned) munmap(s.base, s.bytes);
+  };
+  auto undo = [&made, &release] {
+    for (auto& kv : made) release(kv.second);
   };
   for (const MapIn& m : maps) {
-    void* p = mmap(nullptr, m.bytes, PROT_READ | PROT_WRITE, MAP_SHARED, m.fd, 0);
+    void* p = m.addr != nullptr
+                  ? m.addr
+                  : mmap(nullptr, m.bytes, PROT_READ | PROT_WRITE, MAP_SHARED, m.fd, 0);
     if (p == MAP_FAILED) {
       const int e = errno;
       undo();
@@ -232,6 +237,7 @@ void Pump::set_maps(const std::vector<MapIn>& maps) {
     }
     Shared s;
     s.board = m.board;
+    s.owned = m.addr == nullptr;
     s.base = static_cast<unsigned char*>(p);
     s.bytes = m.bytes;
     if (!m.board) {
@@ -239,7 +245,7 @@ void Pump::set_maps(const std::vector<MapIn>& maps) {
       if (m.bytes < sizeof(lp::Header) || h->magic != lp::kBlockMagic ||
           h->version != lp::kBlockVersion || h->room_bytes != sizeof(lp::RoomRecord) ||
           h->total_bytes > m.bytes) {
-        munmap(p, m.bytes);
+        release(s);
         undo();
         throw std::runtime_error("not a frame loop block of this build (magic, version or size)");
       }
@@ -259,7 +265,8 @@ void Pump::drop_maps() {
 }
 
 void Pump::unmap_all() {
-  for (auto& kv : shared_) munmap(kv.second.base, kv.second.bytes);
+  for (auto& kv : shared_)
+    if (kv.second.owned) munmap(kv.second.base, kv.second.bytes);
   shared_.clear();
 }
 

@@ -75,9 +75,11 @@ struct Event {
   double time = 0.0;
 };
 
-// A shared memory the engine passed (a frame loop's block, or its mesh board), mapped here.
+// A shared memory the engine passed (a frame loop's block, or its mesh board), mapped here
+// (or, for a pump in the engine's own process, its memory as it is: not `owned`).
 struct Shared {
   bool board = false;
+  bool owned = true;  // mapped here: unmapped here
   unsigned char* base = nullptr;
   std::size_t bytes = 0;
   loop::RoomRecord* records = nullptr;  // a block's
@@ -101,11 +103,14 @@ class Pump {
   void open_lane(std::int64_t conn, LaneSpec spec);
   void close_lane(std::int64_t conn);
   // (id, board?, memfd, bytes): mapped here (the fds stay the caller's); replaces all.
+  // With `addr` (the engine's own pump): that memory as it is, which the caller keeps
+  // mapped until the pump has stopped or been given maps without it.
   struct MapIn {
     std::int64_t id;
     bool board;
     int fd;
     std::size_t bytes;
+    void* addr = nullptr;
   };
   void set_maps(const std::vector<MapIn>& maps);  // throws on a bad one, maps nothing then
   void drop_maps();

@@ -20,13 +20,8 @@ from ..shared import lanes
 
 log = logging.getLogger("clothball.gateway")
 
-LANES_ENV = "CLOTHBALL_GATEWAY_LANES"  # "0": the gateway relays every message (A/B runs)
 REPORT_S = 1.0  # counts reported to the engine this often
 RETRY_S = 0.5  # between two requests for the blocks
-
-
-def lanes_wanted() -> bool:
-    return os.environ.get(LANES_ENV, "1").strip() != "0"
 
 
 COALESCE_ENV = "CLOTHBALL_PUMP_COALESCE_US"  # the pump's wake-ups under load (A/B runs)

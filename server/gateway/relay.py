@@ -38,7 +38,7 @@ from ..shared import proxyline
 from ..shared.lanes import ctl_path, parse_lane
 from ..shared.listen import ACCEPT_BACKLOG
 from .frames import close_frame, text_frame
-from .lanes import EngineLink, lanes_wanted, pump_coalesce_s
+from .lanes import EngineLink, pump_coalesce_s
 
 CHUNK = 1 << 16  # bytes a client may send before its engine answers
 HEAD_WAIT_S = 5.0  # for a request's head, before a 503 while the engine is away
@@ -81,26 +81,35 @@ async def connect_engine(path: str, wait_s: float) -> socket.socket:
 
 
 class Gateway:
-    """Relays the public port ``host:port`` to the engine socket ``engine``."""
+    """Relays the public port ``host:port`` to the engine socket ``engine``. ``link``: where
+    its lanes' blocks and wake-up come from: the engine's control socket (a gateway
+    process's ``EngineLink``, the default), or, for the engine's own port, the engine's
+    ``server.lanes.local.LocalLink``; ``reuse_port``: the port is shared with other
+    processes (a host's gateways)."""
 
-    def __init__(self, host: str, port: int, engine: Path) -> None:
+    def __init__(self, host: str, port: int, engine: Path, *, link: Any = None,
+                 reuse_port: bool = True) -> None:
         self.host, self.port, self.engine = host, port, engine
+        self.reuse_port = reuse_port
         self.server: asyncio.Server | None = None
         coalesce = pump_coalesce_s()
         self.pump = _native.Pump() if coalesce is None else _native.Pump(coalesce)
-        # Its clients' lanes served here (server.shared.lanes), unless off.
-        self.lanes = EngineLink(ctl_path(engine), self.pump) if lanes_wanted() else None
+        # Its clients' lanes served here (server.shared.lanes).
+        if link is None:
+            link = EngineLink(ctl_path(engine), self.pump)
+        else:
+            link.attach(self.pump)
+        self.lanes = link
         self._open: set[asyncio.BaseTransport] = set()  # clients not yet handed to the pump
         self._tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
         self.server = await loop.create_server(
-            lambda: _Client(self), self.host, self.port, reuse_port=True,
+            lambda: _Client(self), self.host, self.port, reuse_port=self.reuse_port,
             backlog=ACCEPT_BACKLOG)
         loop.add_reader(self.pump.event_fd, self._events)
-        if self.lanes is not None:
-            self.lanes.start()
+        self.lanes.start()
 
     async def stop(self) -> None:
         """Stop accepting and cut every relayed connection (both sides)."""
@@ -112,8 +121,7 @@ class Gateway:
             asyncio.get_running_loop().remove_reader(self.pump.event_fd)
         self.pump.stop()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        if self.lanes is not None:
-            await self.lanes.stop()
+        await self.lanes.stop()
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.get_running_loop().create_task(coro)
@@ -129,9 +137,9 @@ class Gateway:
                 self._lane(conn, ev[2])
             elif kind == "ended":
                 self._spawn(self._ended(conn, ev[2], ev[3], ev[4], ev[5]))
-            elif kind == "block" and self.lanes is not None:
+            elif kind == "block":
                 self.lanes.want_block(conn)
-            elif kind == "arm" and self.lanes is not None:
+            elif kind == "arm":
                 self.lanes.want_armed(ev[1])
 
     def _lane(self, conn: int, payload: bytes) -> None:
@@ -141,7 +149,7 @@ class Gateway:
         except (ValueError, KeyError, TypeError) as e:
             log.warning("the engine sent a lane message that is not one (%s): %.80r", e, payload)
             spec = None
-        if spec is None or self.lanes is None:
+        if spec is None:
             self.pump.close_lane(conn)
             return
         # The room as the engine's compact JSON writes it: the pump matches it against
@@ -228,7 +236,7 @@ class _Client(asyncio.Protocol):
             sock.close()
             return
         line = proxyline.encode(t.get_extra_info("peername"), t.get_extra_info("sockname"),
-                                lanes=self.gw.lanes is not None)
+                                lanes=True)
         # The client's socket, duplicated for the pump: the transport's own is closed
         # with it (abort closes, never shuts down, so the connection stays open).
         t.pause_reading()

@@ -1,53 +1,99 @@
-"""The engine's links for the lanes it serves itself (``LocalLinks``): the clients connected
-to the engine (one process, or where its gateway cannot serve a lane), served by the same
-lane code as a gateway's, from the same block and board, mapped in this process."""
+"""The engine's own gateway's link (``LocalLink``): the engine serves its own port (the
+public port of one process, its bots' loopback port beside gateways) with the same
+``server.gateway.relay.Gateway`` and native pump as a gateway process, relaying to its own
+Unix socket. The pump's lanes read this process's frame loop memory as it is (no memfd
+needed, so a file size limit that keeps it from being shared does not matter here), and the
+frame wake-up is this process's eventfd, armed directly: what a gateway's ``EngineLink``
+asks its engine for over the control socket is a call here."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from ... import _native
-from .lane import Links
+from .control import COUNTED
 
-# (id, buffer, kind): a frame loop's block ("block") or its mesh board ("board"), in memory
-# that lives while the frame loop's worker does (the owner, kept here with it)
+REPORT_S = 1.0  # its pump's counts added to the host's figures this often (as a gateway's)
+
+# (id, buffer, kind, owner): a frame loop's block ("block") or its mesh board ("board"),
+# in memory that lives while its owner (the frame loop's worker) does
 Share = tuple[int, Any, str, object]
 
 
-class LocalLinks(Links):
+class LocalLink:
     """``shares()``: every frame loop's block and board now; ``set_wake(fd, on)``: every
-    frame loop writes the eventfd after each pass (or no more)."""
+    frame loop writes the eventfd after each pass (or no more); ``stats``: the host's
+    figures, to which the pump's counts are added (``messages_in``, ``messages_out`` and
+    their ``lane_`` parts, as ``server.lanes.control`` adds a gateway's). The frame loops'
+    workers live until the server's pool closes, after its gateway's pump has stopped."""
 
     def __init__(self, shares: Callable[[], Iterable[Share]],
-                 set_wake: Callable[[int, bool], None]) -> None:
-        super().__init__()
+                 set_wake: Callable[[int, bool], None],
+                 stats: dict[str, int] | None = None) -> None:
         self._shares = shares
         self._set_wake = set_wake
-        self._blocks: dict[int, tuple[Any, object]] = {}  # id -> (view or board, owner)
+        self.stats = stats if stats is not None else {}
+        self.pump: Any = None
+        self.have: set[int] = set()
+        self._wake = -1
+        self._armed = False
+        self._seen = dict.fromkeys(COUNTED, 0)
+        self._task: asyncio.Task[None] | None = None
+
+    def attach(self, pump: Any) -> None:
+        self.pump = pump
 
     def start(self) -> None:
-        """The frame wake-up, an eventfd of this process's (armed while a lane needs it)."""
-        if self.wake < 0:
-            self._listen_wake(os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC))
+        """The frame wake-up: an eventfd of this process's, a duplicate the pump's."""
+        self._wake = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        self.pump.set_wake(os.dup(self._wake))
+        self._task = asyncio.get_running_loop().create_task(self._report_forever())
 
-    def stop(self) -> None:
-        if self.wake >= 0 and self._armed:
-            self._set_wake(self.wake, False)
-        self._forget_wake()
-        self._blocks.clear()
+    async def _report_forever(self) -> None:
+        while True:
+            await asyncio.sleep(REPORT_S)
+            self.report()
 
-    def block(self, block_id: int) -> Any | None:
-        got = self._blocks.get(block_id)
-        if got is None:  # a frame loop made since: look again
-            self._blocks = {i: (_native.BlockView(buf) if kind == "block" else buf, owner)
-                            for i, buf, kind, owner in self._shares()}
-            got = self._blocks.get(block_id)
-        return None if got is None else got[0]
+    def report(self) -> None:
+        """The pump's counts since the last report, added to the host's figures."""
+        for k in COUNTED:
+            v = int(getattr(self.pump, k))
+            if v > self._seen[k]:
+                for key in (k, "lane_" + k):
+                    self.stats[key] = self.stats.get(key, 0) + v - self._seen[k]
+                self._seen[k] = v
 
-    async def _set_armed(self, on: bool) -> bool:
-        if self.wake < 0:
-            return False
-        self._set_wake(self.wake, on)  # (a gateway's arming is a socket round trip; this none)
-        return True
+    async def stop(self) -> None:
+        """After the pump has stopped: its last counts; the loops write the wake-up no
+        more."""
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+            self.report()
+        if self._wake >= 0:
+            if self._armed:
+                self._set_wake(self._wake, False)
+                self._armed = False
+            os.close(self._wake)
+            self._wake = -1
+
+    def want_block(self, block_id: int) -> None:
+        """The pump needs block ``block_id``: every frame loop's memory, as it is now."""
+        if block_id in self.have:
+            return
+        shares = list(self._shares())
+        self.pump.set_local_maps([(i, kind == "board", buf) for i, buf, kind, _ in shares])
+        self.have = {i for i, *_ in shares}
+
+    def want_armed(self, on: bool) -> None:
+        if on != self._armed and self._wake >= 0:
+            self._set_wake(self._wake, on)
+            self._armed = on
+
+
+__all__ = ["LocalLink"]

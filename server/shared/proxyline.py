@@ -38,6 +38,20 @@ def lanes(line: bytes) -> bool:
     return line.endswith(b" LANES\r\n")
 
 
+def local_port(line: bytes) -> int | None:
+    """The port the client connected to, as ``line`` names it (None: ``UNKNOWN``, or not
+    a number)."""
+    parts = line.rstrip(b"\r\n").split(b" ")
+    if parts and parts[-1] == b"LANES":
+        parts.pop()
+    if len(parts) != 6:
+        return None
+    try:
+        return int(parts[5])
+    except ValueError:
+        return None
+
+
 def decode(line: bytes) -> tuple[str, int] | None:
     """The client's address named by ``line`` (CRLF included); None for ``UNKNOWN``.
     ``BadLine`` when it is not a PROXY v1 line."""

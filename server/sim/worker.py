@@ -242,7 +242,8 @@ class FrameWorker:
         n = scene.n
         self.board_slot = board_slot_bytes(P.HEADER.size + P.MESH_BODY.size + 6 * n * n)
         # A memfd, so that the gateways map it too; where the process may not make one (a
-        # file size limit), anonymous memory: the engine's own lanes read it, no gateway.
+        # file size limit), anonymous memory: the engine's own port's pump reads it in
+        # place, no gateway process.
         size = rooms * self.board_slot
         self.board_id = secrets.randbits(48)
         self.board_share: tuple[int, int, int] | None = None

@@ -245,6 +245,10 @@ def test_proxy_lines_as_the_protocol_writes_them() -> None:
     assert proxyline.decode(line) == ("192.168.0.1", 56324) and proxyline.lanes(line)
     assert not proxyline.lanes(b"PROXY TCP4 192.168.0.1 192.168.0.11 56324 443\r\n")
     assert proxyline.decode(proxyline.encode(None, None, lanes=True)) is None
+    # the port the client connected to (the engine tells its own port's connections by it)
+    assert proxyline.local_port(line) == 443
+    assert proxyline.local_port(b"PROXY TCP6 ::1 ::1 5000 8765\r\n") == 8765
+    assert proxyline.local_port(b"PROXY UNKNOWN LANES\r\n") is None
     for bad in (b"GET / HTTP/1.1\r\n", b"PROXY TCP4 1.2.3.4\r\n",
                 b"PROXY TCP4 x 1.2.3.4 1 2\r\n", b"PROXY TCP4 1.2.3.4 1.2.3.4 1 2",
                 b"PROXY " + b"9" * 200 + b"\r\n"):

@@ -1,19 +1,30 @@
-"""The lane code (server/lanes/lane.py) that serves every seated player's HIPs and CORNERs
-and every client's MESH, in the engine and in a gateway alike: a CORNER made from a former
-occupant's hand is never sent to the seat's new occupant, whatever the timing; CORNER timers
-fire on a grid of whole frames, so that lanes due within one frame share a wake-up."""
+"""The lanes as the engine's own port serves them: the native pump (native/net/pump.hpp)
+reading a real frame loop's memory in place (``server.lanes.local.LocalLink``,
+``Pump.set_local_maps``): a CORNER made from a former occupant's hand is never sent to the
+seat's new occupant, whatever the timing."""
 
 from __future__ import annotations
 
-import asyncio
+import json
 import math
+import socket
+import time
 
+from clothball import _native
 from clothball.game.wire import protocol as P
-from clothball.server.lanes.lane import FRAME_S, Lane, on_grid
-from clothball.server.lanes.local import LocalLinks
-from clothball.server.shared.lanes import LaneSpec
+from clothball.server.lanes.local import LocalLink
 
 from tests.server.conftest import run, started_room, until
+from tests.server.test_pump import HEAD, recv_exactly, text
+
+
+def corners_in(data: bytes) -> tuple[list[P.Corner], bytes]:
+    """The CORNER messages in ``data`` (a server's unmasked binary frames), and the rest."""
+    out: list[P.Corner] = []
+    while len(data) >= 2 and data[0] == 0x82 and data[1] < 126 and len(data) >= 2 + data[1]:
+        out.append(P.decode_corner(data[2:2 + data[1]]))
+        data = data[2 + data[1]:]
+    return out, data
 
 
 def test_a_corner_of_the_former_occupants_hand_is_not_sent_to_the_new_one() -> None:
@@ -24,86 +35,58 @@ def test_a_corner_of_the_former_occupants_hand_is_not_sent_to_the_new_one() -> N
     async def main() -> None:
         with started_room() as sim:
             w = sim.worker
-            links = LocalLinks(sim.pool.local_shares, sim.pool.set_wake)
-            view = links.block(w.block_id)
-            slot, seat = sim.slot, 2
-            old = sim.occupant[seat]
-            assert view.write_hip(slot, seat, old, *sim.arena.anchors[seat], 41, 3.5)
-            await until(lambda: view.read_corner(slot, seat)[2] == old and
-                        P.decode_corner(view.read_corner(slot, seat)[1]).hip_seq == 41, 10,
-                        "the former occupant's HIP echoed")
-            sent: list[P.Corner] = []
-            w.frame_loop.lock()  # no pass until released
+            pump = _native.Pump()
+            link = LocalLink(sim.pool.local_shares, sim.pool.set_wake)
+            link.attach(pump)
+            link.start()
+            link.want_block(w.block_id)  # (what the pump would ask for: its "block" event)
+            client, c_pump = socket.socketpair()
+            engine, e_pump = socket.socketpair()
             try:
-                sim.set_hip(seat, None)  # the seat changes hands
-                new = sim.occupant[seat]
-                assert new != old
-                place = sim.lane_place(seat)
-                spec = LaneSpec("r", w.block_id, slot, seat, new, (-9.0,) * 3, (9.0,) * 3,
-                                1 / 120, 1000.0, 1000.0, None, place["board_slot"])
-                lane = Lane(spec, links, lambda kind, head, msg: sent.append(
-                    P.decode_corner(msg)), lambda: "r")
-                await asyncio.sleep(0.05)  # its timer looks several times meanwhile
-                assert sent == []
+                conn = pump.add(c_pump.detach(), e_pump.detach(), b"", False)
+                joined = text(P.encode_json({"type": "joined", "room": "r"}).encode())
+                engine.sendall(HEAD + joined)
+                assert recv_exactly(client, len(HEAD + joined)) == HEAD + joined
+                view = _native.BlockView(w.frame_loop.block())
+                slot, seat = sim.slot, 2
+                old = sim.occupant[seat]
+                assert view.write_hip(slot, seat, old, *sim.arena.anchors[seat], 41, 3.5)
+                await until(lambda: view.read_corner(slot, seat)[2] == old and
+                            P.decode_corner(view.read_corner(slot, seat)[1]).hip_seq == 41,
+                            10, "the former occupant's HIP echoed")
+                w.frame_loop.lock()  # no pass until released
+                try:
+                    sim.set_hip(seat, None)  # the seat changes hands
+                    new = sim.occupant[seat]
+                    assert new != old
+                    place = sim.lane_place(seat)
+                    pump.open_lane(conn, json.dumps("r"), w.block_id, slot, seat, new,
+                                   (-9.0,) * 3, (9.0,) * 3, 1 / 120, 1000.0, 1000.0, -1,
+                                   place["board_slot"])
+                    time.sleep(0.1)  # its timer looks several times meanwhile
+                    client.setblocking(False)
+                    try:
+                        early = client.recv(1 << 16)
+                    except BlockingIOError:
+                        early = b""
+                    assert early == b"", P.decode_corner(early[2:])
+                finally:
+                    w.frame_loop.unlock()
+                got = b""
+                client.settimeout(10)
+                sent: list[P.Corner] = []
+                end = time.monotonic() + 10
+                while len(sent) < 3 and time.monotonic() < end:
+                    got += client.recv(1 << 16)
+                    more, got = corners_in(got)
+                    sent += more
+                assert len(sent) >= 3, "the new occupant's CORNERs"
+                assert all(c.hip_seq == 0 and math.isnan(c.hip_time) for c in sent)
+                assert pump.messages_out >= 3
             finally:
-                w.frame_loop.unlock()
-            await until(lambda: len(sent) >= 3, 10, "the new occupant's CORNERs")
-            assert all(c.hip_seq == 0 and math.isnan(c.hip_time) for c in sent)
-            lane.close()
-            links.stop()
-
-    run(main())
-
-
-def test_on_grid_rounds_up_to_a_whole_frame() -> None:
-    for t in (0.0, 0.0004, 0.001, 1234.5678901, 98765.4321):
-        g = on_grid(t)
-        assert t - 1e-9 <= g < t + FRAME_S
-        assert abs(g / FRAME_S - round(g / FRAME_S)) < 1e-6
-        assert on_grid(g) == g
-
-
-def test_corner_timers_fire_on_the_frame_grid() -> None:
-    """Four seats' lanes at corner_rate 120, opened at different moments: every CORNER
-    timer they set (a retry, looking again for a frame not yet there, aside) is due at a
-    whole frame of the loop's clock, so lanes due within the same frame wake the loop once."""
-    async def main() -> None:
-        with started_room() as sim:
-            w = sim.worker
-            links = LocalLinks(sim.pool.local_shares, sim.pool.set_wake)
-            loop = asyncio.get_running_loop()
-            whens: list[float] = []
-            sent = [0] * 4
-            call_at = loop.call_at
-
-            def spy(when: float, callback, *args, **kw):  # type: ignore[no-untyped-def]
-                owner = getattr(callback, "__self__", None)
-                if isinstance(owner, Lane) and owner._retries == 0:
-                    whens.append(when)
-                return call_at(when, callback, *args, **kw)
-
-            loop.call_at = spy  # type: ignore[method-assign]
-            lanes = []
-            try:
-                place = sim.lane_place(0)
-                for seat in range(4):
-                    spec = LaneSpec("r", w.block_id, sim.slot, seat, sim.occupant[seat],
-                                    (-9.0,) * 3, (9.0,) * 3, 1 / 120, 1000.0, 1000.0, None,
-                                    place["board_slot"])
-
-                    def count(kind: str, head: bytes, msg: bytes, seat: int = seat) -> None:
-                        sent[seat] += 1
-
-                    lanes.append(Lane(spec, links, count, lambda: "r"))
-                    await asyncio.sleep(0.0003 * (seat + 1))
-                await until(lambda: min(sent) >= 5, 10, "five CORNERs a lane")
-            finally:
-                loop.call_at = call_at  # type: ignore[method-assign]
-                for lane in lanes:
-                    lane.close()
-                links.stop()
-            assert len(whens) >= 16
-            off = [abs(t / FRAME_S - round(t / FRAME_S)) for t in whens]
-            assert max(off) < 1e-6, off
+                pump.stop()
+                await link.stop()
+                client.close()
+                engine.close()
 
     run(main())
