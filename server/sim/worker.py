@@ -52,6 +52,11 @@ MESH_THREADS = max(1, min(4, (os.cpu_count() or 1) // 4))  # a worker's MESH enc
 # interpreter lock from the event loop. A MESH waits at most this much more (a spectator's
 # 30 Hz is 33 ms); a TRACK ring holds 0.64 s.
 SERVICE_PERIOD_S = 0.005
+# The recording rooms' TRACK samples are drained this often (and before any recording
+# command, which may end a recording): a room gains one every 10 ms, and drained each pass,
+# each of 256 rooms' single sample cost a NumPy encode and an append of its own (the
+# service threads took ~1 core there, H200). The ring holds 0.64 s.
+TRACK_PERIOD_S = 0.05
 LAYOUT: dict[str, Any] = _native.frame_block_layout()
 EVENT = LAYOUT["events"]
 
@@ -469,11 +474,14 @@ class FrameWorker:
     # --- the service thread: recordings, tracks, meshes -----------------------------------
     def _serve(self) -> None:
         name_os_thread()
+        tracks_due = 0.0
         try:
             while not self._stop.is_set():
                 self.frame_loop.wait_service(0.05)
                 began = time.monotonic()
-                self._drain_tracks()
+                if began >= tracks_due or not self._inbox.empty():
+                    self._drain_tracks()
+                    tracks_due = began + TRACK_PERIOD_S
                 self._drain_inbox()
                 self._encode_meshes()
                 self._stop.wait(SERVICE_PERIOD_S - (time.monotonic() - began))
@@ -500,11 +508,8 @@ class FrameWorker:
 
     def _drain_tracks(self) -> None:
         """Each recording room's TRACK samples written since the last look, into its
-        recordings. The service thread wakes about once a frame (a MESH is due in some room
-        most frames) and a room has a new sample every 10 ms: the recording rooms' counts are
-        compared in one array operation and only the rooms with new samples looked at, not
-        every room every wake-up (the service threads took 1.2 cores at 256 rooms on the
-        H200; with this they still took 1.0-1.25: where that goes is not yet measured)."""
+        recordings (every ``TRACK_PERIOD_S``): the recording rooms' counts are compared in
+        one array operation and only the rooms with new samples looked at."""
         recording = list(self._tracks_seen.items())  # (slot, seen); changed by other threads
         if not recording:
             return
