@@ -602,7 +602,7 @@ class GameServer:
 
     def stats_snapshot(self) -> dict[str, Any]:
         rooms = {}
-        made: dict[tuple[int, int, int], dict[str, float]] = {}  # (Samples.key)
+        made: dict[tuple[int, int], dict[str, float]] = {}  # (Samples.key)
         for rid, room in self.lobby.rooms.items():
             if not room.public:  # public endpoint: private rooms are nobody else's business
                 continue

@@ -46,13 +46,16 @@ class Samples:
         """The ring position after the newest sample, counted from the ring's start."""
         return self.count
 
-    def key(self) -> tuple[int, int, int]:
-        """What ``newest()`` gives depends on only this (the ring, its end, how many samples
-        are kept): views of one ring with equal keys hold the same samples, and figures made
-        from one serve the others (``/api/stats``: every room of a frame loop shares its
-        lateness ring; the percentiles of 100 000 samples take ~3 ms on the 2-core VM, so
-        256 rooms' held the event loop up for about a second a call)."""
-        return self._a.ctypes.data, self._end(), len(self)  # (views share the memory)
+    def key(self) -> tuple[int, int]:
+        """The ring and how many samples are kept: views of one ring with equal keys, read
+        at the same moment, hold the same samples, and figures made from one serve the
+        others (``/api/stats``: every room of a frame loop shares its lateness ring; the
+        percentiles of 100 000 samples take ~3 ms on the 2-core VM, so 256 rooms' held the
+        event loop up for about a second a call). The ring's end is not in it: a frame loop
+        appends a sample each frame while the rooms are read, so a key with the end matched
+        almost no other room (the H200 at 256 rooms: ``/api/stats`` p50 100 ms, the
+        percentiles most of it); views read a moment apart differ by those frames only."""
+        return self._a.ctypes.data, len(self)  # (views share the memory)
 
     def newest(self, n: int | None = None) -> np.ndarray:
         k = len(self) if n is None else max(0, min(n, len(self)))
