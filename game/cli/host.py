@@ -36,6 +36,7 @@ from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ...server.shared import lifeline
 from ...server.shared.listen import raise_open_files
+from ...server.sim.pool import cpu_loops
 from ..sim.scene import Scene, SceneError
 from .args import FIRST_TO, PORT, WORKERS, postgres_url, redis_url, ws_url
 
@@ -265,6 +266,11 @@ def run(args: argparse.Namespace) -> int:
     if args.parent is not None:
         lifeline.arm(args.parent)
     raise_open_files()  # every client is a socket or two in each process (issue 43)
+    try:
+        cpu_loops()
+    except ValueError as e:
+        print(f"clothball host: {e}")
+        return 2
     if workers > 1 and args.engine_socket is None and not _can_share_memory():
         print(f"clothball host: the file size limit (ulimit -f) is below "
               f"{SHARED_MEMORY_BYTES >> 20} MiB, so the rooms' memory cannot be shared with "

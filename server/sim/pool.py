@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import tempfile
 import threading
 import time
@@ -18,6 +19,20 @@ from .worker import FrameWorker, LoopSettings
 
 # Rooms one worker's batch holds; a pool opens another worker of the same scene beyond it.
 WORKER_CAPACITY = 64
+# The CPU engine's rooms of one scene are spread over up to this many workers (each a frame
+# loop on a thread of its own: one core's stepping each); the CUDA engine's share one
+# worker up to WORKER_CAPACITY, one launch a frame for all of them.
+CPU_LOOPS_ENV = "CLOTHBALL_CPU_LOOPS"
+
+
+def cpu_loops() -> int:
+    """``CPU_LOOPS_ENV`` (1-64), else 1. Raises ``ValueError`` saying what is wrong."""
+    text = os.environ.get(CPU_LOOPS_ENV, "").strip()
+    if not text:
+        return 1
+    if not text.isdigit() or not 1 <= int(text) <= 64:
+        raise ValueError(f"{CPU_LOOPS_ENV}={text!r}: give a whole number from 1 to 64")
+    return int(text)
 
 
 class SimPool:
@@ -43,6 +58,7 @@ class SimPool:
                                      cpu_threads=cpu_threads, compress_mesh=compress_mesh,
                                      manual_clock=manual_clock)
         self.capacity = capacity
+        self.cpu_loops = cpu_loops()
         # Where recordings spool while a round lasts (the data directory's, for a server).
         self.spool_dir = spool_dir or Path(tempfile.gettempdir()) / "clothball-spool"
         self._workers: dict[tuple[str, str, str, int, int], list[FrameWorker]] = {}
@@ -75,9 +91,13 @@ class SimPool:
                mesh_every, track_every)
         with self._lock:
             workers = self._workers.setdefault(key, [])
-            for w in workers:
-                if not w.full:
-                    break
+            open_ = [w for w in workers if not w.full]
+            # A new worker while every open one has rooms and the CPU's spread allows it;
+            # else the open worker with the fewest rooms.
+            spread = resolved == "cpu" and len(workers) < self.cpu_loops and \
+                all(w.members for w in open_)
+            if open_ and not spread:
+                w = min(open_, key=lambda w: w.members)
             else:
                 w = FrameWorker(scene, resolved, self.capacity, self.settings, mesh_every,
                                 track_every)

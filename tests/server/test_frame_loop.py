@@ -75,6 +75,27 @@ def test_the_native_exit_check_gives_exit_edges_answer_over_random_states() -> N
     assert all(n > 100 for n in counts.values()), counts
 
 
+def test_cpu_rooms_are_spread_over_the_loops_asked_for(monkeypatch) -> None:
+    """``CLOTHBALL_CPU_LOOPS=2``: the CPU engine's rooms of one scene go to two frame loops
+    by turns (the one with fewer rooms), not all to the first; a bad value is refused
+    saying what to give."""
+    monkeypatch.setenv("CLOTHBALL_CPU_LOOPS", "2")
+    pool = SimPool()
+    sims = [RoomSim(TINY, "cpu", pool=pool) for _ in range(5)]
+    try:
+        workers = pool.workers
+        assert len(workers) == 2
+        assert sorted(w.members for w in workers) == [2, 3]
+        assert {id(s.worker) for s in sims} == {id(w) for w in workers}
+    finally:
+        for s in sims:
+            s.stop()
+        pool.close()
+    monkeypatch.setenv("CLOTHBALL_CPU_LOOPS", "0")
+    with pytest.raises(ValueError, match="CLOTHBALL_CPU_LOOPS='0': give a whole number"):
+        SimPool()
+
+
 def test_the_block_layout_is_the_bindings_and_the_block_says_so() -> None:
     layout = sim_worker.LAYOUT
     assert sim_worker.ROOM_DTYPE.itemsize == layout["room_bytes"]
