@@ -30,6 +30,7 @@ reason, and a host that is busy takes no new rooms from the others (``docs/clust
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import os
@@ -100,7 +101,7 @@ def _native_cost(scene: Scene, backend: str, rooms: int) -> float:
     """Cores the native frame loop's thread would spend on ``rooms`` awake rooms of
     ``scene`` at real time: its CPU time over the frames it stepped (frames skipped because
     it fell behind cost nothing and are not counted)."""
-    pool = SimPool()
+    pool = SimPool(cpu_loops=1)  # (one loop's thread stepping them all)
     sims: list[RoomSim] = []
     try:
         for _ in range(rooms):
@@ -228,21 +229,39 @@ class Headroom:
             with _costs_lock:  # (fixed, per room) of each scene, 0 where not measured
                 cost = {k: _costs.get(k, (0.0, 0.0)) for k in {*keys, key}}
             fixed, need = cost[key]
-            # Each scene's rooms share one stepping thread (its fixed cost counted once).
-            total = sum(cost[k][1] for k in keys) + sum(f for f, _ in cost.values())
+            # A scene's rooms share one stepping thread, or on the CPU engine up to
+            # ``cpu_loops`` by turns: a thread's fixed cost counted once a thread.
+            counts = collections.Counter(keys)
+            counts[key] += 1
+            total = sum(cost[k][1] for k in keys) + \
+                sum(cost[k][0] * self._threads(k, n) for k, n in counts.items())
             budget = self.load * self.cores
             if total + need > budget:
                 return (f"this server is at capacity: its {len(rooms)} rooms need about "
                         f"{total:.2f} of the {budget:.2f} cores it gives rooms "
                         f"({self.load:.0%} of {self.cores:g}) and a {scene.name} room "
                         f"{need:.2f} more; try again later or another server")
-            on_thread = keys.count(key) % WORKER_CAPACITY  # the rooms its thread already steps
+            on_thread = self._on_thread(key, keys.count(key))  # the rooms its thread steps
             if on_thread and fixed + (on_thread + 1) * need > self.load:
                 return (f"this server is at capacity for {scene.name}: its simulation "
                         f"thread steps {on_thread} such rooms at about {need:.3f} of a core "
                         f"each (and {fixed:.2f} whatever their number), and may use "
                         f"{self.load:.0%} of one; try another scene, later, or another server")
         return self.busy
+
+    def _loops(self, key: tuple[str, str, str]) -> int:
+        return max(1, int(getattr(self.sims, "cpu_loops", 1))) if key[1] == "cpu" else 1
+
+    def _threads(self, key: tuple[str, str, str], rooms: int) -> int:
+        """The threads that step ``rooms`` rooms of ``key`` (SimPool.worker_for)."""
+        return min(rooms, self._loops(key)) if key[1] == "cpu" else 1
+
+    def _on_thread(self, key: tuple[str, str, str], rooms: int) -> int:
+        """The rooms already on the thread a new room of ``key`` would go to, beside
+        ``rooms`` of them (the CPU's: the loop with the fewest)."""
+        if key[1] == "cpu":
+            return rooms // self._loops(key)
+        return rooms % WORKER_CAPACITY
 
     # --- the measured signal ----------------------------------------------------------------
     def sample(self, awake: Iterable[Scene] = ()) -> Sample:

@@ -115,6 +115,23 @@ def _reject_constant(name: str) -> float:
     raise ProtocolError("bad_json", f"{name} is not allowed in JSON")
 
 
+# Control messages are a few levels deep. Deeper ones are refused whatever the Python: 3.11's
+# parser raised RecursionError near 1 000 levels, 3.12's parses 2 000 and more.
+MAX_JSON_DEPTH = 32
+
+
+def _depth_over(msg: Any, most: int) -> bool:
+    """Whether ``msg``'s containers nest deeper than ``most`` (without recursion)."""
+    todo = [(msg, 1)]
+    while todo:
+        value, depth = todo.pop()
+        if depth > most:
+            return True
+        items = value.values() if isinstance(value, dict) else value
+        todo.extend((v, depth + 1) for v in items if isinstance(v, (dict, list)))
+    return False
+
+
 def decode_json(text: str | bytes, limit: int = MAX_JSON_BYTES) -> dict[str, Any]:
     """Parse a control message: a JSON object with a string ``type``."""
     if len(text) > limit:
@@ -132,6 +149,8 @@ def decode_json(text: str | bytes, limit: int = MAX_JSON_BYTES) -> dict[str, Any
         raise ProtocolError("bad_json", f"not valid JSON: {e}") from None
     if not isinstance(msg, dict):
         raise ProtocolError("bad_json", f"expected a JSON object, got {type(msg).__name__}")
+    if _depth_over(msg, MAX_JSON_DEPTH):
+        raise ProtocolError("bad_json", f"nested deeper than {MAX_JSON_DEPTH} levels")
     t = msg.get("type")
     if not isinstance(t, str) or not t:
         raise ProtocolError("bad_message", "missing field 'type' (a string)")

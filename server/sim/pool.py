@@ -15,21 +15,26 @@ from typing import Any
 
 from ...game.sim.cloth import resolve_backend
 from ...game.sim.scene import Scene
+from ...game.sim.threads import usable_cores
 from .worker import FrameWorker, LoopSettings
 
 # Rooms one worker's batch holds; a pool opens another worker of the same scene beyond it.
 WORKER_CAPACITY = 64
-# The CPU engine's rooms of one scene are spread over up to this many workers (each a frame
-# loop on a thread of its own: one core's stepping each); the CUDA engine's share one
-# worker up to WORKER_CAPACITY, one launch a frame for all of them.
+# The CPU engine's rooms of one scene are spread over up to this many workers, each a frame
+# loop on a thread of its own (one core's stepping each): by default one per core this
+# process may use. The CUDA engine's share one worker up to WORKER_CAPACITY, one launch a
+# frame for all of them. Measured on two pinned cores of the H200 machine (one process,
+# default scene n = 16; docs/benchmarks/host-2026-11-28-pump.md, call 10): one loop held
+# 4, 6, 6 rooms, two loops 6, 12, 14.
 CPU_LOOPS_ENV = "CLOTHBALL_CPU_LOOPS"
 
 
-def cpu_loops() -> int:
-    """``CPU_LOOPS_ENV`` (1-64), else 1. Raises ``ValueError`` saying what is wrong."""
+def cpu_loops_default() -> int:
+    """``CPU_LOOPS_ENV`` (1-64), else the cores this process may use. Raises
+    ``ValueError`` saying what is wrong."""
     text = os.environ.get(CPU_LOOPS_ENV, "").strip()
     if not text:
-        return 1
+        return max(1, min(64, usable_cores()))
     if not text.isdigit() or not 1 <= int(text) <= 64:
         raise ValueError(f"{CPU_LOOPS_ENV}={text!r}: give a whole number from 1 to 64")
     return int(text)
@@ -43,7 +48,7 @@ class SimPool:
                  epoch: float | None = None, max_catchup: int = 50,
                  cpu_threads: int | None = 1, compress_mesh: bool = True,
                  capacity: int = WORKER_CAPACITY, spool_dir: Path | None = None,
-                 manual_clock: bool = False) -> None:
+                 manual_clock: bool = False, cpu_loops: int | None = None) -> None:
         self.loop = loop
         self.manual_clock = manual_clock
         self._manual_now = 0.0
@@ -58,7 +63,8 @@ class SimPool:
                                      cpu_threads=cpu_threads, compress_mesh=compress_mesh,
                                      manual_clock=manual_clock)
         self.capacity = capacity
-        self.cpu_loops = cpu_loops()
+        # The CPU engine's frame loops a scene's rooms are spread over (None: cpu_loops_default()).
+        self.cpu_loops = cpu_loops_default() if cpu_loops is None else cpu_loops
         # Where recordings spool while a round lasts (the data directory's, for a server).
         self.spool_dir = spool_dir or Path(tempfile.gettempdir()) / "clothball-spool"
         self._workers: dict[tuple[str, str, str, int, int], list[FrameWorker]] = {}

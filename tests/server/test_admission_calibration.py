@@ -36,7 +36,7 @@ def _thread_cpu(tid: int) -> float:
 @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux /proc")
 def test_the_loop_reports_its_own_threads_cpu_time() -> None:
     before = set(os.listdir("/proc/self/task"))
-    pool = SimPool()
+    pool = SimPool(cpu_loops=1)
     try:
         sims = [RoomSim(TINY, "cpu", pool=pool) for _ in range(8)]
         for s in sims:
@@ -107,3 +107,32 @@ def test_the_native_measure_runs_the_loop_and_gives_a_cost() -> None:
     assert cores > 0.0
     if threads is not None:
         _wait(lambda: set(os.listdir("/proc/self/task")) <= threads, timeout=10)
+
+
+def test_a_cpu_scene_spread_over_two_loops_is_admitted_per_loop(monkeypatch) -> None:
+    """The cost model follows SimPool.worker_for: on the CPU engine a scene's rooms go to
+    ``cpu_loops`` threads by turns, so a thread's limit is met at that many times the rooms,
+    and each thread's fixed cost counts once. A thread's own 0.05 core and 0.3 a room, 75 %
+    of a thread and of 4 cores: one loop takes 2 rooms (0.05 + 3 x 0.3 > 0.75 for a third);
+    two take 4 (the fifth would be a third on one thread)."""
+    key = headroom._key(TINY, "cpu")
+    monkeypatch.setattr(headroom, "_costs", {key: (0.05, 0.3)})
+
+    class Pool:
+        workers: list = []
+
+        def __init__(self, loops: int) -> None:
+            self.cpu_loops = loops
+
+    def admitted(loops: int) -> int:
+        hr = headroom.Headroom(Pool(loops), 0.0, load=0.75, cores=4.0,  # type: ignore[arg-type]
+                               backend="cpu")
+        rooms: list[Scene] = []
+        while hr.refusal(TINY, rooms) is None and len(rooms) < 20:
+            rooms.append(TINY)
+        return len(rooms)
+
+    assert admitted(1) == 2
+    assert admitted(2) == 4
+    hr = headroom.Headroom(Pool(2), 0.0, load=0.75, cores=4.0, backend="cpu")  # type: ignore[arg-type]
+    assert "its simulation thread steps 2 such rooms" in hr.refusal(TINY, [TINY] * 4)

@@ -43,6 +43,7 @@ from clothball.server.hostproc import free_port, http_base
 from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
 from clothball.server.sim import Samples
+from clothball.server.sim.pool import cpu_loops_default
 from clothball.server.storage.index import PRUNE_BATCH, Retention, owner_key
 from clothball.server.storage.sqlite import SqliteIndex
 from websockets.asyncio.client import connect
@@ -306,9 +307,10 @@ async def server_of(data: Path, limits: Limits, **kw: Any) -> Any:
 
 def test_a_burst_of_rooms_is_refused_at_once_past_the_measured_capacity(tmp_path) -> None:
     cost = room_cost(TINY, "cpu")  # what the server measures at start (once a process)
-    fixed = thread_cost(TINY, "cpu")  # its thread's own, once
+    fixed = thread_cost(TINY, "cpu")  # a thread's own, once a thread
     load, fit = 0.75, 6  # the capacity given: six TINY rooms, the show room one of them
-    cores = (fixed + (fit + 0.5) * cost) / load
+    threads = min(fit, cpu_loops_default())  # the loops six rooms are spread over
+    cores = (threads * fixed + (fit + 0.5) * cost) / load
 
     async def main() -> None:
         lim = Limits(admit_load=load, admit_cores=cores, max_rooms=64)

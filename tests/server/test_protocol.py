@@ -246,6 +246,11 @@ def test_deeply_nested_json_within_the_size_limit_is_refused_cleanly() -> None:
     with pytest.raises(P.ProtocolError) as e:
         P.decode_json('{"type": "x", "a": ' + "[" * 2000 + "]" * 2000 + "}", limit=10**6)
     assert e.value.code == "bad_json"
+    # the bound, whatever the Python's parser allows: 32 levels pass, 33 do not
+    ok = '{"type": "x", "a": ' + "[" * 31 + "]" * 31 + "}"
+    assert P.decode_json(ok)["type"] == "x"
+    with pytest.raises(P.ProtocolError, match="nested deeper than 32"):
+        P.decode_json('{"type": "x", "a": ' + "[" * 32 + "]" * 32 + "}")
 
 
 def test_field_checks() -> None:
