@@ -261,7 +261,7 @@ class Headroom:
         ``rooms`` of them (the CPU's: the loop with the fewest)."""
         if key[1] == "cpu":
             return rooms // self._loops(key)
-        return rooms % WORKER_CAPACITY
+        return rooms % int(getattr(self.sims, "capacity", WORKER_CAPACITY))
 
     # --- the measured signal ----------------------------------------------------------------
     def sample(self, awake: Iterable[Scene] = ()) -> Sample:

@@ -36,7 +36,7 @@ from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ...server.shared import lifeline
 from ...server.shared.listen import raise_open_files
-from ...server.sim.pool import cpu_loops_default
+from ...server.sim.pool import cpu_loops_default, loop_rooms_default
 from ..sim.scene import Scene, SceneError
 from .args import FIRST_TO, PORT, WORKERS, postgres_url, redis_url, ws_url
 
@@ -268,6 +268,7 @@ def run(args: argparse.Namespace) -> int:
     raise_open_files()  # every client is a socket or two in each process (issue 43)
     try:
         cpu_loops_default()
+        loop_rooms_default()
     except ValueError as e:
         print(f"clothball host: {e}")
         return 2

@@ -19,13 +19,30 @@ from ...game.sim.threads import usable_cores
 from .worker import FrameWorker, LoopSettings
 
 # Rooms one worker's batch holds; a pool opens another worker of the same scene beyond it.
+# CLOTHBALL_LOOP_ROOMS (1-1024) sets it, for A/B runs: on the GPU one launch a frame steps a
+# worker's rooms, and 64 rooms fill well under half an H200 (a batched frame of 264 default
+# rooms took 171 µs, docs/benchmarks/gpu-h200-2026-11-28-roofline/), so a host of 384 rooms
+# makes six launches a frame where two might do: not measured yet.
 WORKER_CAPACITY = 64
+LOOP_ROOMS_ENV = "CLOTHBALL_LOOP_ROOMS"
+
+
+def loop_rooms_default() -> int:
+    """``LOOP_ROOMS_ENV`` (1-1024), else ``WORKER_CAPACITY``. Raises ``ValueError`` saying
+    what is wrong."""
+    text = os.environ.get(LOOP_ROOMS_ENV, "").strip()
+    if not text:
+        return WORKER_CAPACITY
+    if not text.isdigit() or not 1 <= int(text) <= 1024:
+        raise ValueError(f"{LOOP_ROOMS_ENV}={text!r}: give a whole number from 1 to 1024")
+    return int(text)
+
 # The CPU engine's rooms of one scene are spread over up to this many workers, each a frame
 # loop on a thread of its own (one core's stepping each): by default one per core this
 # process may use. The CUDA engine's share one worker up to WORKER_CAPACITY, one launch a
 # frame for all of them. Measured on two pinned cores of the H200 machine (one process,
 # default scene n = 16; docs/benchmarks/host-2026-11-28-pump.md, call 10): one loop held
-# 4, 6, 6 rooms, two loops 6, 12, 14.
+# 4, 2, 4 rooms, two loops 4, 10, 12.
 CPU_LOOPS_ENV = "CLOTHBALL_CPU_LOOPS"
 
 
@@ -47,7 +64,7 @@ class SimPool:
     def __init__(self, *, loop: asyncio.AbstractEventLoop | None = None,
                  epoch: float | None = None, max_catchup: int = 50,
                  cpu_threads: int | None = 1, compress_mesh: bool = True,
-                 capacity: int = WORKER_CAPACITY, spool_dir: Path | None = None,
+                 capacity: int | None = None, spool_dir: Path | None = None,
                  manual_clock: bool = False, cpu_loops: int | None = None) -> None:
         self.loop = loop
         self.manual_clock = manual_clock
@@ -62,7 +79,7 @@ class SimPool:
         self.settings = LoopSettings(epoch=epoch, max_catchup=max_catchup,
                                      cpu_threads=cpu_threads, compress_mesh=compress_mesh,
                                      manual_clock=manual_clock)
-        self.capacity = capacity
+        self.capacity = loop_rooms_default() if capacity is None else capacity
         # The CPU engine's frame loops a scene's rooms are spread over (None: cpu_loops_default()).
         self.cpu_loops = cpu_loops_default() if cpu_loops is None else cpu_loops
         # Where recordings spool while a round lasts (the data directory's, for a server).

@@ -94,6 +94,13 @@ def test_cpu_rooms_are_spread_over_the_loops_asked_for(monkeypatch) -> None:
     monkeypatch.setenv("CLOTHBALL_CPU_LOOPS", "0")
     with pytest.raises(ValueError, match="CLOTHBALL_CPU_LOOPS='0': give a whole number"):
         SimPool()
+    monkeypatch.delenv("CLOTHBALL_CPU_LOOPS")
+    # the rooms a loop steps (a worker's batch), for A/B runs; checked the same way
+    monkeypatch.setenv("CLOTHBALL_LOOP_ROOMS", "3")
+    assert SimPool().capacity == 3
+    monkeypatch.setenv("CLOTHBALL_LOOP_ROOMS", "2000")
+    with pytest.raises(ValueError, match="CLOTHBALL_LOOP_ROOMS='2000': give a whole number"):
+        SimPool()
 
 
 def test_the_block_layout_is_the_bindings_and_the_block_says_so() -> None:
