@@ -1,4 +1,4 @@
-"""One client connection: coalescing sender, rate limits and error replies.
+"""One client connection: its sender of control messages, rate limits and error replies.
 
 Outgoing control messages (JSON: replies, room state, events) wait in a bounded FIFO; a
 client that lets it fill up (``Limits.max_control_queue``) is too slow and is dropped.
