@@ -22,6 +22,18 @@ log = logging.getLogger("clothball.server")
 COUNTED = ("messages_in", "messages_out")  # what a gateway reports
 
 
+def add_counts(stats: dict[str, int], seen: dict[str, int], counts: dict[str, int]) -> None:
+    """A pump's running ``counts`` (a gateway's, or the engine's own port's), what grew
+    since ``seen`` added to the host's totals ``stats`` and, as the lanes' part of them, to
+    their ``lane_`` figures."""
+    for k in COUNTED:
+        v = counts[k]
+        if v > seen[k]:
+            for key in (k, "lane_" + k):
+                stats[key] = stats.get(key, 0) + v - seen[k]
+            seen[k] = v
+
+
 class GatewayControl:
     """Serves ``path`` (in the engine socket's private directory): ``blocks()`` gives the
     blocks and mesh boards to pass, (id, memfd, bytes, kind) each; ``stats`` is the
@@ -114,11 +126,6 @@ class GatewayControl:
             return
         try:
             counts = json.loads(line)["counts"]
-            for k in COUNTED:
-                v = int(counts.get(k, 0))
-                if v > seen[k]:  # in the host's totals, and as the gateways' part of them
-                    self.stats[k] += v - seen[k]
-                    self.stats["lane_" + k] += v - seen[k]
-                    seen[k] = v
+            add_counts(self.stats, seen, {k: int(counts.get(k, 0)) for k in COUNTED})
         except (ValueError, KeyError, TypeError, AttributeError):
             log.warning("a gateway sent a control line that is not one: %.60r", line)

@@ -14,7 +14,7 @@ import os
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from .control import COUNTED
+from .control import COUNTED, add_counts
 
 REPORT_S = 1.0  # its pump's counts added to the host's figures this often (as a gateway's)
 
@@ -59,12 +59,7 @@ class LocalLink:
 
     def report(self) -> None:
         """The pump's counts since the last report, added to the host's figures."""
-        for k in COUNTED:
-            v = int(getattr(self.pump, k))
-            if v > self._seen[k]:
-                for key in (k, "lane_" + k):
-                    self.stats[key] = self.stats.get(key, 0) + v - self._seen[k]
-                self._seen[k] = v
+        add_counts(self.stats, self._seen, {k: int(getattr(self.pump, k)) for k in COUNTED})
 
     async def stop(self) -> None:
         """After the pump has stopped: its last counts; the loops write the wake-up no

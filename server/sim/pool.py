@@ -27,15 +27,21 @@ WORKER_CAPACITY = 64
 LOOP_ROOMS_ENV = "CLOTHBALL_LOOP_ROOMS"
 
 
-def loop_rooms_default() -> int:
-    """``LOOP_ROOMS_ENV`` (1-1024), else ``WORKER_CAPACITY``. Raises ``ValueError`` saying
-    what is wrong."""
-    text = os.environ.get(LOOP_ROOMS_ENV, "").strip()
+def _whole_env(name: str, default: int, most: int) -> int:
+    """The environment's ``name``, a whole number from 1 to ``most``, else ``default``.
+    Raises ``ValueError`` saying what is wrong."""
+    text = os.environ.get(name, "").strip()
     if not text:
-        return WORKER_CAPACITY
-    if not text.isdigit() or not 1 <= int(text) <= 1024:
-        raise ValueError(f"{LOOP_ROOMS_ENV}={text!r}: give a whole number from 1 to 1024")
+        return default
+    if not text.isdigit() or not 1 <= int(text) <= most:
+        raise ValueError(f"{name}={text!r}: give a whole number from 1 to {most}")
     return int(text)
+
+
+def loop_rooms_default() -> int:
+    """``LOOP_ROOMS_ENV`` (1-1024), else ``WORKER_CAPACITY``."""
+    return _whole_env(LOOP_ROOMS_ENV, WORKER_CAPACITY, 1024)
+
 
 # The CPU engine's rooms of one scene are spread over up to this many workers, each a frame
 # loop on a thread of its own (one core's stepping each): by default one per core this
@@ -47,14 +53,8 @@ CPU_LOOPS_ENV = "CLOTHBALL_CPU_LOOPS"
 
 
 def cpu_loops_default() -> int:
-    """``CPU_LOOPS_ENV`` (1-64), else the cores this process may use. Raises
-    ``ValueError`` saying what is wrong."""
-    text = os.environ.get(CPU_LOOPS_ENV, "").strip()
-    if not text:
-        return max(1, min(64, usable_cores()))
-    if not text.isdigit() or not 1 <= int(text) <= 64:
-        raise ValueError(f"{CPU_LOOPS_ENV}={text!r}: give a whole number from 1 to 64")
-    return int(text)
+    """``CPU_LOOPS_ENV`` (1-64), else the cores this process may use."""
+    return _whole_env(CPU_LOOPS_ENV, max(1, min(64, usable_cores())), 64)
 
 
 class SimPool:
