@@ -13,9 +13,7 @@
 #  regress: Table 1's quick rows and `bench --rooms` at n = 60 (no regression);
 #  plan: the tiled plan's compact tiles against the fewest nodes alone
 #    (CLOTHBALL_CUDA_TILED_PLAN=work), alternated: its tests, Table 1 rows, --largest classic;
-#  ncu: Nsight Compute on the tiled and fused frames, where it runs;
-#  sweep: each spring once (the sweep, CLOTHBALL_CUDA_SWEEP=1, the default) against a node
-#    at a time (0): tools/gpu_roofline.py --quick (SWEEP_ARGS), alternated twice.
+#  ncu: Nsight Compute on the tiled and fused frames, where it runs.
 OUT=${OUT:-gpu-results}
 STEPS=${STEPS:-build tests lab roofline rooms largest regress ncu}
 # Steps write under a work folder, archived into $OUT after each step: what comes back
@@ -119,17 +117,6 @@ if want plan; then  # the tiled plan: compact tiles against the fewest nodes alo
         --json "$OUT/plan_largest_${mode}_$r.json" >"$OUT/plan_largest_${mode}_$r.txt" 2>>"$OUT/bench.err"
       echo "plan=$mode run $r:"; grep -E "^ +[0-9]+ +cuda" "$OUT/plan_table_${mode}_$r.txt"
       grep -A3 "largest n held" "$OUT/plan_largest_${mode}_$r.txt" | cut -c1-110
-    done
-  done
-  snap
-fi
-if want sweep; then  # each spring once against a node at a time, alternated
-  for r in 1 2; do
-    for v in 0 1; do
-      CLOTHBALL_CUDA_SWEEP=$v timeout "${SWEEP_S:-100}" python3 tools/gpu_roofline.py \
-        ${SWEEP_ARGS:---quick} --json "$OUT/sweep_${v}_$r.json" >"$OUT/sweep_${v}_$r.txt" \
-        2>>"$OUT/sweep.err"
-      echo "sweep=$v run $r:"; grep -E "^(lone|tiled|rooms)" "$OUT/sweep_${v}_$r.txt" | cut -c1-62
     done
   done
   snap

@@ -246,23 +246,20 @@ CB_HD void grip_point(const Params<R>& p, const Planes<R>& pos, const Planes<R>&
 // Interior = true promises that every neighbour up to two nodes away exists and that the
 // node is no corner, so the bounds tests vanish (the CPU loop then vectorises).
 // `pos` and `vel` are views of the grid (Planes, or a window of it: TilePlanes; vec.hpp).
-// Springs = false leaves the springs out and starts from `f`, their sum in this order
-// (structural, shear, bend springs), computed elsewhere: the GPU's sweep computes each
-// spring once for its two nodes (cuda/sweep.cuh).
-template <class R, unsigned E, bool Interior = false, class G = Planes<R>, bool Springs = true>
+template <class R, unsigned E, bool Interior = false, class G = Planes<R>>
 CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi, V3<R> vi,
-                       int i, int j, const FrameInputs<R>& fin, V3<R> ball_p, V3<R>& contact,
-                       V3<R> f = {R(0), R(0), R(0)}) {
+                       int i, int j, const FrameInputs<R>& fin, V3<R> ball_p, V3<R>& contact) {
   const int n = p.n;
   const int q = node_at(pos, n, i, j), s = row_step(pos, n);
-  if constexpr (Springs && (E & STRUCTURAL) != 0) {
+  V3<R> f{R(0), R(0), R(0)};
+  if constexpr ((E & STRUCTURAL) != 0) {
     const R k = p.k_struct, L = p.L, c = p.struct_compress;
     if (Interior || j > 0) f += spring_force(pi, pos.get(q - 1), k, L, c);
     if (Interior || j < n - 1) f += spring_force(pi, pos.get(q + 1), k, L, c);
     if (Interior || i > 0) f += spring_force(pi, pos.get(q - s), k, L, c);
     if (Interior || i < n - 1) f += spring_force(pi, pos.get(q + s), k, L, c);
   }
-  if constexpr (Springs && (E & SHEAR) != 0) {
+  if constexpr ((E & SHEAR) != 0) {
     const R k = p.k_shear, L = p.L_diag;
     if (Interior || (i > 0 && j > 0)) f += spring_force(pi, pos.get(q - s - 1), k, L, R(1));
     if (Interior || (i > 0 && j < n - 1)) f += spring_force(pi, pos.get(q - s + 1), k, L, R(1));
@@ -270,13 +267,11 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
     if (Interior || (i < n - 1 && j < n - 1)) f += spring_force(pi, pos.get(q + s + 1), k, L, R(1));
   }
   if constexpr ((E & BEND) != 0) {
-    if constexpr (Springs) {
-      const R k = p.k_bend, L = p.L_bend;
-      if (Interior || j > 1) f += spring_force(pi, pos.get(q - 2), k, L, R(1));
-      if (Interior || j < n - 2) f += spring_force(pi, pos.get(q + 2), k, L, R(1));
-      if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * s), k, L, R(1));
-      if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * s), k, L, R(1));
-    }
+    const R k = p.k_bend, L = p.L_bend;
+    if (Interior || j > 1) f += spring_force(pi, pos.get(q - 2), k, L, R(1));
+    if (Interior || j < n - 2) f += spring_force(pi, pos.get(q + 2), k, L, R(1));
+    if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * s), k, L, R(1));
+    if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * s), k, L, R(1));
     // The plate term only where the scene has a bending stiffness: the test is the same
     // for every node of a call (hoisted by the compiler, uniform on the GPU), and a scene
     // without one (k_plate 0) pays nothing for it (summed always, it cost 16-30 % a
@@ -363,30 +358,25 @@ CB_HD void check_finite(R& check, V3<R> x, V3<R> v) {
 
 // The first half of a node's semi-implicit Euler substep from the views (P, V) of the
 // substep's start: its position there in x and its new velocity (the kick) in v. Returns
-// the node's ball contact force, for the ball's sum. Springs = false: `springs` is the sum
-// of the node's springs (node_force).
-template <class R, unsigned E, bool Interior = false, class G = Planes<R>, bool Springs = true>
+// the node's ball contact force, for the ball's sum.
+template <class R, unsigned E, bool Interior = false, class G = Planes<R>>
 CB_HD V3<R> se_node_kick(const Params<R>& p, const G& P, const G& V, const FrameInputs<R>& fin,
-                         V3<R> ball_p, int i, int j, R dt, V3<R>& x, V3<R>& v,
-                         V3<R> springs = {R(0), R(0), R(0)}) {
+                         V3<R> ball_p, int i, int j, R dt, V3<R>& x, V3<R>& v) {
   const int q = node_at(P, p.n, i, j);
   x = P.get(q);
   v = V.get(q);
   V3<R> contact{R(0), R(0), R(0)};
-  const V3<R> f = node_force<R, E, Interior, G, Springs>(p, P, V, x, v, i, j, fin, ball_p,
-                                                         contact, springs);
+  const V3<R> f = node_force<R, E, Interior>(p, P, V, x, v, i, j, fin, ball_p, contact);
   euler_kick(v, f, p.inv_mass, dt);
   return contact;
 }
 
 // One node's whole substep: the kick, then the drift; the new state in (x, v). `check`
 // accumulates check_finite of it.
-template <class R, unsigned E, bool Interior = false, class G = Planes<R>, bool Springs = true>
+template <class R, unsigned E, bool Interior = false, class G = Planes<R>>
 CB_HD V3<R> se_node_step(const Params<R>& p, const G& P, const G& V, const FrameInputs<R>& fin,
-                         V3<R> ball_p, int i, int j, R dt, R& check, V3<R>& x, V3<R>& v,
-                         V3<R> springs = {R(0), R(0), R(0)}) {
-  const V3<R> contact =
-      se_node_kick<R, E, Interior, G, Springs>(p, P, V, fin, ball_p, i, j, dt, x, v, springs);
+                         V3<R> ball_p, int i, int j, R dt, R& check, V3<R>& x, V3<R>& v) {
+  const V3<R> contact = se_node_kick<R, E, Interior>(p, P, V, fin, ball_p, i, j, dt, x, v);
   euler_drift(x, v, dt);
   check_finite(check, x, v);
   return contact;

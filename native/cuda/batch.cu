@@ -11,7 +11,6 @@
 #include "core/backend.hpp"
 #include "cuda/reduce.cuh"
 #include "cuda/substep.cuh"
-#include "cuda/sweep.cuh"
 
 namespace cb {
 namespace {
@@ -58,12 +57,11 @@ __global__ void batch_finish(Params<R> p, const SlotDev<R>* __restrict__ table, 
 // boundary, every neighbour read is on chip, and the result is copied to the global buffer
 // the frame ends in (the one the per-substep launches would have written last). Each
 // substep is se_substep_body over the slot's nodes as one block of one (the lone cloth's
-// arithmetic per node), or with `sweep` its sweep (each spring once, cuda/sweep.cuh) where
-// the block's lanes cover a row; the frame's end is batch_finish's.
+// arithmetic per node); the frame's end is batch_finish's.
 template <class R, unsigned E>
 __global__ void __launch_bounds__(kFusedBlock)
     batch_frame(Params<R> p, const SlotDev<R>* __restrict__ table, int substeps, int b0,
-                R dt, int sweep) {
+                R dt) {
   follow_previous_launch();
   extern __shared__ unsigned char shared_bytes[];
   R* sh = reinterpret_cast<R*>(shared_bytes);
@@ -74,17 +72,11 @@ __global__ void __launch_bounds__(kFusedBlock)
   for (size_t q = size_t(t); q < planes; q += blockDim.x) sh[q] = in[q];
   __syncthreads();
   int b = b0, c = 0;  // the buffer the slot's ball goes with; the shared copy read
-  SweepPlan plan{0, 0, 0, 0};
-  if constexpr (SweepLanes<E>::springs)
-    if (sweep != 0) plan = sweep_plan<E>({0, p.n, 0, p.n, 0, p.n}, int(blockDim.x) / 32);
   for (int k = 0; k < substeps; ++k) {
     const SubstepBall<R> sb = substep_ball_at(s.ball[b], s.ball[1 - b], s.ring, s.ctl, k);
-    const DevBuf<R> from = dev_buf(sh + planes * size_t(c), N);
-    const DevBuf<R> to = dev_buf(sh + planes * size_t(1 - c), N);
-    if (plan.bands > 0)
-      se_substep_sweep_body<R, E>(p, from, to, s.fin, sb, s.nonfinite, dt, plan);
-    else
-      se_substep_body<R, E>(p, from, to, s.fin, sb, s.nonfinite, dt, 0, 1);
+    se_substep_body<R, E>(p, dev_buf(sh + planes * size_t(c), N),
+                          dev_buf(sh + planes * size_t(1 - c), N), s.fin, sb, s.nonfinite, dt,
+                          0, 1);
     __syncthreads();  // the substep's nodes, ball and sums are written
     b = 1 - b;
     c = 1 - c;

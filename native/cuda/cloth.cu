@@ -30,14 +30,6 @@ namespace {
 
 using ci::kBlock;
 
-// Whether the tiled and the fused batch frames compute each spring once (the sweep,
-// cuda/sweep.cuh); CLOTHBALL_CUDA_SWEEP=0: a node at a time, each spring from both its
-// ends, to measure against.
-int sweep_wanted() {
-  const char* env = std::getenv("CLOTHBALL_CUDA_SWEEP");
-  return env && std::string(env) == "0" ? 0 : 1;
-}
-
 // One semi-implicit Euler substep for every node of the cloth (se_substep_body).
 template <class R, unsigned E>
 __global__ void __launch_bounds__(kBlock) se_substep(Params<R> p, DevBuf<R> in, DevBuf<R> out,
@@ -351,8 +343,7 @@ class CudaCloth final : public Backend {
   // The tiled frame from buffer `start`: one cooperative launch, a tile a block.
   void launch_tiled(int start, int substeps, R dt) {
     const TiledArgs<R> a{p_, tiled_.tiles_x, tiled_.th, tiled_.tw, tiled_.reach, state_, ball_,
-                         ring_, ctl_, fin_dev_, nonfinite_, substeps, start, dt,
-                         sweep_wanted()};
+                         ring_, ctl_, fin_dev_, nonfinite_, substeps, start, dt};
     cudaLaunchConfig_t cfg{};
     cfg.gridDim = dim3(unsigned(tiled_.tiles()));
     cfg.blockDim = dim3(unsigned(tiled_threads(sizeof(R))));
@@ -654,7 +645,7 @@ class CudaBatch final : public BatchStepper {
                   unsigned(kBlock), t, m);
     if (fused_bytes_ > 0) {  // the whole frame in one launch, a block a slot
       launch_kernel_shared(stream_, overlap_, fused_bytes_, kernels_.frame, unsigned(m),
-                           unsigned(fused_threads_), p_, t, substeps, b0, dt, sweep_wanted());
+                           unsigned(fused_threads_), p_, t, substeps, b0, dt);
     } else {
       const int group = group_ > 0 ? group_ : m;
       for (int g0 = 0; g0 < m; g0 += group) {
@@ -743,7 +734,7 @@ class CudaBatch final : public BatchStepper {
   // 2 304 nodes take 3 rounds of 1 024 (75 % of the lanes busy) or 5 of 512 (90 %), two
   // slots a multiprocessor, the one's barriers covered by the other's work.
   // CLOTHBALL_CUDA_FUSED_THREADS=T takes T (a multiple of 32 up to kFusedBlock), to measure.
-  static int fused_threads(void (*frame)(Params<R>, const SlotDev<R>*, int, int, R, int), int N,
+  static int fused_threads(void (*frame)(Params<R>, const SlotDev<R>*, int, int, R), int N,
                            size_t bytes) {
     if (const char* env = std::getenv("CLOTHBALL_CUDA_FUSED_THREADS")) {
       const int t = std::atoi(env);

@@ -165,22 +165,16 @@ __device__ __forceinline__ BallNow<R> substep_ball_begin(const Params<R>& p,
 // substep's start in x, its new velocity in v. While no node can touch the ball (`touch`
 // false, the same decision for the whole grid) it runs compiled without contact. Returns
 // the node's contact force.
-// Springs = false: `springs` is the sum of the node's springs (the sweep, cuda/sweep.cuh).
-template <class R, unsigned E, class G, bool Springs = true>
+template <class R, unsigned E, class G>
 __device__ __forceinline__ V3<R> se_kick_touch(const Params<R>& p, const G& P, const G& V,
                                                const FrameInputs<R>& fin, const BallNow<R>& now,
-                                               int i, int j, R dt, V3<R>& x, V3<R>& v,
-                                               V3<R> springs = {R(0), R(0), R(0)}) {
+                                               int i, int j, R dt, V3<R>& x, V3<R>& v) {
   if constexpr ((E & BALL) != 0) {
-    if (now.touch)
-      return se_node_kick<R, E, false, G, Springs>(p, P, V, fin, now.b.p, i, j, dt, x, v,
-                                                    springs);
-    se_node_kick<R, (E & ~BALL), false, G, Springs>(p, P, V, fin, now.b.p, i, j, dt, x, v,
-                                                     springs);
+    if (now.touch) return se_node_kick<R, E>(p, P, V, fin, now.b.p, i, j, dt, x, v);
+    se_node_kick<R, (E & ~BALL)>(p, P, V, fin, now.b.p, i, j, dt, x, v);
     return {R(0), R(0), R(0)};
   } else {
-    return se_node_kick<R, E, false, G, Springs>(p, P, V, fin, now.b.p, i, j, dt, x, v,
-                                                  springs);
+    return se_node_kick<R, E>(p, P, V, fin, now.b.p, i, j, dt, x, v);
   }
 }
 
@@ -208,21 +202,16 @@ __device__ __forceinline__ void se_drift_tracked(const BallNow<R>& now, V3<R>& x
 // without contact while no node can touch the ball, as se_kick_touch. Each branch is the
 // whole step, so that without contact it is the very code of a scene without a ball (bit
 // for bit: split at the kick, the two kernels' drifts were contracted differently).
-template <class R, unsigned E, class G, bool Springs = true>
+template <class R, unsigned E, class G>
 __device__ __forceinline__ V3<R> se_step_touch(const Params<R>& p, const G& P, const G& V,
                                                const FrameInputs<R>& fin, const BallNow<R>& now,
-                                               int i, int j, R dt, R& check, V3<R>& x, V3<R>& v,
-                                               V3<R> springs = {R(0), R(0), R(0)}) {
+                                               int i, int j, R dt, R& check, V3<R>& x, V3<R>& v) {
   if constexpr ((E & BALL) != 0) {
-    if (now.touch)
-      return se_node_step<R, E, false, G, Springs>(p, P, V, fin, now.b.p, i, j, dt, check, x,
-                                                    v, springs);
-    se_node_step<R, (E & ~BALL), false, G, Springs>(p, P, V, fin, now.b.p, i, j, dt, check, x,
-                                                     v, springs);
+    if (now.touch) return se_node_step<R, E>(p, P, V, fin, now.b.p, i, j, dt, check, x, v);
+    se_node_step<R, (E & ~BALL)>(p, P, V, fin, now.b.p, i, j, dt, check, x, v);
     return {R(0), R(0), R(0)};
   } else {
-    return se_node_step<R, E, false, G, Springs>(p, P, V, fin, now.b.p, i, j, dt, check, x, v,
-                                                  springs);
+    return se_node_step<R, E>(p, P, V, fin, now.b.p, i, j, dt, check, x, v);
   }
 }
 
@@ -363,7 +352,7 @@ struct BatchKernels {
   void (*load)(const SlotDev<R>*, int);
   void (*substep)(Params<R>, const SlotDev<R>*, int, int, int, R);
   void (*finish)(Params<R>, const SlotDev<R>*, int, int, R);
-  void (*frame)(Params<R>, const SlotDev<R>*, int, int, R, int);  // last: sweep (0/1)
+  void (*frame)(Params<R>, const SlotDev<R>*, int, int, R);
 };
 
 // One entry per effect set, as cloth.cu's kernel table (defined in cuda/batch.cu, once per
@@ -391,7 +380,6 @@ struct TiledArgs {
   int* nonfinite;
   int substeps, b0;
   R dt;
-  int sweep;  // 1: each spring once (cuda/sweep.cuh) where the tile's lanes cover a row
 };
 
 template <class R>

@@ -35,7 +35,6 @@
 
 #include "core/backend.hpp"
 #include "cuda/substep.cuh"
-#include "cuda/sweep.cuh"
 
 namespace cb {
 namespace {
@@ -93,32 +92,18 @@ __global__ void __launch_bounds__(kThreads, 1) tiled_frame(TiledArgs<R> a) {
   };
   const int ring = 2 * s * hw + 2 * s * th;  // halo cells
   const bool leader = blockIdx.x == 0 && t == 0;
-  // The kick through the sweep (each spring once) where the tile's lanes cover a row of it.
-  const SweepRegion region{ib, ib + th, jb, jb + tw, max(jb - s, 0), min(jb + tw + s, n)};
-  SweepPlan plan{0, 0, 0, 0};
-  if constexpr (SweepLanes<E>::springs)
-    if (a.sweep != 0) plan = sweep_plan<E>(region, T / 32);
   cg::grid_group grid = cg::this_grid();
   int b = a.b0;
   for (int k = 0; k < a.substeps; ++k) {
     const SubstepBall<R> sb = substep_ball_at(a.ball + b, a.ball + (1 - b), a.ring, a.ctl, k);
     const BallNow<R> now = substep_ball_begin<R, E>(p, sb, a.dt, leader);
     V3<R> contact{R(0), R(0), R(0)};
-    if (plan.bands > 0) {
-      sweep_region<R, E, WarpShuffle>(p, P, region, plan, t, [&](int i, int j, V3<R> springs) {
-        V3<R> x, v;
-        contact += se_kick_touch<R, E, TilePlanes<R>, false>(p, P, V, *a.fin, now, i, j, a.dt,
-                                                             x, v, springs);
-        V.set(node_at(V, n, i, j), v);
-      });
-    } else {
 #pragma unroll 1
-      for (int r = r0, c = c0; r < th; next(r, c)) {
-        const int i = ib + r, j = jb + c;
-        V3<R> x, v;
-        contact += se_kick_touch<R, E>(p, P, V, *a.fin, now, i, j, a.dt, x, v);
-        V.set(node_at(V, n, i, j), v);
-      }
+    for (int r = r0, c = c0; r < th; next(r, c)) {
+      const int i = ib + r, j = jb + c;
+      V3<R> x, v;
+      contact += se_kick_touch<R, E>(p, P, V, *a.fin, now, i, j, a.dt, x, v);
+      V.set(node_at(V, n, i, j), v);
     }
     __syncthreads();  // every old position of the tile is read
     const DevBuf<R> g = dev_buf(a.state + size_t(1 - b) * 6 * size_t(N), N);
