@@ -44,7 +44,7 @@ import numpy as np
 from ..game.sim.batch import ClothBatch
 from ..game.sim.cloth import resolve_backend
 from ..game.sim.scene import Scene
-from .sim import WORKER_CAPACITY, RoomSim, SimPool
+from .sim import RoomSim, SimPool
 
 WINDOW_S = 1.0
 SUSTAINED = 3  # windows in a row over the limit that make the server busy
@@ -261,7 +261,7 @@ class Headroom:
         ``rooms`` of them (the CPU's: the loop with the fewest)."""
         if key[1] == "cpu":
             return rooms // self._loops(key)
-        return rooms % int(getattr(self.sims, "capacity", WORKER_CAPACITY))
+        return rooms % self.sims.capacity_for(key[1])
 
     # --- the measured signal ----------------------------------------------------------------
     def sample(self, awake: Iterable[Scene] = ()) -> Sample:

@@ -19,11 +19,15 @@ from ...game.sim.threads import usable_cores
 from .worker import FrameWorker, LoopSettings
 
 # Rooms one worker's batch holds; a pool opens another worker of the same scene beyond it.
-# CLOTHBALL_LOOP_ROOMS (1-1024) sets it, for A/B runs: on the GPU one launch a frame steps a
-# worker's rooms, and 64 rooms fill well under half an H200 (a batched frame of 264 default
-# rooms took 171 µs, docs/benchmarks/gpu-h200-2026-11-28-roofline/), so a host of 384 rooms
-# makes six launches a frame where two might do: not measured yet.
+# On the GPU one launch a frame steps a worker's rooms: 64 rooms fill well under half an
+# H200 (a batched frame of 264 default rooms took 171 µs,
+# docs/benchmarks/gpu-h200-2026-11-28-roofline/), and a host of 384 rooms on workers of 256
+# (two launches a frame, not six) took 4.9 server cores where workers of 64 took 6.1, and
+# kept every rate, MESH and the pages too (docs/benchmarks/host-2026-11-28-pump.md, call
+# 11). On the CPU a loop holds a few rooms at most. CLOTHBALL_LOOP_ROOMS (1-1024) sets it
+# for both, for A/B runs.
 WORKER_CAPACITY = 64
+CUDA_WORKER_CAPACITY = 256
 LOOP_ROOMS_ENV = "CLOTHBALL_LOOP_ROOMS"
 
 
@@ -38,15 +42,17 @@ def _whole_env(name: str, default: int, most: int) -> int:
     return int(text)
 
 
-def loop_rooms_default() -> int:
-    """``LOOP_ROOMS_ENV`` (1-1024), else ``WORKER_CAPACITY``."""
-    return _whole_env(LOOP_ROOMS_ENV, WORKER_CAPACITY, 1024)
+def loop_rooms_default(backend: str = "cpu") -> int:
+    """``LOOP_ROOMS_ENV`` (1-1024), else ``CUDA_WORKER_CAPACITY`` for the CUDA engine and
+    ``WORKER_CAPACITY`` for the CPU's."""
+    return _whole_env(LOOP_ROOMS_ENV,
+                      CUDA_WORKER_CAPACITY if backend == "cuda" else WORKER_CAPACITY, 1024)
 
 
 # The CPU engine's rooms of one scene are spread over up to this many workers, each a frame
 # loop on a thread of its own (one core's stepping each): by default one per core this
-# process may use. The CUDA engine's share one worker up to WORKER_CAPACITY, one launch a
-# frame for all of them. Measured on two pinned cores of the H200 machine (one process,
+# process may use. The CUDA engine's share one worker up to CUDA_WORKER_CAPACITY, one
+# launch a frame for all of them. Measured on two pinned cores of the H200 machine (one process,
 # default scene n = 16; docs/benchmarks/host-2026-11-28-pump.md, call 10): one loop held
 # 4, 2, 4 rooms, two loops 4, 10, 12.
 CPU_LOOPS_ENV = "CLOTHBALL_CPU_LOOPS"
@@ -79,7 +85,8 @@ class SimPool:
         self.settings = LoopSettings(epoch=epoch, max_catchup=max_catchup,
                                      cpu_threads=cpu_threads, compress_mesh=compress_mesh,
                                      manual_clock=manual_clock)
-        self.capacity = loop_rooms_default() if capacity is None else capacity
+        loop_rooms_default()  # a bad CLOTHBALL_LOOP_ROOMS is refused here, at once
+        self._capacity = capacity  # None: each backend's (capacity_for)
         # The CPU engine's frame loops a scene's rooms are spread over (None: cpu_loops_default()).
         self.cpu_loops = cpu_loops_default() if cpu_loops is None else cpu_loops
         # Where recordings spool while a round lasts (the data directory's, for a server).
@@ -87,6 +94,10 @@ class SimPool:
         self._workers: dict[tuple[str, str, str, int, int], list[FrameWorker]] = {}
         self._lock = threading.Lock()
         self._wakes: set[int] = set()  # eventfds every frame loop writes each pass
+
+    def capacity_for(self, backend: str) -> int:
+        """The rooms one worker of ``backend`` (resolved: "cpu" or "cuda") holds."""
+        return loop_rooms_default(backend) if self._capacity is None else self._capacity
 
     def now(self) -> float:
         """Server time: seconds since the pool's epoch (with a manual clock, its time)."""
@@ -122,7 +133,8 @@ class SimPool:
             if open_ and not spread:
                 w = min(open_, key=lambda w: w.members)
             else:
-                w = FrameWorker(scene, resolved, self.capacity, self.settings, mesh_every,
+                w = FrameWorker(scene, resolved, self.capacity_for(resolved), self.settings,
+                                mesh_every,
                                 track_every)
                 for fd in self._wakes:
                     w.add_wake(fd)

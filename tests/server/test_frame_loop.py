@@ -96,8 +96,10 @@ def test_cpu_rooms_are_spread_over_the_loops_asked_for(monkeypatch) -> None:
         SimPool()
     monkeypatch.delenv("CLOTHBALL_CPU_LOOPS")
     # the rooms a loop steps (a worker's batch), for A/B runs; checked the same way
+    assert (SimPool().capacity_for("cuda"), SimPool().capacity_for("cpu")) == (256, 64)
     monkeypatch.setenv("CLOTHBALL_LOOP_ROOMS", "3")
-    assert SimPool().capacity == 3
+    assert (SimPool().capacity_for("cuda"), SimPool().capacity_for("cpu")) == (3, 3)
+    assert SimPool(capacity=5).capacity_for("cuda") == 5
     monkeypatch.setenv("CLOTHBALL_LOOP_ROOMS", "2000")
     with pytest.raises(ValueError, match="CLOTHBALL_LOOP_ROOMS='2000': give a whole number"):
         SimPool()
