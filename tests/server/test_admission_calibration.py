@@ -26,19 +26,22 @@ def _wait(pred, timeout: float) -> None:
         time.sleep(0.01)
 
 
-def _threads() -> set[str]:
-    """This process's threads but the CUDA driver's own (named cuda...: on a GPU machine it
-    starts them when the process first looks for a device, and keeps them)."""
-    ours = set()
+def _names() -> dict[str, str]:
+    """This process's threads, by id, with their names."""
+    names = {}
     for tid in os.listdir("/proc/self/task"):
         try:
             with open(f"/proc/self/task/{tid}/comm") as f:
-                name = f.read().strip()
+                names[tid] = f.read().strip()
         except FileNotFoundError:  # ended meanwhile
             continue
-        if not name.startswith("cuda"):
-            ours.add(tid)
-    return ours
+    return names
+
+
+def _threads() -> set[str]:
+    """This process's threads but the CUDA driver's own (named cuda...: on a GPU machine it
+    starts them when the process first looks for a device, and keeps them)."""
+    return {tid for tid, name in _names().items() if not name.startswith("cuda")}
 
 
 def _thread_cpu(tid: int) -> float:
@@ -121,7 +124,11 @@ def test_the_native_measure_runs_the_loop_and_gives_a_cost() -> None:
     cores = headroom._native_cost(TINY, "cpu", 4)
     assert cores > 0.0
     if threads is not None:
-        _wait(lambda: _threads() <= threads, timeout=10)
+        end = time.monotonic() + 10
+        while not _threads() <= threads and time.monotonic() < end:
+            time.sleep(0.01)
+        names = _names()
+        assert {t: names.get(t) for t in _threads() - threads} == {}
 
 
 def test_a_cpu_scene_spread_over_two_loops_is_admitted_per_loop(monkeypatch) -> None:
