@@ -18,6 +18,8 @@ from collections.abc import Iterator
 import pytest
 from clothball import _native
 from clothball.game.wire import protocol as P
+from clothball.server.gateway.relay import SEND_BUFFER
+from clothball.server.limits import Limits
 from clothball.server.shared.lanes import LaneSpec, lane_message
 from websockets.frames import Frame, Opcode
 
@@ -288,3 +290,16 @@ def test_a_client_that_reads_its_messages_is_not_dropped() -> None:
         assert pump.slow_drops == 0 and pump.connections == 1
         assert recv_exactly(client, len(sent)) == sent
 
+
+def test_a_gateways_defaults_are_the_limits_defaults() -> None:
+    """A gateway started without the host's values (``--slow-drop-s``, ``--send-buffer``)
+    drops and buffers as the default limits say (it imports nothing of them)."""
+    pump = _native.Pump()
+    try:
+        assert pump.slow_drop_s == Limits().slow_drop_s
+    finally:
+        pump.stop()
+    assert SEND_BUFFER == Limits().socket_send_buffer
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="slow_drop_s"):
+            _native.Pump(slow_drop_s=bad)
