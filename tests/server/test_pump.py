@@ -235,6 +235,22 @@ def test_a_websocket_client_that_stops_reading_is_dropped_after_slow_drop_s() ->
         assert pump.connections == 0
 
 
+def test_a_dropped_client_that_does_not_read_its_close_is_cut_2_s_later() -> None:
+    with relayed(_native.Pump(slow_drop_s=SLOW_S), sndbuf=4096) as (pump, conn, client,
+                                                                    engine):
+        msg = text(b'{"type":"event","pad":"' + b"x" * 1000 + b'"}')
+        t0 = time.monotonic()
+        sent = send_until_held(engine, iter([HEAD] + [msg] * 200), 200 * 1024)
+        assert len(sent) > 128 * 1024
+        engine_end_after(engine, t0)
+        dropped = time.monotonic()
+        assert pump.connections == 1  # its close frame waits for it
+        assert events(pump, "closed")[-1] == ("closed", conn)
+        cut_after = time.monotonic() - dropped
+        assert 1.5 < cut_after < 2.0 + MARGIN_S, cut_after
+        assert pump.connections == 0
+
+
 def test_a_client_behind_within_a_message_is_cut() -> None:
     """Dropped in the middle of one of the engine's messages, where no close frame can
     follow: the client gets a part of that message and its end, the engine its end."""
@@ -247,9 +263,10 @@ def test_a_client_behind_within_a_message_is_cut() -> None:
         assert 128 * 1024 < len(sent) < len(HEAD) + len(big)
         took = engine_end_after(engine, t0)
         assert SLOW_S <= took < SLOW_S + MARGIN_S, took
+        # cut with its engine's side (not 2 s later)
+        assert events(pump, "closed", within_s=0.5)[-1] == ("closed", conn)
         got = recv_to_end(client)
         assert len(got) <= len(sent) and sent.startswith(got)  # no frame of the pump's
-        assert events(pump, "closed")[-1] == ("closed", conn)
         assert pump.slow_drops == 1
 
 
