@@ -191,7 +191,8 @@ class GameServer:
                                                self.sims.set_wake)
                 await self._control.start()
             self._own = Gateway(self.host, self.port, self.socket_path, link=self.lane_link,
-                                reuse_port=False)
+                                reuse_port=False, slow_drop_s=self.limits.slow_drop_s,
+                                send_buffer=self.limits.socket_send_buffer)
             await self._own.start()
         except BaseException:
             await self._close_listeners()

@@ -322,8 +322,10 @@ class _Child:
 
 def supervise(args: argparse.Namespace, workers: int) -> int:
     """Run the engine and ``workers - 1`` gateways on one port until Ctrl-C or SIGTERM."""
-    if _check(args) is None:
+    checked = _check(args)
+    if checked is None:
         return 2
+    limits = checked[1]
     try:
         port = args.port or free_port(args.host)
     except OSError as e:
@@ -341,7 +343,9 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
         "--public-port", str(port), *ties], life_r)
     gateways = [_Child(f"gateway {k}", [
         sys.executable, "-m", "clothball.server.gateway", "--host", args.host, "--port",
-        str(port), "--engine-socket", str(sock), "--index", str(k), *ties], life_r)
+        str(port), "--engine-socket", str(sock), "--index", str(k),
+        "--slow-drop-s", repr(limits.slow_drop_s),
+        "--send-buffer", str(limits.socket_send_buffer), *ties], life_r)
         for k in range(max(1, workers - 1))]
     procs = [engine, *gateways]
     stopping = threading.Event()

@@ -41,12 +41,14 @@ py::tuple event_tuple(const cn::Event& e) {
 
 void bind_pump(py::module_& m) {
   py::class_<cn::Pump>(m, "Pump")
-      .def(py::init([](double coalesce_s) {
+      .def(py::init([](double coalesce_s, double slow_drop_s) {
              if (!std::isfinite(coalesce_s) || coalesce_s < 0 || coalesce_s > 0.01)
                throw py::value_error("the pump's coalescing: 0 to 0.01 s");
-             return std::make_unique<cn::Pump>(coalesce_s);
+             if (!std::isfinite(slow_drop_s) || slow_drop_s <= 0)
+               throw py::value_error("the pump's slow_drop_s: a finite number of seconds > 0");
+             return std::make_unique<cn::Pump>(coalesce_s, slow_drop_s);
            }),
-           py::arg("coalesce_s") = cn::kCoalesceS)
+           py::arg("coalesce_s") = cn::kCoalesceS, py::arg("slow_drop_s") = cn::kSlowDropS)
       .def("add", &cn::Pump::add, py::arg("client_fd"), py::arg("engine_fd"),
            py::arg("to_engine"), py::arg("client_eof"))
       .def(
@@ -127,7 +129,10 @@ void bind_pump(py::module_& m) {
            })
       .def_property_readonly("messages_in", &cn::Pump::messages_in)
       .def_property_readonly("messages_out", &cn::Pump::messages_out)
-      .def_property_readonly("connections", &cn::Pump::connections);
+      .def_property_readonly("connections", &cn::Pump::connections)
+      .def_property_readonly("slow_drops", &cn::Pump::slow_drops,
+                             "clients dropped as too slow (behind past slow_drop_s)")
+      .def_property_readonly("slow_drop_s", &cn::Pump::slow_drop_s);
 }
 
 namespace {

@@ -96,11 +96,15 @@ struct Pump::Conn {
   std::uint64_t lane_gen = 0;
   bool has_pending[2] = {false, false};
   std::string pending[2];  // a lane's newest held CORNER and MESH (frame included)
+  double behind_since = 0;  // monotonic: since when the client has been behind (0: not)
+  double cut_at = 0;        // dropped as too slow: cut then (0: not dropped)
+  bool slow_queued = false; // a look at it is in slow_
   std::size_t c_buffered() const { return to_client.size() - c_off; }
   std::size_t e_buffered() const { return to_engine.size() - e_off; }
 };
 
-Pump::Pump(double coalesce_s) : coalesce_s_(coalesce_s) {
+Pump::Pump(double coalesce_s, double slow_drop_s)
+    : coalesce_s_(coalesce_s), slow_drop_s_(slow_drop_s) {
   ep_ = epoll_create1(EPOLL_CLOEXEC);
   cmd_fd_ = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
   event_fd_ = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
@@ -365,6 +369,7 @@ void Pump::run() {
       }
     }
     on_timers();
+    on_slow();
     // Each connection written once a pass, whatever came for it (several CORNERs, a MESH,
     // the engine's bytes): one system call.
     std::vector<Conn*> dirty;
@@ -381,7 +386,7 @@ void Pump::run() {
     Conn& c = *kv.second;
     if (!c.dead) {
       ::close(c.cfd);
-      ::close(c.efd);
+      if (c.efd >= 0) ::close(c.efd);
     }
   }
   conns_.clear();
@@ -548,10 +553,12 @@ void Pump::flush(Conn& c) {
     }
     return true;
   };
+  const std::size_t unsent = c.c_buffered();
   if (!write_side(c.cfd, c.to_client, c.c_off)) {
     kill(c);
     return;
   }
+  behind(c, c.c_buffered() < unsent);
   if (!c.e_ended && !write_side(c.efd, c.to_engine, c.e_off)) {
     engine_ended(c);
   }
@@ -581,7 +588,7 @@ void Pump::kill(Conn& c) {
   epoll_ctl(ep_, EPOLL_CTL_DEL, c.cfd, nullptr);
   if (!c.e_ended && !c.e_parked) epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
   ::close(c.cfd);
-  ::close(c.efd);
+  if (c.efd >= 0) ::close(c.efd);
   c.dead = true;
   dead_.push_back(c.id);
   live_.fetch_sub(1);
@@ -589,6 +596,92 @@ void Pump::kill(Conn& c) {
   e.kind = Event::kClosed;
   e.conn = c.id;
   emit(std::move(e));
+}
+
+// --- too slow -------------------------------------------------------------------------------
+
+// After a write to the client (`wrote`: some of its unsent bytes went): since when a
+// websocket client has been behind, with bytes unsent to it and none of them taken since,
+// or more than kWriteSkip unsent (a write that leaves it at most that starts the time
+// again; one that leaves none ends it). One behind past slow_drop_s_ is dropped (on_slow).
+void Pump::behind(Conn& c, bool wrote) {
+  const std::size_t unsent = c.c_buffered();
+  if (!c.srv.websocket || unsent == 0) {
+    c.behind_since = 0;
+    return;
+  }
+  if (c.behind_since > 0 && !(wrote && unsent <= kWriteSkip)) return;
+  c.behind_since = monotonic();
+  if (!c.slow_queued) {
+    c.slow_queued = true;
+    slow_.push(Timer{c.behind_since + slow_drop_s_, c.id, 0});
+  }
+}
+
+void Pump::on_slow() {
+  if (slow_.empty()) return;
+  const double now = monotonic();
+  while (!slow_.empty() && slow_.top().at <= now) {
+    const Timer t = slow_.top();
+    slow_.pop();
+    auto it = conns_.find(t.conn);
+    if (it == conns_.end() || it->second->dead) continue;
+    Conn& c = *it->second;
+    c.slow_queued = false;
+    double next = 0;
+    if (c.cut_at > 0) {
+      if (now >= c.cut_at) kill(c);  // its close did not go out in time
+      else next = c.cut_at;
+    } else if (c.behind_since > 0) {
+      if (now - c.behind_since >= slow_drop_s_) too_slow(c, now);
+      else next = c.behind_since + slow_drop_s_;  // caught up since, then behind again
+      if (c.cut_at > 0) next = c.cut_at;
+    }
+    if (next > 0 && !c.dead) {
+      c.slow_queued = true;
+      slow_.push(Timer{next, c.id, 0});
+    }
+  }
+}
+
+// Drops a client that stayed behind (as the engine drops one: server/conn.py): the
+// engine's side closed now, and, where the client's stream is between two messages, a
+// close frame (1008) after what is queued for it, then the client's end; cut at once where
+// no close frame can be written, and kCloseWaitS from now where it has not gone out.
+void Pump::too_slow(Conn& c, double now) {
+  slow_drops_.fetch_add(1, std::memory_order_relaxed);
+  const bool can_close = !c.c_shut && !c.finishing && c.srv.between_messages();
+  end_lane(c);
+  c.has_pending[kCorner] = c.has_pending[kMesh] = false;
+  cut_engine(c);
+  if (!can_close) {
+    kill(c);
+    return;
+  }
+  static const char kReason[] = "too slow: the connection has been backed up too long";
+  const std::size_t n = 2 + sizeof kReason - 1;
+  std::uint8_t head[kMaxHeader];
+  const std::size_t hn = write_head(head, kOpClose, n);
+  append(c.to_client, head, hn);
+  const std::uint8_t code[2] = {1008 >> 8, 1008 & 0xFF};
+  append(c.to_client, code, 2);
+  append(c.to_client, reinterpret_cast<const std::uint8_t*>(kReason), sizeof kReason - 1);
+  c.finishing = true;
+  c.cut_at = now + kCloseWaitS;
+  mark(c);
+}
+
+// The engine's side closed (its reading and writing done with): the engine sees its
+// client's connection end, as when a client goes.
+void Pump::cut_engine(Conn& c) {
+  if (c.efd < 0) return;
+  if (!c.e_ended && !c.e_parked) epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
+  ::close(c.efd);
+  c.efd = -1;
+  c.e_ended = true;
+  c.e_paused = false;
+  c.to_engine.clear();
+  c.e_off = 0;
 }
 
 // --- lanes ----------------------------------------------------------------------------------
@@ -808,8 +901,10 @@ void Pump::on_timers() {
 // a timer descriptor's two system calls a wake-up; epoll_wait's whole milliseconds where
 // the kernel lacks it).
 int Pump::wait(epoll_event* evs, int max) {
-  if (timers_.empty()) return epoll_wait(ep_, evs, max, -1);
-  double d = timers_.top().at - monotonic();
+  if (timers_.empty() && slow_.empty()) return epoll_wait(ep_, evs, max, -1);
+  double at = timers_.empty() ? slow_.top().at : timers_.top().at;
+  if (!slow_.empty()) at = std::min(at, slow_.top().at);
+  double d = at - monotonic();
   if (d < 0) d = 0;
   if (pwait2_) {
     timespec ts;

@@ -11,6 +11,13 @@
 // side, half-closes passed on, lane messages taken out of the engine's stream
 // (net/follow.hpp), a lane's messages written only between two of the engine's (else
 // the newest of each kind held), a CORNER skipped for a client with kWriteSkip unsent.
+//
+// And one thing the Python relay did not: a websocket client whose side stays behind (more
+// than kWriteSkip unsent to it, or unsent bytes and none written) for longer than
+// `slow_drop_s` is dropped as too slow (`behind`, `too_slow`): its engine's side is closed
+// at once (the engine learns of it as of any client's close at its gateway), and the
+// client gets a close frame, 1008 `too slow: ...`, after what is queued for it, where its
+// stream is between two messages (else it is cut); kCloseWaitS later it is cut anyway.
 #pragma once
 #include <sys/epoll.h>
 
@@ -49,6 +56,8 @@ constexpr double kTimerMaxHz = 500.0;        // above: CORNERs on the frame wake
 constexpr double kBlockRetryS = 0.5;         // between two asks for a missing block
 using loop::kHipBytes;
 constexpr double kCoalesceS = 0.001;         // the pump's tick while it has timers
+constexpr double kSlowDropS = 5.0;           // server/limits.py's slow_drop_s default
+constexpr double kCloseWaitS = 2.0;          // a dropped client's close: then it is cut
 
 // A lane (server/shared/lanes.py LaneSpec): a seated player's hand and CORNER, and any
 // client's MESH, served from the engine's shared memory.
@@ -89,8 +98,9 @@ struct Shared {
 class Pump {
  public:
   // coalesce_s: the tick the pump runs on while it has lanes (0: each event wakes it), a
-  // message's most added wait.
-  explicit Pump(double coalesce_s = kCoalesceS);
+  // message's most added wait; slow_drop_s: how long a websocket client may stay behind
+  // (server/limits.py's slow_drop_s).
+  explicit Pump(double coalesce_s = kCoalesceS, double slow_drop_s = kSlowDropS);
   ~Pump();
   Pump(const Pump&) = delete;
   Pump& operator=(const Pump&) = delete;
@@ -125,6 +135,8 @@ class Pump {
   std::uint64_t messages_in() const { return in_.load(std::memory_order_relaxed); }
   std::uint64_t messages_out() const { return out_.load(std::memory_order_relaxed); }
   std::size_t connections() const { return live_.load(std::memory_order_relaxed); }
+  std::uint64_t slow_drops() const { return slow_drops_.load(std::memory_order_relaxed); }
+  double slow_drop_s() const { return slow_drop_s_; }
 
  private:
   struct Lane;
@@ -157,6 +169,11 @@ class Pump {
   void engine_ended(Conn& c);
   void close_if_done(Conn& c);
   void kill(Conn& c);
+  // too slow
+  void behind(Conn& c, bool wrote);
+  void on_slow();
+  void too_slow(Conn& c, double now);
+  void cut_engine(Conn& c);
   void end_lane(Conn& c);
   // lanes
   bool take_hip(Conn& c, const std::uint8_t* p, std::size_t n);
@@ -173,12 +190,14 @@ class Pump {
   int ep_ = -1, cmd_fd_ = -1, event_fd_ = -1, wake_fd_ = -1;
   bool pwait2_ = true;
   double coalesce_s_;
+  double slow_drop_s_;
   bool no_wake_ = false, armed_want_ = false;
   std::thread thread_;
   std::atomic<bool> running_{true};
   std::atomic<std::int64_t> next_id_{16};
   std::atomic<std::uint64_t> in_{0}, out_{0};
   std::atomic<std::size_t> live_{0};
+  std::atomic<std::uint64_t> slow_drops_{0};
 
   std::mutex cmd_mu_;
   std::vector<std::function<void()>> cmds_;
@@ -189,6 +208,9 @@ class Pump {
   std::unordered_map<std::int64_t, std::unique_ptr<Conn>> conns_;
   std::unordered_map<std::int64_t, Shared> shared_;
   std::priority_queue<Timer, std::vector<Timer>, std::greater<Timer>> timers_;
+  // When to look again at a client that is behind (or cut one dropped): apart from
+  // timers_, whose presence puts the pump on its tick.
+  std::priority_queue<Timer, std::vector<Timer>, std::greater<Timer>> slow_;
   std::set<std::int64_t> framed_;
   std::map<std::pair<std::int64_t, std::size_t>, Watch> watched_;
   bool mesh_timer_ = false;

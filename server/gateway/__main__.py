@@ -20,7 +20,8 @@ from .relay import Gateway
 
 async def main(args: argparse.Namespace) -> int:
     try:
-        gw = Gateway(args.host, args.port, args.engine_socket)
+        gw = Gateway(args.host, args.port, args.engine_socket, slow_drop_s=args.slow_drop_s,
+                     send_buffer=args.send_buffer)
         await gw.start()
     except (OSError, ValueError) as e:
         why = (e.strerror or str(e)) if isinstance(e, OSError) else str(e)
@@ -46,6 +47,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--index", type=int, default=0)
     p.add_argument("--parent", type=int, default=None)
     p.add_argument("--lifeline", type=int, default=None)
+    # the host's Limits.slow_drop_s and socket_send_buffer (None: the defaults, the same)
+    p.add_argument("--slow-drop-s", type=float, default=None)
+    p.add_argument("--send-buffer", type=int, default=None)
     return p.parse_args(argv)
 
 

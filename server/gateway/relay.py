@@ -18,7 +18,17 @@ bytes both ways (backpressure, half-closes passed on, a side that fails ending t
 and serves the lanes (``server.shared.lanes``): a seated player's HIPs, its CORNERs and a
 watcher's MESH never reach Python. Python keeps what is rare: accepting, the engine's
 connection and PROXY line, the 503, parsing the engine's lane messages, and what to tell a
-client whose engine's stream ended."""
+client whose engine's stream ended.
+
+A client's socket has a fixed kernel send buffer, ``send_buffer`` (the host's
+``Limits.socket_send_buffer``), as the engine's sockets have: not the megabytes TCP
+autotuning would give one that stops reading. A websocket client that stays behind at the
+pump (more than 64 KiB unsent to it, or unsent bytes and none taken) for longer than
+``slow_drop_s`` (the host's ``Limits.slow_drop_s``) is dropped there, as the engine drops
+one: its connection to the engine is closed (the engine sees it go, as any client's close
+at its gateway), and it gets a close frame, 1008 ``too slow: ...``, after what is queued
+for it (cut 2 s later if that has not gone out), or is cut where none can be written. A
+gateway process is given both as ``--slow-drop-s`` and ``--send-buffer``."""
 
 from __future__ import annotations
 
@@ -47,6 +57,7 @@ CONNECT_WAIT_S = HEAD_WAIT_S  # for a place in the engine's full accept backlog,
 ENGINE_CHECK_S = 0.3  # an engine holds a new connection open this long, waiting for its line
 ENGINE_GONE = "the host's engine stopped: its rooms are lost; reconnect in a few seconds"
 ROOM_GONE = "the host's engine stopped"  # room_stopped's reason
+SEND_BUFFER = 128 * 1024  # a client's SO_SNDBUF where none is given (Limits' default)
 
 log = logging.getLogger("clothball.gateway")
 
@@ -85,15 +96,23 @@ class Gateway:
     its lanes' blocks and wake-up come from: the engine's control socket (a gateway
     process's ``EngineLink``, the default), or, for the engine's own port, the engine's
     ``server.lanes.local.LocalLink``; ``reuse_port``: the port is shared with other
-    processes (a host's gateways)."""
+    processes (a host's gateways); ``slow_drop_s``: how long a client may stay behind
+    before the pump drops it (None: the pump's default, ``Limits.slow_drop_s``'s);
+    ``send_buffer``: each client socket's ``SO_SNDBUF`` (None: ``SEND_BUFFER``)."""
 
     def __init__(self, host: str, port: int, engine: Path, *, link: Any = None,
-                 reuse_port: bool = True) -> None:
+                 reuse_port: bool = True, slow_drop_s: float | None = None,
+                 send_buffer: int | None = None) -> None:
         self.host, self.port, self.engine = host, port, engine
         self.reuse_port = reuse_port
+        self.send_buffer = SEND_BUFFER if send_buffer is None else send_buffer
+        if self.send_buffer <= 0:
+            raise ValueError(f"a client socket's send buffer: bytes > 0, got {send_buffer}")
         self.server: asyncio.Server | None = None
         coalesce = pump_coalesce_s()
-        self.pump = _native.Pump() if coalesce is None else _native.Pump(coalesce)
+        pump_kw = {} if slow_drop_s is None else {"slow_drop_s": slow_drop_s}
+        self.pump = (_native.Pump(**pump_kw) if coalesce is None
+                     else _native.Pump(coalesce, **pump_kw))
         # Its clients' lanes served here (server.shared.lanes).
         if link is None:
             link = EngineLink(ctl_path(engine), self.pump)
@@ -221,6 +240,8 @@ class _Client(asyncio.Protocol):
         if sock is not None:
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.gw.send_buffer)
         self.gw._open.add(transport)
         self.gw._spawn(self._connect())
 

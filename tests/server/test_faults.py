@@ -17,6 +17,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.parse
 import urllib.request
@@ -160,27 +161,89 @@ def test_a_client_that_vanishes_without_a_close(tmp_path) -> None:
         assert room.sim.alive and ls.errors.texts() == []
 
 
+class Reader:
+    """Reads a connection on a thread of its own until it ends: the bytes, when the last
+    came, and the close frame's code and reason (None: it ended without one)."""
+
+    def __init__(self, s: socket.socket) -> None:
+        self.s = s
+        self.got = 0
+        self.last = time.monotonic()
+        self.close: tuple[int, str] | None = None
+        self.ended = threading.Event()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        try:
+            self.s.settimeout(30)
+            while True:
+                b0, b1 = _exactly(self.s, 2)
+                n = b1 & 0x7F
+                if n == 126:
+                    n = struct.unpack(">H", _exactly(self.s, 2))[0]
+                elif n == 127:
+                    n = struct.unpack(">Q", _exactly(self.s, 8))[0]
+                data = _exactly(self.s, n)
+                self.got += 2 + n
+                self.last = time.monotonic()
+                if b0 & 0x0F == 8:
+                    self.close = (struct.unpack(">H", data[:2])[0], data[2:].decode())
+                    return
+        except (OSError, ConnectionError):
+            pass  # its end (or a reset)
+        finally:
+            self.ended.set()
+
+
+DROP_MARGIN_S = 2.0  # a drop comes at most this long after slow_drop_s (a loaded machine's)
+
+
 def test_a_client_that_stops_reading_is_dropped_and_the_room_keeps_its_pace(tmp_path) -> None:
+    """A seated player that stops reading is dropped by its gateway's pump (the engine's
+    own port's, or a gateway process's) once its socket has been backed up for
+    slow_drop_s: well before its pings (ping_interval, 20 s) could go unanswered. The
+    engine sees it go; the client, reading again, gets a close frame 1008 ``too slow: ...``
+    (or, where the pump could not write one, the connection's end). The room keeps its
+    pace, and a player beside it that reads is served on."""
     limits = Limits(slow_drop_s=1.0, socket_send_buffer=16384)
     with live_server(tmp_path, limits=limits) as ls:
         room = ls.srv.main_room
         assert room is not None
         skipped0 = room.sim.stats.skipped_frames
         f0, t0 = room.sim.stats.frames, time.monotonic()
-        with contextlib.closing(raw_client(
-                workers.public_port(ls.srv), {"type": "hello", "version": 1, "role": "player",
-                                              "room": room.id, "seat": 1}, rcvbuf=4096)):
-            wait(lambda: conn_of(ls, 1) is not None, 5, "the slow client seated")
-            conn = conn_of(ls, 1)
+        hello = {"type": "hello", "version": 1, "role": "player", "room": room.id}
+        port = workers.public_port(ls.srv)
+        with contextlib.closing(raw_client(port, {**hello, "seat": 2})) as good, \
+                contextlib.closing(raw_client(port, {**hello, "seat": 1}, rcvbuf=4096)) as slow:
+            reading = Reader(good)
+            wait(lambda: conn_of(ls, 1) is not None and conn_of(ls, 2) is not None, 5,
+                 "both clients seated")
+            seated = time.monotonic()
+            conn, good_conn = conn_of(ls, 1), conn_of(ls, 2)
             peak_buffer, peak_queue = 0, 0
             while conn_of(ls, 1) is conn:  # never read: CORNER at 1 kHz and MESH pile up
                 tr = conn.transport
                 if tr is not None:
                     peak_buffer = max(peak_buffer, ls.call(tr.get_write_buffer_size))
                 peak_queue = max(peak_queue, len(conn._control))
-                assert time.monotonic() - t0 < 60, "the slow client was never dropped"
+                assert time.monotonic() - seated < limits.slow_drop_s + DROP_MARGIN_S, \
+                    "the slow client was not dropped within slow_drop_s"
                 time.sleep(0.05)
             dropped_after = time.monotonic() - t0
+            took = time.monotonic() - seated
+            # the engine saw it go as any client's close: its seat held for its return
+            assert ls.call(lambda: room.seats[1].held_until) is not None
+            ended = Reader(slow)  # reading again: what the pump queued, then its close
+            assert ended.ended.wait(10), "the slow client's connection did not end"
+            assert ended.close is None or (ended.close[0] == 1008 and
+                                           ended.close[1].startswith("too slow: ")), ended.close
+            # the player beside it is served on: still seated, its messages still coming
+            got = reading.got
+            wait(lambda: reading.got > got + 1000, 5, "the reading client's messages")
+            assert conn_of(ls, 2) is good_conn and not reading.ended.is_set()
+        assert took < limits.slow_drop_s + DROP_MARGIN_S, took
+        if workers.current() == 1:  # the engine's own port's pump dropped it
+            assert ls.srv._own.pump.slow_drops == 1
         # the server held a bounded amount for it: one socket's worth, a short queue
         assert peak_buffer <= limits.max_write_buffer + 128 * 1024, peak_buffer
         assert peak_queue <= limits.max_control_queue

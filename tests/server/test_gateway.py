@@ -12,6 +12,8 @@ from __future__ import annotations
 import asyncio
 import json
 import random
+import subprocess
+import sys
 import urllib.error
 import urllib.request
 
@@ -372,3 +374,19 @@ def test_the_pumps_tick_from_the_environment_is_checked(monkeypatch) -> None:
             pump_coalesce_s()
     with pytest.raises(ValueError, match="0 to 0.01 s"):
         _native.Pump(0.5)
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--slow-drop-s", "nan"], "slow_drop_s"), (["--slow-drop-s", "0"], "slow_drop_s"),
+    (["--send-buffer", "0"], "send buffer"), (["--send-buffer", "-5"], "send buffer")])
+def test_a_gateway_given_a_bad_slow_client_limit_says_so_and_exits_1(tmp_path, args,
+                                                                      says) -> None:
+    """What ``clothball host`` gives a gateway (its Limits, checked there) is checked again
+    where it is used: one JSON line naming it, exit 1, no traceback."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1", "--port",
+         str(workers.free_port()), "--engine-socket", str(tmp_path / "engine.sock"), *args],
+        capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1, proc
+    said = json.loads(proc.stdout.splitlines()[0])
+    assert says in said["error"] and "Traceback" not in proc.stderr, (said, proc.stderr)

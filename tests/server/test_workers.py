@@ -281,6 +281,20 @@ def test_a_seated_players_hips_and_corners_are_served_by_its_gateway(tmp_path) -
         run(main(h))
 
 
+def test_the_gateways_are_given_the_hosts_slow_client_limits(tmp_path) -> None:
+    """Each gateway's pump drops a client that stays behind past the host's slow_drop_s,
+    and each client socket there has the host's socket_send_buffer: both given to every
+    gateway process (tests/server/test_faults.py drops a slow client through one)."""
+    with host(tmp_path, 3, "--limit", "slow_drop_s=2.5", "--limit",
+              "socket_send_buffer=65536") as h:
+        gateways = [pid for pid, kind in h.children().items() if kind == "gateway"]
+        assert len(gateways) == 2
+        for pid in gateways:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+            assert cmd[cmd.index("--slow-drop-s") + 1] == "2.5"
+            assert cmd[cmd.index("--send-buffer") + 1] == "65536"
+
+
 def test_sigkill_of_the_host_ends_the_engine_and_the_gateways(tmp_path) -> None:
     with host(tmp_path, 3) as h:
         kids = h.children()

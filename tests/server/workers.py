@@ -81,13 +81,18 @@ class Gateway:
     socket, read, and stopped (SIGTERM) at the end."""
 
     def __init__(self, shared_port: int, engine_socket: Path,
-                 expected_errors: tuple[str, ...] = ()) -> None:
+                 expected_errors: tuple[str, ...] = (), limits: Any = None) -> None:
+        """``limits``: the engine's ``Limits``, of which the gateway is given what
+        ``clothball host`` gives its gateways (None: none, the gateway's defaults)."""
         self.shared_port = self.port = shared_port
         self.expected_errors = expected_errors  # regular expressions of errors it may log
         self.stderr: list[str] = []
+        extra = [] if limits is None else [
+            "--slow-drop-s", repr(limits.slow_drop_s),
+            "--send-buffer", str(limits.socket_send_buffer)]
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1",
-             "--port", str(shared_port), "--engine-socket", str(engine_socket)],
+             "--port", str(shared_port), "--engine-socket", str(engine_socket), *extra],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert self.proc.stdout is not None and self.proc.stderr is not None
         threading.Thread(target=self._read_stderr, daemon=True).start()
@@ -187,14 +192,13 @@ async def service_stats(srv: Any) -> dict[str, Any]:
 def pair(data: Path, kw: dict[str, Any], expected_errors: tuple[str, ...] = ()
          ) -> Iterator[tuple[Gateway, dict[str, Any]]]:
     """A gateway on a free port in front of an engine socket; yields it and the arguments
-    that make the server under test that engine. ``kw`` (the test server's arguments)
-    is not needed by a gateway: it serves whatever the engine does."""
-    del kw
+    that make the server under test that engine. Of ``kw`` (the test server's arguments)
+    a gateway is given what the host gives its gateways, of its ``limits``."""
     port = free_port()
     # (the engine removes the directory when it stops)
     with tempfile.TemporaryDirectory(prefix="cb-engine-", ignore_cleanup_errors=True) as private:
         sock = Path(private) / "engine.sock"
-        gateway = Gateway(port, sock, expected_errors)
+        gateway = Gateway(port, sock, expected_errors, kw.get("limits"))
         try:
             yield gateway, {"public_port": port, "engine_socket": sock}
         finally:
