@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstddef>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <vector>
 
@@ -152,9 +153,15 @@ class Loop {
     loop_.reset();
   }
   void start() { loop_->start(); }
+  // The loop's thread, and the MESH encoders' (take_encoded's): they end with the loop,
+  // not when the object is collected (a calibration's pool left three on a 16-core host).
+  // A take_encoded after it encodes on its caller alone.
   void stop() {
     py::gil_scoped_release release;
     loop_->stop();
+    std::lock_guard<std::mutex> g(pool_mu_);
+    pool_.reset();
+    stopped_ = true;
   }
   void lock() {
     py::gil_scoped_release release;
@@ -249,10 +256,12 @@ class Loop {
       py::gil_scoped_release release;
       got = loop_->take_meshes();
       msgs.resize(got.size());
-      if (!pool_ || pool_->threads() != threads) {
+      std::lock_guard<std::mutex> g(pool_mu_);
+      const int use = stopped_ ? 1 : threads;
+      if (!pool_ || pool_->threads() != use) {
         pool_.reset();
-        pool_ = std::make_unique<lp::WorkPool>(threads);
-        mesh_scratch_.resize(std::size_t(threads));
+        pool_ = std::make_unique<lp::WorkPool>(use);
+        mesh_scratch_.resize(std::size_t(use));
       }
       // Each message into its own slot of the board: no two items write the same bytes.
       pool_->run(int(got.size()), [&](int i, int t) {
@@ -294,7 +303,9 @@ class Loop {
   std::vector<int> slots_;
   std::vector<std::uint32_t> bits_;
   lp::RoomRecord scratch_{};
+  std::mutex pool_mu_;                  // pool_ and stopped_: take_encoded against stop
   std::unique_ptr<lp::WorkPool> pool_;  // take_encoded's threads, kept between calls
+  bool stopped_ = false;
   std::vector<lp::MeshScratch> mesh_scratch_;  // one a thread
 };
 
