@@ -522,6 +522,10 @@ void Pump::engine_ended(Conn& c) {
   c.e_off = 0;
   // Out of the poll for good: a closed peer's hang-up would be reported on every wait.
   if (!c.e_parked) epoll_ctl(ep_, EPOLL_CTL_DEL, c.efd, nullptr);
+  // Its lane ends too: a MESH the engine put on its board before it died, read after this,
+  // would follow the room_stopped the gateway writes with the frame it reports here.
+  end_lane(c);
+  c.has_pending[kCorner] = c.has_pending[kMesh] = false;
   Event e;
   e.kind = Event::kEnded;
   e.conn = c.id;
