@@ -32,6 +32,7 @@ from typing import Any
 from ...server import loops
 from ...server.app import GameServer, ServerConfig, default_data_dir
 from ...server.directory import Directory, RedisDirectory
+from ...server.gateway.__main__ import limit_args
 from ...server.hostproc import free_port
 from ...server.limits import Limits, parse_origins, parse_trusted_proxies
 from ...server.shared import lifeline
@@ -344,8 +345,7 @@ def supervise(args: argparse.Namespace, workers: int) -> int:
     gateways = [_Child(f"gateway {k}", [
         sys.executable, "-m", "clothball.server.gateway", "--host", args.host, "--port",
         str(port), "--engine-socket", str(sock), "--index", str(k),
-        "--slow-drop-s", repr(limits.slow_drop_s),
-        "--send-buffer", str(limits.socket_send_buffer), *ties], life_r)
+        *limit_args(limits.slow_drop_s, limits.socket_send_buffer), *ties], life_r)
         for k in range(max(1, workers - 1))]
     procs = [engine, *gateways]
     stopping = threading.Event()

@@ -39,6 +39,12 @@ async def main(args: argparse.Namespace) -> int:
     return 0
 
 
+def limit_args(slow_drop_s: float, send_buffer: int) -> list[str]:
+    """A gateway process's arguments for the host's ``Limits.slow_drop_s`` and
+    ``socket_send_buffer`` (what ``clothball host`` gives each gateway)."""
+    return ["--slow-drop-s", repr(slow_drop_s), "--send-buffer", str(send_buffer)]
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="clothball-gateway")
     p.add_argument("--host", required=True)

@@ -109,10 +109,8 @@ class Gateway:
         if self.send_buffer <= 0:
             raise ValueError(f"a client socket's send buffer: bytes > 0, got {send_buffer}")
         self.server: asyncio.Server | None = None
-        coalesce = pump_coalesce_s()
-        pump_kw = {} if slow_drop_s is None else {"slow_drop_s": slow_drop_s}
-        self.pump = (_native.Pump(**pump_kw) if coalesce is None
-                     else _native.Pump(coalesce, **pump_kw))
+        given = {"coalesce_s": pump_coalesce_s(), "slow_drop_s": slow_drop_s}
+        self.pump = _native.Pump(**{k: v for k, v in given.items() if v is not None})
         # Its clients' lanes served here (server.shared.lanes).
         if link is None:
             link = EngineLink(ctl_path(engine), self.pump)

@@ -52,9 +52,9 @@ def loop_rooms_default(backend: str = "cpu") -> int:
 # The CPU engine's rooms of one scene are spread over up to this many workers, each a frame
 # loop on a thread of its own (one core's stepping each): by default one per core this
 # process may use. The CUDA engine's share one worker up to CUDA_WORKER_CAPACITY, one
-# launch a frame for all of them. Measured on two pinned cores of the H200 machine (one process,
-# default scene n = 16; docs/benchmarks/host-2026-11-28-pump.md, call 10): one loop held
-# 4, 2, 4 rooms, two loops 4, 10, 12.
+# launch a frame for all of them. Measured on two pinned cores of the H200 machine (one
+# process, default scene n = 16; docs/benchmarks/host-2026-11-28-pump.md, call 10): one
+# loop held 4, 2, 4 rooms, two loops 4, 10, 12.
 CPU_LOOPS_ENV = "CLOTHBALL_CPU_LOOPS"
 
 
@@ -134,8 +134,7 @@ class SimPool:
                 w = min(open_, key=lambda w: w.members)
             else:
                 w = FrameWorker(scene, resolved, self.capacity_for(resolved), self.settings,
-                                mesh_every,
-                                track_every)
+                                mesh_every, track_every)
                 for fd in self._wakes:
                     w.add_wake(fd)
                 workers.append(w)

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from clothball.server.gateway.__main__ import limit_args
 from clothball.server.hostproc import free_port
 
 WORKERS = int(os.environ.get("CLOTHBALL_TEST_WORKERS", "1") or "1")
@@ -87,9 +88,8 @@ class Gateway:
         self.shared_port = self.port = shared_port
         self.expected_errors = expected_errors  # regular expressions of errors it may log
         self.stderr: list[str] = []
-        extra = [] if limits is None else [
-            "--slow-drop-s", repr(limits.slow_drop_s),
-            "--send-buffer", str(limits.socket_send_buffer)]
+        extra = [] if limits is None else limit_args(limits.slow_drop_s,
+                                                     limits.socket_send_buffer)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "clothball.server.gateway", "--host", "127.0.0.1",
              "--port", str(shared_port), "--engine-socket", str(engine_socket), *extra],
