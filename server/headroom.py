@@ -253,8 +253,11 @@ class Headroom:
         return max(1, int(getattr(self.sims, "cpu_loops", 1))) if key[1] == "cpu" else 1
 
     def _threads(self, key: tuple[str, str, str], rooms: int) -> int:
-        """The threads that step ``rooms`` rooms of ``key`` (SimPool.worker_for)."""
-        return min(rooms, self._loops(key)) if key[1] == "cpu" else 1
+        """The threads that step ``rooms`` rooms of ``key`` (SimPool.worker_for): a worker
+        for each worker's capacity of rooms, and on the CPU engine up to ``cpu_loops`` by
+        turns before any is full."""
+        full = -(-rooms // self.sims.capacity_for(key[1]))
+        return max(min(rooms, self._loops(key)), full) if key[1] == "cpu" else full
 
     def _on_thread(self, key: tuple[str, str, str], rooms: int) -> int:
         """The rooms already on the thread a new room of ``key`` would go to, beside

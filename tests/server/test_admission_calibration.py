@@ -148,6 +148,9 @@ def test_a_cpu_scene_spread_over_two_loops_is_admitted_per_loop(monkeypatch) -> 
         def __init__(self, loops: int) -> None:
             self.cpu_loops = loops
 
+        def capacity_for(self, backend: str) -> int:
+            return 64
+
     def admitted(loops: int) -> int:
         hr = headroom.Headroom(Pool(loops), 0.0, load=0.75, cores=4.0,  # type: ignore[arg-type]
                                backend="cpu")
@@ -160,3 +163,28 @@ def test_a_cpu_scene_spread_over_two_loops_is_admitted_per_loop(monkeypatch) -> 
     assert admitted(2) == 4
     hr = headroom.Headroom(Pool(2), 0.0, load=0.75, cores=4.0, backend="cpu")  # type: ignore[arg-type]
     assert "its simulation thread steps 2 such rooms" in hr.refusal(TINY, [TINY] * 4)
+
+
+def test_a_cuda_scene_counts_a_fixed_cost_for_each_worker(monkeypatch) -> None:
+    """On the CUDA engine a scene's rooms fill workers of ``capacity_for("cuda")`` rooms, a
+    thread (and a launch) each, so the fixed cost counts once a worker. A worker's 0.5 core
+    and 0.01 a room, workers of 2 rooms, 2 cores: six rooms need 3 x 0.5 + 0.06 = 1.56, a
+    seventh a fourth worker (2.07 > 2). (The arithmetic only: no GPU needed.)"""
+    monkeypatch.setattr(headroom, "resolve_backend", lambda s, b, p: ("cuda", "float32", None))
+    key = headroom._key(TINY, "cuda")
+    monkeypatch.setattr(headroom, "_costs", {key: (0.5, 0.01)})
+
+    class Pool:
+        workers: list = []
+
+        def capacity_for(self, backend: str) -> int:
+            return 2 if backend == "cuda" else 64
+
+    hr = headroom.Headroom(Pool(), 0.0, load=1.0, cores=2.0,  # type: ignore[arg-type]
+                           backend="cuda")
+    rooms: list[Scene] = []
+    while hr.refusal(TINY, rooms) is None and len(rooms) < 20:
+        rooms.append(TINY)
+    assert len(rooms) == 6
+    # (the fourth worker's fixed cost counted with them, as the seventh room would start it)
+    assert "its 6 rooms need about 2.06 of the 2.00 cores" in hr.refusal(TINY, rooms)
