@@ -165,7 +165,8 @@ class GameServer:
         self.ready = False
         self.stats = {"messages_in": 0, "messages_out": 0, "lane_messages_in": 0,
                       "lane_messages_out": 0, "bad_messages": 0, "rounds_saved": 0,
-                      "rounds_not_saved": 0, "refused_connections": 0, "rooms_stopped": 0}
+                      "rounds_not_saved": 0, "refused_connections": 0, "rooms_stopped": 0,
+                      "slow_drops": 0}
         # Its own port (the public port of one process; its bots' beside gateways) is
         # served by a gateway in this process, relaying to its Unix socket like any other
         # gateway: one data plane, the native pump's lanes, for every client

@@ -37,6 +37,7 @@ COUNTERS = {
     "refused_connections": ("refused_connections",
                             "connections refused (origin policy, connection limits)"),
     "rooms_stopped": ("rooms_stopped", "rooms stopped by a failed simulation"),
+    "slow_drops": ("slow_drops", "clients dropped for staying behind past slow_drop_s"),
     "cpu_s": ("cpu_seconds", "CPU time the server process has used"),
 }
 # room figure in /api/stats -> (metric name, counter?, help)

@@ -57,7 +57,7 @@ class EngineLink:
         self._fetching: asyncio.Task[None] | None = None
         self._arming: asyncio.Task[None] | None = None
         self._fetched_at = -math.inf
-        self._reported = (0, 0)
+        self._reported: tuple[int, ...] = ()
         self._task: asyncio.Task[None] | None = None
 
     def start(self) -> None:
@@ -163,15 +163,14 @@ class EngineLink:
     async def _report_forever(self) -> None:
         while True:
             await asyncio.sleep(REPORT_S)
-            counts = (self.pump.messages_in, self.pump.messages_out)
+            counts = tuple(int(getattr(self.pump, k)) for k in lanes.REPORTED)
             if counts == self._reported:
                 continue
             async with self._lock:
                 try:
-                    line = lanes.counts_line({"messages_in": counts[0],
-                                              "messages_out": counts[1]})
+                    line = lanes.counts_line(dict(zip(lanes.REPORTED, counts, strict=True)))
                     await asyncio.to_thread(lambda: self._connect().sendall(line))  # noqa: B023
                     self._reported = counts
                 except OSError:
                     self._drop()  # the engine is away; a new one is asked when a lane opens
-                    self._reported = (0, 0)
+                    self._reported = ()

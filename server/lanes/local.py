@@ -14,7 +14,7 @@ import os
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from .control import COUNTED, add_counts
+from .control import REPORTED, add_counts
 
 REPORT_S = 1.0  # its pump's counts added to the host's figures this often (as a gateway's)
 
@@ -40,7 +40,7 @@ class LocalLink:
         self.have: set[int] = set()
         self._wake = -1
         self._armed = False
-        self._seen = dict.fromkeys(COUNTED, 0)
+        self._seen = dict.fromkeys(REPORTED, 0)
         self._task: asyncio.Task[None] | None = None
 
     def attach(self, pump: Any) -> None:
@@ -59,7 +59,7 @@ class LocalLink:
 
     def report(self) -> None:
         """The pump's counts since the last report, added to the host's figures."""
-        add_counts(self.stats, self._seen, {k: int(getattr(self.pump, k)) for k in COUNTED})
+        add_counts(self.stats, self._seen, {k: int(getattr(self.pump, k)) for k in REPORTED})
 
     async def stop(self) -> None:
         """After the pump has stopped: its last counts; the loops write the wake-up no

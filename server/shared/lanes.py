@@ -157,6 +157,11 @@ def receive_wake(sock: socket.socket) -> int:
     return fds[0]
 
 
+# What a gateway reports, its pump's running counts: the messages its lanes handled, and
+# the clients it dropped for staying behind past slow_drop_s.
+REPORTED = ("messages_in", "messages_out", "slow_drops")
+
+
 def counts_line(counts: dict[str, int]) -> bytes:
     """A gateway's report: its totals since it connected (the engine adds the increase)."""
     return json.dumps({"counts": counts}, separators=(",", ":")).encode() + b"\n"

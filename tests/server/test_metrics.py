@@ -60,7 +60,7 @@ def expected(st: dict[str, Any]) -> Samples:
     rows += [one(f"{k}_total", st[k]) for k in (
         "messages_in", "messages_out", "lane_messages_in", "lane_messages_out",
         "bad_messages", "rounds_saved", "rounds_not_saved",
-        "refused_connections", "rooms_stopped")]
+        "refused_connections", "rooms_stopped", "slow_drops")]
     rows += [one("room_cost_cores", c, scene=s) for s, c in head["room_cost"].items()]
     for rid, r in st["rooms"].items():
         rows += [one("room_frames_total", r["frames"], room=rid),
