@@ -100,6 +100,9 @@ CB_HD V3<R> triangle_wind(V3<R> p0, V3<R> p1, V3<R> p2, V3<R> v0, V3<R> v1, V3<R
   return (drag + lift) * on;
 }
 
+// The term `expr` for add_if, evaluated there.
+#define CB_TERM(expr) [&]() CB_HD_LAMBDA { return expr; }
+
 // acc += term() where `has` (the neighbour, or the hand's grip, exists): a branch, or with
 // Select (the CPU's border loops, kSelectsAbsent) term() computed whatever `has` and added
 // as +0 where it is false, which vectorises. Exact: these sums start at +0 and only add, so
@@ -146,18 +149,18 @@ CB_HD V3<R> plate_sum(int n, int i, int j, int q, int s, At&& at, V3<R> xi) {
   const R v = ((Interior || j >= 1) ? R(1) : R(0)) + ((Interior || j <= n - 2) ? R(1) : R(0));
   V3<R> t{R(0), R(0), R(0)};
   auto add = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Select>(t, Interior || has, term); };
-  add(j >= 1, [&]() CB_HD_LAMBDA { return (at(q - 1) - xi) * (R(-2) * (a + b + u)); });
-  add(j <= n - 2, [&]() CB_HD_LAMBDA { return (at(q + 1) - xi) * (R(-2) * (c + b + u)); });
-  add(i >= 1, [&]() CB_HD_LAMBDA { return (at(q - s) - xi) * (R(-2) * (av + bv + v)); });
-  add(i <= n - 2, [&]() CB_HD_LAMBDA { return (at(q + s) - xi) * (R(-2) * (cv + bv + v)); });
-  add(j >= 2, [&]() CB_HD_LAMBDA { return at(q - 2) - xi; });
-  add(j <= n - 3, [&]() CB_HD_LAMBDA { return at(q + 2) - xi; });
-  add(i >= 2, [&]() CB_HD_LAMBDA { return at(q - 2 * s) - xi; });
-  add(i <= n - 3, [&]() CB_HD_LAMBDA { return at(q + 2 * s) - xi; });
-  add(i >= 1 && j >= 1, [&]() CB_HD_LAMBDA { return (at(q - s - 1) - xi) * R(2); });
-  add(i >= 1 && j <= n - 2, [&]() CB_HD_LAMBDA { return (at(q - s + 1) - xi) * R(2); });
-  add(i <= n - 2 && j >= 1, [&]() CB_HD_LAMBDA { return (at(q + s - 1) - xi) * R(2); });
-  add(i <= n - 2 && j <= n - 2, [&]() CB_HD_LAMBDA { return (at(q + s + 1) - xi) * R(2); });
+  add(j >= 1, CB_TERM((at(q - 1) - xi) * (R(-2) * (a + b + u))));
+  add(j <= n - 2, CB_TERM((at(q + 1) - xi) * (R(-2) * (c + b + u))));
+  add(i >= 1, CB_TERM((at(q - s) - xi) * (R(-2) * (av + bv + v))));
+  add(i <= n - 2, CB_TERM((at(q + s) - xi) * (R(-2) * (cv + bv + v))));
+  add(j >= 2, CB_TERM(at(q - 2) - xi));
+  add(j <= n - 3, CB_TERM(at(q + 2) - xi));
+  add(i >= 2, CB_TERM(at(q - 2 * s) - xi));
+  add(i <= n - 3, CB_TERM(at(q + 2 * s) - xi));
+  add(i >= 1 && j >= 1, CB_TERM((at(q - s - 1) - xi) * R(2)));
+  add(i >= 1 && j <= n - 2, CB_TERM((at(q - s + 1) - xi) * R(2)));
+  add(i <= n - 2 && j >= 1, CB_TERM((at(q + s - 1) - xi) * R(2)));
+  add(i <= n - 2 && j <= n - 2, CB_TERM((at(q + s + 1) - xi) * R(2)));
   return t;
 }
 
@@ -272,24 +275,24 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
   auto add = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Sel>(f, Interior || has, term); };
   if constexpr ((E & STRUCTURAL) != 0) {
     const R k = p.k_struct, L = p.L, c = p.struct_compress;
-    add(j > 0, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q - 1), k, L, c); });
-    add(j < n - 1, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q + 1), k, L, c); });
-    add(i > 0, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q - s), k, L, c); });
-    add(i < n - 1, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q + s), k, L, c); });
+    add(j > 0, CB_TERM(spring_force(pi, pos.get(q - 1), k, L, c)));
+    add(j < n - 1, CB_TERM(spring_force(pi, pos.get(q + 1), k, L, c)));
+    add(i > 0, CB_TERM(spring_force(pi, pos.get(q - s), k, L, c)));
+    add(i < n - 1, CB_TERM(spring_force(pi, pos.get(q + s), k, L, c)));
   }
   if constexpr ((E & SHEAR) != 0) {
     const R k = p.k_shear, L = p.L_diag;
-    add(i > 0 && j > 0, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q - s - 1), k, L, R(1)); });
-    add(i > 0 && j < n - 1, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q - s + 1), k, L, R(1)); });
-    add(i < n - 1 && j > 0, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q + s - 1), k, L, R(1)); });
-    add(i < n - 1 && j < n - 1, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q + s + 1), k, L, R(1)); });
+    add(i > 0 && j > 0, CB_TERM(spring_force(pi, pos.get(q - s - 1), k, L, R(1))));
+    add(i > 0 && j < n - 1, CB_TERM(spring_force(pi, pos.get(q - s + 1), k, L, R(1))));
+    add(i < n - 1 && j > 0, CB_TERM(spring_force(pi, pos.get(q + s - 1), k, L, R(1))));
+    add(i < n - 1 && j < n - 1, CB_TERM(spring_force(pi, pos.get(q + s + 1), k, L, R(1))));
   }
   if constexpr ((E & BEND) != 0) {
     const R k = p.k_bend, L = p.L_bend;
-    add(j > 1, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q - 2), k, L, R(1)); });
-    add(j < n - 2, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q + 2), k, L, R(1)); });
-    add(i > 1, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q - 2 * s), k, L, R(1)); });
-    add(i < n - 2, [&]() CB_HD_LAMBDA { return spring_force(pi, pos.get(q + 2 * s), k, L, R(1)); });
+    add(j > 1, CB_TERM(spring_force(pi, pos.get(q - 2), k, L, R(1))));
+    add(j < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2), k, L, R(1))));
+    add(i > 1, CB_TERM(spring_force(pi, pos.get(q - 2 * s), k, L, R(1))));
+    add(i < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2 * s), k, L, R(1))));
     // The plate term only where the scene has a bending stiffness: the test is the same
     // for every node of a call (hoisted by the compiler, uniform on the GPU), and a scene
     // without one (k_plate 0) pays nothing for it (summed always, it cost 16-30 % a
@@ -311,10 +314,10 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
       const R rad = p.ball_radius, k = p.ball_k;
       V3<R> c{R(0), R(0), R(0)};
       auto add_c = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Sel>(c, Interior || has, term); };
-      add_c(j > 0, [&]() CB_HD_LAMBDA { return edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k); });
-      add_c(j < n - 1, [&]() CB_HD_LAMBDA { return edge_contact_share(pi, pos.get(q + 1), ball_p, rad, k); });
-      add_c(i > 0, [&]() CB_HD_LAMBDA { return edge_contact_share(pi, pos.get(q - s), ball_p, rad, k); });
-      add_c(i < n - 1, [&]() CB_HD_LAMBDA { return edge_contact_share(pi, pos.get(q + s), ball_p, rad, k); });
+      add_c(j > 0, CB_TERM(edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k)));
+      add_c(j < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + 1), ball_p, rad, k)));
+      add_c(i > 0, CB_TERM(edge_contact_share(pi, pos.get(q - s), ball_p, rad, k)));
+      add_c(i < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + s), ball_p, rad, k)));
       contact = c;
     } else {
       contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k);
@@ -332,18 +335,25 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
   if constexpr ((E & WIND) != 0) {
     // The (up to) six triangles around the node; quad (a, b, c, d) = ((i,j), (i,j+1),
     // (i+1,j+1), (i+1,j)) is split into (a, b, c) and (a, c, d).
-    auto P = [&](int a, int b) { return pos.get(node_at(pos, n, a, b)); };
-    auto V = [&](int a, int b) { return vel.get(node_at(vel, n, a, b)); };
+    auto P = [&](int a, int b) CB_HD_LAMBDA { return pos.get(node_at(pos, n, a, b)); };
+    auto V = [&](int a, int b) CB_HD_LAMBDA { return vel.get(node_at(vel, n, a, b)); };
     const V3<R> w = fin.wind;
     const R kd = p.wind_drag, kl = p.wind_lift;
-    const bool a = i < n - 1 && j < n - 1, b = i < n - 1 && j > 0;  // node is a of quad
-    const bool c = i > 0 && j > 0, d = i > 0 && j < n - 1;  // (i, j), b of (i, j-1), c, d
-    add(a, [&]() CB_HD_LAMBDA { return triangle_wind(pi, P(i, j + 1), P(i + 1, j + 1), vi, V(i, j + 1), V(i + 1, j + 1), w, kd, kl); });
-    add(a, [&]() CB_HD_LAMBDA { return triangle_wind(pi, P(i + 1, j + 1), P(i + 1, j), vi, V(i + 1, j + 1), V(i + 1, j), w, kd, kl); });
-    add(b, [&]() CB_HD_LAMBDA { return triangle_wind(P(i, j - 1), pi, P(i + 1, j), V(i, j - 1), vi, V(i + 1, j), w, kd, kl); });
-    add(c, [&]() CB_HD_LAMBDA { return triangle_wind(P(i - 1, j - 1), P(i - 1, j), pi, V(i - 1, j - 1), V(i - 1, j), vi, w, kd, kl); });
-    add(c, [&]() CB_HD_LAMBDA { return triangle_wind(P(i - 1, j - 1), pi, P(i, j - 1), V(i - 1, j - 1), vi, V(i, j - 1), w, kd, kl); });
-    add(d, [&]() CB_HD_LAMBDA { return triangle_wind(P(i - 1, j), P(i, j + 1), pi, V(i - 1, j), V(i, j + 1), vi, w, kd, kl); });
+    // The node is a of quad (i, j), b of quad (i, j-1), c of (i-1, j-1) and d of (i-1, j).
+    const bool a = i < n - 1 && j < n - 1, b = i < n - 1 && j > 0;
+    const bool c = i > 0 && j > 0, d = i > 0 && j < n - 1;
+    add(a, CB_TERM(triangle_wind(pi, P(i, j + 1), P(i + 1, j + 1), vi, V(i, j + 1),
+                                 V(i + 1, j + 1), w, kd, kl)));
+    add(a, CB_TERM(triangle_wind(pi, P(i + 1, j + 1), P(i + 1, j), vi, V(i + 1, j + 1),
+                                 V(i + 1, j), w, kd, kl)));
+    add(b, CB_TERM(triangle_wind(P(i, j - 1), pi, P(i + 1, j), V(i, j - 1), vi, V(i + 1, j),
+                                 w, kd, kl)));
+    add(c, CB_TERM(triangle_wind(P(i - 1, j - 1), P(i - 1, j), pi, V(i - 1, j - 1),
+                                 V(i - 1, j), vi, w, kd, kl)));
+    add(c, CB_TERM(triangle_wind(P(i - 1, j - 1), pi, P(i, j - 1), V(i - 1, j - 1), vi,
+                                 V(i, j - 1), w, kd, kl)));
+    add(d, CB_TERM(triangle_wind(P(i - 1, j), P(i, j + 1), pi, V(i - 1, j), V(i, j + 1), vi,
+                                 w, kd, kl)));
   }
   return f;
 }

@@ -39,11 +39,17 @@ void fill_frames(FramesTable<R>& t);
 template <class R>
 class CpuCloth final : public Backend {
  public:
+  // The vectors' length in the sweep's loops (GCC's choice on x86-64): the inner rows'
+  // interior nodes go in blocks of whole vectors.
+#if defined(__AVX512F__)
+  static constexpr int kVec = 64 / sizeof(R);
+#else
+  static constexpr int kVec = 32 / sizeof(R);
+#endif
   // Planes are spaced by a stride that is not a multiple of 4 KiB: at n = 64 the twelve
   // streams of a substep would otherwise fall into the same L1 sets and evict each other
-  // (measured: 10x slower).
-  // The buffers are padded by two rows and more before their first plane and after their
-  // last: the border loops read (and discard) neighbours beyond the grid (PaddedPlanes).
+  // (measured: 10x slower). A buffer has two rows or more of padding before its first plane
+  // and after its last: the border loops read (and discard) neighbours beyond the grid.
   explicit CpuCloth(const Config& c)
       : N_(c.n * c.n), stride_((size_t(N_) + 15) / 16 * 16 + 16),
         pad_((2 * size_t(c.n) + 15) / 16 * 16) {
@@ -214,43 +220,30 @@ class CpuCloth final : public Backend {
     const int i0 = int(long(n) * t / nt), i1 = int(long(n) * (t + 1) / nt);
     R cx = 0, cy = 0, cz = 0;  // this thread's share of the contact sum (eq. 5)
     R near2 = std::numeric_limits<R>::infinity();
-    // The border nodes (within 2 of an edge) through the padded view, whose absent
-    // neighbours' terms node_force selects out rather than branching over: their loops
-    // vectorise too (branching, a border node cost 15x an interior one).
+    // Where a row has room for them, its interior nodes in blocks of whole vectors from
+    // j = 2 (kVec a vector: no scalar remainder, whose nodes cost many vectorised ones)...
+    // Below 48 nodes a row the blocks' loops cost more than they save (measured, 2-core Zen 4:
+    // 10-15 % a frame gained at n = 96-128 in float32, lost at n = 24-48).
+    const int m = (n - 4) / kVec * kVec >= 48 ? (n - 4) / kVec * kVec : 0;
+    // ... and the rest, the border nodes (within 2 of an edge) and what the blocks leave of
+    // the inner rows, as the runs of the grid (row after row) between the blocks, through
+    // the padded view: there node_force selects the absent neighbours' terms out rather than
+    // branching over them, so that these loops vectorise too (branching, a border node cost
+    // 15x an interior one). See border.
     const Planes<R> P = PP, V = VP;
-#define CB_NODE(INTERIOR, PV, VV)                                                          \
-  {                                                                                        \
-    V3<R> ct = se_node_update<R, E, INTERIOR>(p, PV, VV, P2, V2, fin, ball_p, i, j, dt, check); \
-    cx += ct.x; cy += ct.y; cz += ct.z;                                                    \
-  }
-    // Every neighbour exists here: no bounds tests.
-    for (int i = std::max(i0, 2); i < std::min(i1, n - 2); ++i) {
+    int done = i0 * n;  // the nodes before this one are done
+    R sums[4] = {0, 0, 0, 0};  // border's: contact sum, check
+    for (int i = std::max(i0, 2); i < std::min(i1, n - 2) && m > 0; ++i) {
+      border<E>(p, PP, VP, P2, V2, fin, ball_p, dt, done, i * n + 2, sums);
 #pragma omp simd reduction(+ : cx, cy, cz, check)
-      for (int j = 2; j < n - 2; ++j) CB_NODE(true, P, V)
-    }
-    // The border nodes, in loops where both i and j vary from lane to lane: GCC 12 does not
-    // vectorise a loop with a select on a loop-invariant compound condition (with i fixed,
-    // "i > 0 && j > 0" is one). The border rows, up to two a run, as one loop each...
-    const int runs[2][2] = {{i0, std::min(i1, 2)}, {std::max(i0, std::max(2, n - 2)), i1}};
-    for (const auto& r : runs) {
-      const int a = r[0], m = (r[1] - a) * n;
-#pragma omp simd reduction(+ : cx, cy, cz, check)
-      for (int k = 0; k < m; ++k) {
-        const int second = k >= n ? 1 : 0, i = a + second, j = k - second * n;
-        CB_NODE(false, PP, VP)
+      for (int j = 2; j < 2 + m; ++j) {
+        const V3<R> ct = se_node_update<R, E, true>(p, P, V, P2, V2, fin, ball_p, i, j, dt, check);
+        cx += ct.x; cy += ct.y; cz += ct.z;
       }
+      done = i * n + 2 + m;
     }
-    // ... and the two columns at either side of the inner rows, by pairs (gathers).
-    const int r0 = std::max(i0, 2), pairs = 2 * (std::min(i1, n - 2) - r0);
-    for (int side = 0; side < 2; ++side) {
-      const int jb = side == 0 ? 0 : n - 2;
-#pragma omp simd reduction(+ : cx, cy, cz, check)
-      for (int k = 0; k < pairs; ++k) {
-        const int i = r0 + (k >> 1), j = jb + (k & 1);
-        CB_NODE(false, PP, VP)
-      }
-    }
-#undef CB_NODE
+    border<E>(p, PP, VP, P2, V2, fin, ball_p, dt, done, i1 * n, sums);
+    cx += sums[0]; cy += sums[1]; cz += sums[2]; check += sums[3];
     // The rows' nearest node to the ball, in a pass of its own: folded into the loops
     // above, the min reduction made GCC's vectorised sweep 3.4x slower (n = 64).
     if constexpr (Track) {
@@ -268,6 +261,29 @@ class CpuCloth final : public Backend {
     }
     out[0] = cx; out[1] = cy; out[2] = cz; out[3] = near2;
 #pragma omp barrier
+  }
+
+  // sweep's nodes lo..hi-1 (in the grid's order) through the padded view, as one loop.
+  // Adds their contact sum to sums[0..2] and their check to sums[3]. i and j vary from
+  // lane to lane: GCC 12 does not vectorise a select on a loop-invariant compound
+  // condition, such as "i > 0 && j > 0" in a loop over one row.
+  template <unsigned E>
+  static void border(const Params<R> p, const PaddedPlanes<R> PP, const PaddedPlanes<R> VP,
+                     const Planes<R> P2, const Planes<R> V2, const FrameInputs<R> fin,
+                     V3<R> ball_p, R dt, int lo, int hi, R* sums) {
+    const int n = p.n;
+    const float inv_n = 1.0f / float(n);
+    R cx = 0, cy = 0, cz = 0, check = 0;
+#pragma omp simd reduction(+ : cx, cy, cz, check)
+    for (int k = lo; k < hi; ++k) {
+      // (i, j) of node k: the estimate of the row is off by at most one (k < 2^24).
+      int i = int(float(k) * inv_n), j = k - i * n;
+      i = j < 0 ? i - 1 : (j >= n ? i + 1 : i);
+      j = k - i * n;
+      const V3<R> ct = se_node_update<R, E>(p, PP, VP, P2, V2, fin, ball_p, i, j, dt, check);
+      cx += ct.x; cy += ct.y; cz += ct.z;
+    }
+    sums[0] += cx; sums[1] += cy; sums[2] += cz; sums[3] += check;
   }
 
  private:
