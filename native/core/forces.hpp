@@ -100,6 +100,23 @@ CB_HD V3<R> triangle_wind(V3<R> p0, V3<R> p1, V3<R> p2, V3<R> v0, V3<R> v1, V3<R
   return (drag + lift) * on;
 }
 
+// The term `expr` for add_if, evaluated there.
+#define CB_TERM(expr) [&]() CB_HD_LAMBDA { return expr; }
+
+// acc += term() where `has` (the neighbour, or the hand's grip, exists): a branch, or with
+// Select (the CPU's border loops, kSelectsAbsent) term() computed whatever `has` and added
+// as +0 where it is false, which vectorises. Exact: these sums start at +0 and only add, so
+// they are never -0, and x + 0 is x.
+template <bool Select, class R, class T>
+CB_HD void add_if(V3<R>& acc, bool has, T&& term) {
+  if constexpr (Select) {
+    const V3<R> t = term();
+    acc += V3<R>{has ? t.x : R(0), has ? t.y : R(0), has ? t.z : R(0)};
+  } else {
+    if (has) acc += term();
+  }
+}
+
 // Plate bending (cloth.bending_stiffness D; the `bend` effect's second term, beside its
 // springs). The energy is D/2 times the integral of |grad grad x|^2 (every second
 // derivative of the position, a plate of Poisson's ratio 0) over the sheet, discretised as
@@ -120,7 +137,7 @@ CB_HD V3<R> triangle_wind(V3<R> p0, V3<R> p1, V3<R> p2, V3<R> v0, V3<R> v1, V3<R
 // force is -k times it. Differences against xi, not the positions, keep float32 accurate.
 // Interior: every node within two exists (then 20, -8, 2, 1). `at(r)` is node r's vector
 // (a position or a CG direction) at view index r; s is a row's step in the view.
-template <class R, bool Interior, class At>
+template <class R, bool Interior, bool Select = false, class At>
 CB_HD V3<R> plate_sum(int n, int i, int j, int q, int s, At&& at, V3<R> xi) {
   // Row triples that hold node j: centred at j - 1 (a), j (b), j + 1 (c); columns alike.
   const R a = (Interior || j >= 2) ? R(1) : R(0), c = (Interior || j <= n - 3) ? R(1) : R(0);
@@ -131,18 +148,19 @@ CB_HD V3<R> plate_sum(int n, int i, int j, int q, int s, At&& at, V3<R> xi) {
   const R u = ((Interior || i >= 1) ? R(1) : R(0)) + ((Interior || i <= n - 2) ? R(1) : R(0));
   const R v = ((Interior || j >= 1) ? R(1) : R(0)) + ((Interior || j <= n - 2) ? R(1) : R(0));
   V3<R> t{R(0), R(0), R(0)};
-  if (Interior || j >= 1) t += (at(q - 1) - xi) * (R(-2) * (a + b + u));
-  if (Interior || j <= n - 2) t += (at(q + 1) - xi) * (R(-2) * (c + b + u));
-  if (Interior || i >= 1) t += (at(q - s) - xi) * (R(-2) * (av + bv + v));
-  if (Interior || i <= n - 2) t += (at(q + s) - xi) * (R(-2) * (cv + bv + v));
-  if (Interior || j >= 2) t += at(q - 2) - xi;
-  if (Interior || j <= n - 3) t += at(q + 2) - xi;
-  if (Interior || i >= 2) t += at(q - 2 * s) - xi;
-  if (Interior || i <= n - 3) t += at(q + 2 * s) - xi;
-  if (Interior || (i >= 1 && j >= 1)) t += (at(q - s - 1) - xi) * R(2);
-  if (Interior || (i >= 1 && j <= n - 2)) t += (at(q - s + 1) - xi) * R(2);
-  if (Interior || (i <= n - 2 && j >= 1)) t += (at(q + s - 1) - xi) * R(2);
-  if (Interior || (i <= n - 2 && j <= n - 2)) t += (at(q + s + 1) - xi) * R(2);
+  auto add = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Select>(t, Interior || has, term); };
+  add(j >= 1, CB_TERM((at(q - 1) - xi) * (R(-2) * (a + b + u))));
+  add(j <= n - 2, CB_TERM((at(q + 1) - xi) * (R(-2) * (c + b + u))));
+  add(i >= 1, CB_TERM((at(q - s) - xi) * (R(-2) * (av + bv + v))));
+  add(i <= n - 2, CB_TERM((at(q + s) - xi) * (R(-2) * (cv + bv + v))));
+  add(j >= 2, CB_TERM(at(q - 2) - xi));
+  add(j <= n - 3, CB_TERM(at(q + 2) - xi));
+  add(i >= 2, CB_TERM(at(q - 2 * s) - xi));
+  add(i <= n - 3, CB_TERM(at(q + 2 * s) - xi));
+  add(i >= 1 && j >= 1, CB_TERM((at(q - s - 1) - xi) * R(2)));
+  add(i >= 1 && j <= n - 2, CB_TERM((at(q - s + 1) - xi) * R(2)));
+  add(i <= n - 2 && j >= 1, CB_TERM((at(q + s - 1) - xi) * R(2)));
+  add(i <= n - 2 && j <= n - 2, CB_TERM((at(q + s + 1) - xi) * R(2)));
   return t;
 }
 
@@ -252,33 +270,36 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
   const int n = p.n;
   const int q = node_at(pos, n, i, j), s = row_step(pos, n);
   V3<R> f{R(0), R(0), R(0)};
+  // A term of an absent neighbour is skipped, or with a padded view selected out (add_if).
+  constexpr bool Sel = !Interior && kSelectsAbsent<G>;
+  auto add = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Sel>(f, Interior || has, term); };
   if constexpr ((E & STRUCTURAL) != 0) {
     const R k = p.k_struct, L = p.L, c = p.struct_compress;
-    if (Interior || j > 0) f += spring_force(pi, pos.get(q - 1), k, L, c);
-    if (Interior || j < n - 1) f += spring_force(pi, pos.get(q + 1), k, L, c);
-    if (Interior || i > 0) f += spring_force(pi, pos.get(q - s), k, L, c);
-    if (Interior || i < n - 1) f += spring_force(pi, pos.get(q + s), k, L, c);
+    add(j > 0, CB_TERM(spring_force(pi, pos.get(q - 1), k, L, c)));
+    add(j < n - 1, CB_TERM(spring_force(pi, pos.get(q + 1), k, L, c)));
+    add(i > 0, CB_TERM(spring_force(pi, pos.get(q - s), k, L, c)));
+    add(i < n - 1, CB_TERM(spring_force(pi, pos.get(q + s), k, L, c)));
   }
   if constexpr ((E & SHEAR) != 0) {
     const R k = p.k_shear, L = p.L_diag;
-    if (Interior || (i > 0 && j > 0)) f += spring_force(pi, pos.get(q - s - 1), k, L, R(1));
-    if (Interior || (i > 0 && j < n - 1)) f += spring_force(pi, pos.get(q - s + 1), k, L, R(1));
-    if (Interior || (i < n - 1 && j > 0)) f += spring_force(pi, pos.get(q + s - 1), k, L, R(1));
-    if (Interior || (i < n - 1 && j < n - 1)) f += spring_force(pi, pos.get(q + s + 1), k, L, R(1));
+    add(i > 0 && j > 0, CB_TERM(spring_force(pi, pos.get(q - s - 1), k, L, R(1))));
+    add(i > 0 && j < n - 1, CB_TERM(spring_force(pi, pos.get(q - s + 1), k, L, R(1))));
+    add(i < n - 1 && j > 0, CB_TERM(spring_force(pi, pos.get(q + s - 1), k, L, R(1))));
+    add(i < n - 1 && j < n - 1, CB_TERM(spring_force(pi, pos.get(q + s + 1), k, L, R(1))));
   }
   if constexpr ((E & BEND) != 0) {
     const R k = p.k_bend, L = p.L_bend;
-    if (Interior || j > 1) f += spring_force(pi, pos.get(q - 2), k, L, R(1));
-    if (Interior || j < n - 2) f += spring_force(pi, pos.get(q + 2), k, L, R(1));
-    if (Interior || i > 1) f += spring_force(pi, pos.get(q - 2 * s), k, L, R(1));
-    if (Interior || i < n - 2) f += spring_force(pi, pos.get(q + 2 * s), k, L, R(1));
+    add(j > 1, CB_TERM(spring_force(pi, pos.get(q - 2), k, L, R(1))));
+    add(j < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2), k, L, R(1))));
+    add(i > 1, CB_TERM(spring_force(pi, pos.get(q - 2 * s), k, L, R(1))));
+    add(i < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2 * s), k, L, R(1))));
     // The plate term only where the scene has a bending stiffness: the test is the same
     // for every node of a call (hoisted by the compiler, uniform on the GPU), and a scene
     // without one (k_plate 0) pays nothing for it (summed always, it cost 16-30 % a
     // substep on the CPU) and steps bit for bit as before the term existed.
     if (p.k_plate != R(0)) {
-      auto at = [&](int r) { return pos.get(r); };
-      f += plate_sum<R, Interior>(n, i, j, q, s, at, pi) * (-p.k_plate);
+      auto at = [&](int r) CB_HD_LAMBDA { return pos.get(r); };
+      f += plate_sum<R, Interior, Sel>(n, i, j, q, s, at, pi) * (-p.k_plate);
     }
   }
   // Run-time effects (params.hpp): both terms are zero when the scene lacks them.
@@ -292,17 +313,20 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
     if (edges) {
       const R rad = p.ball_radius, k = p.ball_k;
       V3<R> c{R(0), R(0), R(0)};
-      if (Interior || j > 0) c += edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k);
-      if (Interior || j < n - 1) c += edge_contact_share(pi, pos.get(q + 1), ball_p, rad, k);
-      if (Interior || i > 0) c += edge_contact_share(pi, pos.get(q - s), ball_p, rad, k);
-      if (Interior || i < n - 1) c += edge_contact_share(pi, pos.get(q + s), ball_p, rad, k);
+      auto add_c = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Sel>(c, Interior || has, term); };
+      add_c(j > 0, CB_TERM(edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k)));
+      add_c(j < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + 1), ball_p, rad, k)));
+      add_c(i > 0, CB_TERM(edge_contact_share(pi, pos.get(q - s), ball_p, rad, k)));
+      add_c(i < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + s), ball_p, rad, k)));
       contact = c;
     } else {
       contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k);
     }
     f += contact;
   }
-  if constexpr (!Interior) {  // a run-time effect: the corners are never interior
+  if constexpr (Sel) {  // the same from the view's table of grip_node (k 0: no hand)
+    f += (pos.grip_hip.get(q) - (pi - pos.grip_offset.get(q))) * pos.grip_k[q];
+  } else if constexpr (!Interior) {  // a run-time effect: the corners are never interior
     if ((p.effects & COUPLING) != 0) {
       const GripNode<R> g = grip_node(p, i, j);  // eq. (7), the node's side
       if (g.corner >= 0) f += (fin.hips[g.corner] - (pi - g.offset)) * g.k;
@@ -311,22 +335,25 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
   if constexpr ((E & WIND) != 0) {
     // The (up to) six triangles around the node; quad (a, b, c, d) = ((i,j), (i,j+1),
     // (i+1,j+1), (i+1,j)) is split into (a, b, c) and (a, c, d).
-    auto P = [&](int a, int b) { return pos.get(node_at(pos, n, a, b)); };
-    auto V = [&](int a, int b) { return vel.get(node_at(vel, n, a, b)); };
+    auto P = [&](int a, int b) CB_HD_LAMBDA { return pos.get(node_at(pos, n, a, b)); };
+    auto V = [&](int a, int b) CB_HD_LAMBDA { return vel.get(node_at(vel, n, a, b)); };
     const V3<R> w = fin.wind;
     const R kd = p.wind_drag, kl = p.wind_lift;
-    if (Interior || (i < n - 1 && j < n - 1)) {  // node is a of quad (i, j)
-      f += triangle_wind(pi, P(i, j + 1), P(i + 1, j + 1), vi, V(i, j + 1), V(i + 1, j + 1), w, kd, kl);
-      f += triangle_wind(pi, P(i + 1, j + 1), P(i + 1, j), vi, V(i + 1, j + 1), V(i + 1, j), w, kd, kl);
-    }
-    if (Interior || (i < n - 1 && j > 0))  // node is b of quad (i, j-1)
-      f += triangle_wind(P(i, j - 1), pi, P(i + 1, j), V(i, j - 1), vi, V(i + 1, j), w, kd, kl);
-    if (Interior || (i > 0 && j > 0)) {  // node is c of quad (i-1, j-1)
-      f += triangle_wind(P(i - 1, j - 1), P(i - 1, j), pi, V(i - 1, j - 1), V(i - 1, j), vi, w, kd, kl);
-      f += triangle_wind(P(i - 1, j - 1), pi, P(i, j - 1), V(i - 1, j - 1), vi, V(i, j - 1), w, kd, kl);
-    }
-    if (Interior || (i > 0 && j < n - 1))  // node is d of quad (i-1, j)
-      f += triangle_wind(P(i - 1, j), P(i, j + 1), pi, V(i - 1, j), V(i, j + 1), vi, w, kd, kl);
+    // The node is a of quad (i, j), b of quad (i, j-1), c of (i-1, j-1) and d of (i-1, j).
+    const bool a = i < n - 1 && j < n - 1, b = i < n - 1 && j > 0;
+    const bool c = i > 0 && j > 0, d = i > 0 && j < n - 1;
+    add(a, CB_TERM(triangle_wind(pi, P(i, j + 1), P(i + 1, j + 1), vi, V(i, j + 1),
+                                 V(i + 1, j + 1), w, kd, kl)));
+    add(a, CB_TERM(triangle_wind(pi, P(i + 1, j + 1), P(i + 1, j), vi, V(i + 1, j + 1),
+                                 V(i + 1, j), w, kd, kl)));
+    add(b, CB_TERM(triangle_wind(P(i, j - 1), pi, P(i + 1, j), V(i, j - 1), vi, V(i + 1, j),
+                                 w, kd, kl)));
+    add(c, CB_TERM(triangle_wind(P(i - 1, j - 1), P(i - 1, j), pi, V(i - 1, j - 1),
+                                 V(i - 1, j), vi, w, kd, kl)));
+    add(c, CB_TERM(triangle_wind(P(i - 1, j - 1), pi, P(i, j - 1), V(i - 1, j - 1), vi,
+                                 V(i, j - 1), w, kd, kl)));
+    add(d, CB_TERM(triangle_wind(P(i - 1, j), P(i, j + 1), pi, V(i - 1, j), V(i, j + 1), vi,
+                                 w, kd, kl)));
   }
   return f;
 }
@@ -383,8 +410,9 @@ CB_HD V3<R> se_node_step(const Params<R>& p, const G& P, const G& V, const Frame
 }
 
 // se_node_step from buffer (P, V) into (P2, V2).
-template <class R, unsigned E, bool Interior = false>
-CB_HD V3<R> se_node_update(const Params<R>& p, const Planes<R>& P, const Planes<R>& V,
+// G: the view of (P, V), Planes or the CPU's PaddedPlanes.
+template <class R, unsigned E, bool Interior = false, class G = Planes<R>>
+CB_HD V3<R> se_node_update(const Params<R>& p, const G& P, const G& V,
                            const Planes<R>& P2, const Planes<R>& V2, const FrameInputs<R>& fin,
                            V3<R> ball_p, int i, int j, R dt, R& check) {
   const int q = i * p.n + j;

@@ -13,8 +13,9 @@ namespace cb {
 // branched over. The cheap ones (bits 5-7) are parameters of those kernels: gravity adds a
 // constant and damping -c v to each node (zeroed when absent: f + 0 and f - 0 v are exact,
 // see Params::from), coupling acts on the hands' grips, nodes of the cloth's edges, which
-// the bounds-tested border path reaches (a run-time test there). Without them every effect
-// set was a kernel of its own: 256 of them, and most of a 17-minute build (issue 19).
+// the bounds-tested border path reaches (a run-time test there; the CPU's semi-implicit
+// Euler sweep reads a table of the grips instead, k 0 without coupling). Without them every
+// effect set was a kernel of its own: 256 of them, and most of a 17-minute build (issue 19).
 enum Effect : unsigned {
   STRUCTURAL = 1u << 0,
   SHEAR = 1u << 1,

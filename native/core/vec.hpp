@@ -10,6 +10,13 @@
 #else
 #define CB_HD inline
 #endif
+// The same for a lambda (after its parameters): GCC otherwise keeps the small lambdas of
+// node_force's border path out of line, and its loops do not vectorise.
+#if defined(__GNUC__) && !defined(__CUDACC__)
+#define CB_HD_LAMBDA __attribute__((always_inline))
+#else
+#define CB_HD_LAMBDA
+#endif
 
 namespace cb {
 
@@ -39,6 +46,23 @@ struct Planes {
   CB_HD V3<R> get(int q) const { return {x[q], y[q], z[q]}; }
   CB_HD void set(int q, V3<R> v) const { x[q] = v.x; y[q] = v.y; z[q] = v.z; }
 };
+
+// The CPU's view of the grid in its loops over the border nodes: the grid's planes, readable
+// two rows beyond either end (CpuCloth pads its buffers). There node_force computes the
+// terms of the absent neighbours too and selects them out (add_if in forces.hpp) instead of
+// branching over them, and takes the hands' grips from a table rather than grip_node's
+// branches, so that those loops vectorise. The GPU never uses it.
+template <class R>
+struct PaddedPlanes : Planes<R> {
+  // Per node of the grid: grip_node's stiffness k (0 where no hand holds the node) and rest
+  // offset, and the holding hand's hip.
+  const R* grip_k;
+  Planes<R> grip_offset, grip_hip;
+};
+template <class G>
+constexpr bool kSelectsAbsent = false;
+template <class R>
+constexpr bool kSelectsAbsent<PaddedPlanes<R>> = true;
 
 // A window of the n x n grid, as Planes: row `stride` apart, its element 0 the grid's node
 // (i0, j0). The CUDA tiled frame (cuda/tiled.cu) keeps a tile and its halo so, on chip.
