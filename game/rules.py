@@ -87,10 +87,12 @@ def edge_distances(ball: np.ndarray, corners: np.ndarray) -> np.ndarray:
     for e in range(SEATS):
         ax, az = float(c[e, 0]), float(c[e, 1])
         dx, dz = float(c[(e + 1) % SEATS, 0]) - ax, float(c[(e + 1) % SEATS, 1]) - az
-        length = math.hypot(dx, dz)
+        # sqrt of the sum, not math.hypot: Python's hypot and the C library's differ by an
+        # ulp in about 1 case of 160, which can flip the sign of a ball on an edge's line.
+        length = math.sqrt(dx * dx + dz * dz)
         if length < 1e-12:
             nx, nz = ax - mx, az - mz
-            nl = math.hypot(nx, nz)
+            nl = math.sqrt(nx * nx + nz * nz)
             nx, nz = (nx / nl, nz / nl) if nl > 1e-12 else (1.0, 0.0)
         else:
             nx, nz = dz / length, -dx / length

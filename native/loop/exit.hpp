@@ -28,12 +28,12 @@ inline void edge_distances(const double* ball, const double* corners, double out
     const int f = (e + 1) % 4;
     const double ax = cx[e], az = cz[e];
     const double dx = cx[f] - ax, dz = cz[f] - az;
-    const double length = std::hypot(dx, dz);
+    const double length = std::sqrt(dx * dx + dz * dz);  // as rules.py: not hypot
     double nx, nz;
     if (length < 1e-12) {
       nx = ax - mx;
       nz = az - mz;
-      const double nl = std::hypot(nx, nz);
+      const double nl = std::sqrt(nx * nx + nz * nz);
       if (nl > 1e-12) {
         nx /= nl;
         nz /= nl;
