@@ -19,19 +19,18 @@ from ..shared import lanes
 
 log = logging.getLogger("clothball.server")
 
-COUNTED = ("messages_in", "messages_out")  # of what a gateway reports, its lanes' part
-REPORTED = lanes.REPORTED
+COUNTED = ("messages_in", "messages_out")  # of what a gateway reports (lanes.REPORTED): lanes
 
 
 def add_counts(stats: dict[str, int], seen: dict[str, int], counts: dict[str, int]) -> None:
     """A pump's running ``counts`` (a gateway's, or the engine's own port's), what grew
     since ``seen`` added to the host's totals ``stats`` and, for the lanes' messages, to
     their ``lane_`` figures."""
-    for k in REPORTED:
-        v = counts.get(k, 0)
-        if v > seen.get(k, 0):
+    for k in lanes.REPORTED:
+        v = counts[k]
+        if v > seen[k]:
             for key in (k, "lane_" + k) if k in COUNTED else (k,):
-                stats[key] = stats.get(key, 0) + v - seen.get(k, 0)
+                stats[key] = stats.get(key, 0) + v - seen[k]
             seen[k] = v
 
 
@@ -86,7 +85,7 @@ class GatewayControl:
     async def _serve(self, conn: socket.socket) -> None:
         """One gateway's connection: its requests and reports, a line each."""
         loop = asyncio.get_running_loop()
-        seen = dict.fromkeys(REPORTED, 0)
+        seen = dict.fromkeys(lanes.REPORTED, 0)
         wake = [-1]  # this gateway's frame wake-up, once asked for
         buf = b""
         try:
@@ -127,6 +126,6 @@ class GatewayControl:
             return
         try:
             counts = json.loads(line)["counts"]
-            add_counts(self.stats, seen, {k: int(counts.get(k, 0)) for k in REPORTED})
+            add_counts(self.stats, seen, {k: int(counts.get(k, 0)) for k in lanes.REPORTED})
         except (ValueError, KeyError, TypeError, AttributeError):
             log.warning("a gateway sent a control line that is not one: %.60r", line)

@@ -14,7 +14,8 @@ import os
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from .control import REPORTED, add_counts
+from ..shared.lanes import REPORTED
+from .control import add_counts
 
 REPORT_S = 1.0  # its pump's counts added to the host's figures this often (as a gateway's)
 
