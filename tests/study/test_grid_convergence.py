@@ -5,7 +5,9 @@ ball rebounds and the cloth rings) are measured on grids whose spacing halves (n
 48, 96 on the CPU, ``slow``; to 192 on the GPU; the documentation tests below from 12),
 each quantity against the same quantity on the other grids (no reference values are
 hard-coded). Where
-the physics converges, successive differences must shrink; the observed orders are printed
+the physics converges, successive differences must shrink (or, for the static sag and the
+landing that rides on it, converged below their turns, stay within a bound of the finest
+grid's value: ``CONVERGED``); the observed orders are printed
 (``-s``) and recorded as test properties. The hands hold a grip of fixed length
 (``coupling.grip_radius``); held by single nodes, point supports, the static sag and what
 rides on it drift by a constant few mm per halving instead, the membrane's displacement
@@ -51,8 +53,8 @@ from clothball.game.study.grid import (
 CPU_SIZES = (13, 25, 49)  # spacing 1/12, 1/24, 1/48
 # Where the default's grip (10 cm, a smooth density: docs/scenes.md) is resolved: at n = 13
 # (L = 8.3 cm) it is the corner node and a tenth of the next, a point support, and its sag
-# there is pre-asymptotic (92.4, 92.7, 93.8, 94.5 mm at n = 13-97: the first difference the
-# smallest). Issue 42's targets are from n = 25. On the GPU's range to n = 193 the default
+# there is pre-asymptotic (97.6, 95.4, 95.4, 95.5 mm at n = 13-97: the first difference
+# 2.1 mm, the others under 0.1). Issue 42's targets are from n = 25. On the GPU's range to n = 193 the default
 # with its earlier bending stiffness (0.5 mN m) did not converge: its cloth under the
 # resting ball snapped at times that move with n (the rebound -7.11, -0.30, +0.45 mm, the
 # light variant's lowest point -5.04, -1.36, -1.92); with 2 mN m both converge (-6.90,
@@ -105,10 +107,18 @@ def run(name: str, n: int, backend: str) -> GridRun:
 # light's ringing turned at n = 97 on the GPU's range (docs/accuracy.md: the cloth under
 # the ball).
 CONVERGING = {
-    "default": ("sag_m", "corner_force_rest_n", "landing_s", "rebound_m", "natural_hz"),
-    "light": ("sag_m", "corner_force_rest_n", "landing_s", "lowest_y_m", "ring_hz",
-              "natural_hz"),
+    "default": ("corner_force_rest_n", "rebound_m", "natural_hz"),
+    "light": ("corner_force_rest_n", "lowest_y_m", "ring_hz", "natural_hz"),
 }
+# Converged to less than their differences' turns: with the cloth assembled cell by cell
+# (masses by area, the border's springs and contact per area; issue 42) the static sag
+# lies within 0.1 mm from n = 25 to 193 (95.432, 95.404, 95.482 mm at n = 25, 49, 97 on
+# the CPU, then about 95.51), where uniform masses moved it 1.8 mm from 25 to 97 at order
+# 0.47; two error terms of opposite sign meet there, so its differences turn (-0.03,
+# +0.08 mm) instead of shrinking. The landing rides on it (291.649, 291.667, 291.718 ms).
+# Each must stay within its bound of the finest grid's value from n = 25 on: 0.2 mm and
+# 0.2 ms, twice the spread measured (docs/accuracy.md, "Cell-assembled springs").
+CONVERGED = {"sag_m": 2e-4, "landing_s": 2e-4}
 # What drifts at the rate point supports set (the "point" scene: each hand holds one node):
 # a membrane held at a point stretches without bound near it (the strain falls as 1 / r,
 # the displacement grows as log(1 / L)), so the whole cloth hangs lower by about the same
@@ -127,13 +137,16 @@ def line_of(name: str, c) -> str:
 
 def check_converges(name: str, sizes: tuple[int, ...], backend: str, record) -> None:
     runs = [run(name, n, backend) for n in sizes]
-    for q in CONVERGING[name]:
+    for q in (*CONVERGING[name], *CONVERGED):
         c = convergence(runs, q)
         assert all(math.isfinite(v) for v in c.values), (q, c.values)
         line = line_of(name, c)
         print(line)
         record(f"{name}.{q}", line)
-        assert c.shrinking(), line
+        if q in CONVERGED:
+            assert all(abs(v - c.values[-1]) <= CONVERGED[q] for v in c.values), line
+        else:
+            assert c.shrinking(), line
 
 
 @pytest.mark.slow
