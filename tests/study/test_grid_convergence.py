@@ -51,15 +51,16 @@ from clothball.game.study.grid import (
 )
 
 CPU_SIZES = (13, 25, 49)  # spacing 1/12, 1/24, 1/48
-# Where the default's grip (10 cm, a smooth density: docs/scenes.md) is resolved: at n = 13
-# (L = 8.3 cm) it is the corner node and a tenth of the next, a point support, and its sag
-# there is pre-asymptotic (97.6, 95.4, 95.4, 95.5 mm at n = 13-97: the first difference
-# 2.1 mm, the others under 0.1). Issue 42's targets are from n = 25. On the GPU's range to n = 193 the default
-# with its earlier bending stiffness (0.5 mN m) did not converge: its cloth under the
-# resting ball snapped at times that move with n (the rebound -7.11, -0.30, +0.45 mm, the
-# light variant's lowest point -5.04, -1.36, -1.92); with 2 mN m both converge (-6.90,
-# -0.71, +0.07 and -2.10, -0.63, +0.04; CPU float64, which gave CUDA's figures at
-# 0.5 mN m to the digit; docs/accuracy.md, "The larger range").
+# Where the default's grip (10 cm, a smooth density: docs/scenes.md) is resolved: at n =
+# 13 (L = 8.3 cm) it is the corner node and a tenth of the next, a point support, and its
+# sag there is pre-asymptotic (97.6, 95.4, 95.4, 95.5 mm at n = 13-97: the first
+# difference 2.1 mm, the others under 0.1). Issue 42's targets are from n = 25. On the
+# GPU's range to n = 193 the default with its earlier bending stiffness (0.5 mN m) did not
+# converge: its cloth under the resting ball snapped at times that move with n (the
+# rebound -7.11, -0.30, +0.45 mm, the light variant's lowest point -5.04, -1.36, -1.92);
+# with 2 mN m both converge (-6.90, -0.71, +0.07 and -2.10, -0.63, +0.04; CPU float64,
+# which gave CUDA's figures at 0.5 mN m to the digit; docs/accuracy.md, "The larger
+# range").
 CONVERGING_SIZES = (25, 49, 97)
 GPU_SIZES = (25, 49, 97, 193)
 LIGHT_DAMPING = 10.0  # 1/s: what the default's per-node damping was at n = 16
