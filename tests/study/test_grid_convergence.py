@@ -5,9 +5,8 @@ ball rebounds and the cloth rings) are measured on grids whose spacing halves (n
 48, 96 on the CPU, ``slow``; to 192 on the GPU; the documentation tests below from 12),
 each quantity against the same quantity on the other grids (no reference values are
 hard-coded). Where
-the physics converges, successive differences must shrink (or, for the static sag and the
-landing that rides on it, converged below their turns, stay within a bound of the finest
-grid's value: ``CONVERGED``); the observed orders are printed
+the physics converges, successive differences must shrink, or be below what the quantity
+resolves (``RESOLVED``); the observed orders are printed
 (``-s``) and recorded as test properties. The hands hold a grip of fixed length
 (``coupling.grip_radius``); held by single nodes, point supports, the static sag and what
 rides on it drift by a constant few mm per halving instead, the membrane's displacement
@@ -108,18 +107,22 @@ def run(name: str, n: int, backend: str) -> GridRun:
 # light's ringing turned at n = 97 on the GPU's range (docs/accuracy.md: the cloth under
 # the ball).
 CONVERGING = {
-    "default": ("corner_force_rest_n", "rebound_m", "natural_hz"),
-    "light": ("corner_force_rest_n", "lowest_y_m", "ring_hz", "natural_hz"),
+    "default": ("sag_m", "corner_force_rest_n", "landing_s", "rebound_m", "natural_hz"),
+    "light": ("sag_m", "corner_force_rest_n", "landing_s", "lowest_y_m", "ring_hz",
+              "natural_hz"),
 }
-# Converged to less than their differences' turns: with the cloth assembled cell by cell
-# (masses by area, the border's springs and contact per area; issue 42) the static sag
-# lies within 0.1 mm from n = 25 to 193 (95.432, 95.404, 95.482 mm at n = 25, 49, 97 on
-# the CPU, then about 95.51), where uniform masses moved it 1.8 mm from 25 to 97 at order
-# 0.47; two error terms of opposite sign meet there, so its differences turn (-0.03,
-# +0.08 mm) instead of shrinking. The landing rides on it (291.649, 291.667, 291.718 ms).
-# Each must stay within its bound of the finest grid's value from n = 25 on: 0.2 mm and
-# 0.2 ms, twice the spread measured (docs/accuracy.md, "Cell-assembled springs").
-CONVERGED = {"sag_m": 2e-4, "landing_s": 2e-4}
+# Below these a difference counts as converged whether or not the next one shrinks. The
+# static sag: with the cloth assembled cell by cell (issue 42) it lies within 0.1 mm from
+# n = 25 to 193 (95.432, 95.404, 95.482, 95.506 mm at n = 25, 49, 97, 193), two error
+# terms of opposite sign meeting there, so its differences turn (-0.03, +0.08, +0.02 mm)
+# where uniform masses moved it 1.8 mm at order 0.47; the landing rides on it (+0.02,
+# +0.05, +0.02 ms). The light variant's ring: its estimate over the 1.2 s after the landing
+# moves by up to 0.036 Hz as the window's ends move by a few frames (n = 49), and its
+# differences from n = 49 are 0.003 and 0.014 Hz (docs/accuracy.md, "Cell-assembled
+# springs").
+RESOLVED = {"sag_m": 1e-4, "landing_s": 1e-4, "ring_hz": 0.03}
+
+
 # What drifts at the rate point supports set (the "point" scene: each hand holds one node):
 # a membrane held at a point stretches without bound near it (the strain falls as 1 / r,
 # the displacement grows as log(1 / L)), so the whole cloth hangs lower by about the same
@@ -138,16 +141,15 @@ def line_of(name: str, c) -> str:
 
 def check_converges(name: str, sizes: tuple[int, ...], backend: str, record) -> None:
     runs = [run(name, n, backend) for n in sizes]
-    for q in (*CONVERGING[name], *CONVERGED):
+    for q in CONVERGING[name]:
         c = convergence(runs, q)
         assert all(math.isfinite(v) for v in c.values), (q, c.values)
         line = line_of(name, c)
         print(line)
         record(f"{name}.{q}", line)
-        if q in CONVERGED:
-            assert all(abs(v - c.values[-1]) <= CONVERGED[q] for v in c.values), line
-        else:
-            assert c.shrinking(), line
+        d = [abs(v) for v in c.differences]
+        assert all(b < a or b <= RESOLVED.get(q, 0.0) for a, b in zip(d, d[1:],
+                                                                     strict=False)), line
 
 
 @pytest.mark.slow
