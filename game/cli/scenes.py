@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from ..sim.config import node_values
-from ..sim.oracle import grips
+from ..sim.grip import grips
 from ..sim.scene import MATERIAL_KEYS, Scene, available, schema_markdown
 
 UNITS = {"damping": "N s/m per node", "stiffness": "N/m per node"}

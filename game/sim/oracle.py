@@ -6,13 +6,12 @@ it, only the scene). Every force of a substep comes from the state at the subste
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 
 from ... import _native
 from .cloth import corners_of, rest_positions
-from .scene import Scene
+from .grip import grips
+from .scene import Scene, mass_weights
 
 STRUCTURAL_DIRS = ((0, -1), (0, 1), (-1, 0), (1, 0))
 SHEAR_DIRS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
@@ -30,15 +29,30 @@ def spring(pi: np.ndarray, pj: np.ndarray, k: float, rest: float, compress: floa
     return d * scale
 
 
+def edge_weights(n: int, di: int, dj: int) -> np.ndarray:
+    """The stiffness factor of each node's spring to its neighbour at (di, dj), over the
+    nodes that have one ((rows, cols, 1)): 1/2 for a spring along a free edge (both ends on
+    the border row or column), which stands for half the strip of sheet an inner one does;
+    1 elsewhere."""
+    w = np.ones((n - abs(di), n - abs(dj), 1))
+    if di == 0:
+        w[[0, -1]] = 0.5
+    if dj == 0:
+        w[:, [0, -1]] = 0.5
+    return w
+
+
 def add_springs(f: np.ndarray, pos: np.ndarray, dirs, k: float, rest: float, compress: float):
-    """Add to f the force on each node from its neighbour at offset (di, dj), where it exists."""
+    """Add to f the force on each node from its neighbour at offset (di, dj), where it
+    exists (a spring along a free edge at half k: ``edge_weights``)."""
     n = pos.shape[0]
     for di, dj in dirs:
         rows = slice(max(0, -di), n - max(0, di))
         cols = slice(max(0, -dj), n - max(0, dj))
         nrows = slice(max(0, -di) + di, n - max(0, di) + di)
         ncols = slice(max(0, -dj) + dj, n - max(0, dj) + dj)
-        f[rows, cols] += spring(pos[rows, cols], pos[nrows, ncols], k, rest, compress)
+        kw = k * edge_weights(n, di, dj)
+        f[rows, cols] += spring(pos[rows, cols], pos[nrows, ncols], kw, rest, compress)
 
 
 def plate_force(pos: np.ndarray, k: float) -> np.ndarray:
@@ -85,15 +99,18 @@ def plate_diagonal(n: int, k: float) -> np.ndarray:
     return k * d
 
 
-def ball_contact(pos: np.ndarray, centre: np.ndarray, radius: float, k: float) -> np.ndarray:
-    """Eq. (4) on every node inside the ball; a node at the very centre is pushed down."""
+def ball_contact(pos: np.ndarray, centre: np.ndarray, radius: float,
+                 k: float | np.ndarray) -> np.ndarray:
+    """Eq. (4) on every node inside the ball (k: one for all, or each node's, (..., 1)); a
+    node at the very centre is pushed down."""
     d = pos - centre
     r = np.linalg.norm(d, axis=-1, keepdims=True)
     inside = r < radius
     safe_r = np.where(r > 1e-12, r, 1.0)
     f = np.where(inside & (r > 1e-12), d * (k * (radius - r) / safe_r), 0.0)
     at_centre = (inside & (r <= 1e-12))[..., 0]
-    f[at_centre] = (0.0, -k * radius, 0.0)
+    f[at_centre] = 0.0
+    f[at_centre, 1] = -np.broadcast_to(k, r.shape)[at_centre, 0] * radius
     return f
 
 
@@ -103,13 +120,14 @@ def edge_contact(
     """Edge contact: eq. (4) at each structural segment's point nearest the ball's centre,
     q = a + t (b - a) with t clamped to [0, 1] (t = 1/2 for a zero-length segment); node a
     takes (1 - t) of it, node b takes t. Returns the force on every node and the summed
-    contact force (the ball takes minus it)."""
+    contact force (the ball takes minus it). Per area, as the springs: a segment along the
+    cloth's border takes half of k (``edge_weights``)."""
     n = pos.shape[0]
     f = np.zeros_like(pos)
     total = np.zeros(3)
-    for a_sl, b_sl in (
-        ((slice(None), slice(0, n - 1)), (slice(None), slice(1, n))),  # along j
-        ((slice(0, n - 1), slice(None)), (slice(1, n), slice(None))),  # along i
+    for a_sl, b_sl, (di, dj) in (
+        ((slice(None), slice(0, n - 1)), (slice(None), slice(1, n)), (0, 1)),  # along j
+        ((slice(0, n - 1), slice(None)), (slice(1, n), slice(None)), (1, 0)),  # along i
     ):
         a, b = pos[a_sl], pos[b_sl]
         e = b - a
@@ -117,7 +135,7 @@ def edge_contact(
         has_len = e2 > 1e-30
         t = np.einsum("...i,...i", centre - a, e) / np.where(has_len, e2, 1.0)
         t = np.where(has_len, np.clip(t, 0.0, 1.0), 0.5)[..., None]
-        fe = ball_contact(a + t * e, centre, radius, k)
+        fe = ball_contact(a + t * e, centre, radius, k * edge_weights(n, di, dj))
         f[a_sl] += (1.0 - t) * fe
         f[b_sl] += t * fe
         total += fe.sum(axis=(0, 1))
@@ -199,12 +217,13 @@ def grid_normals(pos: np.ndarray) -> np.ndarray:
 
 
 def node_damping(scene: Scene) -> float:
-    """beta1 per node, N s/m: the scene's, or from its material rate gamma (1/s) per unit
-    mass: gamma times the node's mass (total mass / n^2)."""
+    """beta1 of an interior node, N s/m (node (i, j)'s is this times its mass weight, as
+    its mass is): the scene's, or from its material rate gamma (1/s) per unit mass: gamma
+    times the interior node's mass (total mass / (n - 1)^2)."""
     cloth = scene["cloth"]
     if cloth["damping_rate"] is None:
         return float(cloth["damping"])
-    return float(cloth["damping_rate"]) * float(cloth["mass"]) / float(scene.n) ** 2
+    return float(cloth["damping_rate"]) * float(cloth["mass"]) / float(scene.n - 1) ** 2
 
 
 def node_contact_stiffness(scene: Scene) -> float:
@@ -227,47 +246,6 @@ def node_plate_stiffness(scene: Scene) -> float:
         return 0.0
     spacing = float(scene["cloth"]["size"]) / (scene.n - 1)
     return float(scene["cloth"]["bending_stiffness"]) / (spacing * spacing)
-
-
-class Grip(NamedTuple):
-    """One node a hand holds: its hand (corner slot), the node, its share of the hand's
-    stiffness K and its rest offset from the corner (m; the hand pulls it to hip + offset)."""
-
-    corner: int
-    i: int
-    j: int
-    share: float
-    offset: np.ndarray
-
-
-def grip_density(s: float, a: float) -> float:
-    """The grip's stiffness density along an edge at s from the corner, relative to the
-    corner's: (1 - (s / a)^2)^2 within a (smooth at the corner, where it is even, and flat
-    where it ends), 0 beyond."""
-    x = s / a
-    return (1.0 - x * x) ** 2 if x < 1.0 else 0.0
-
-
-def grips(scene: Scene) -> list[Grip]:
-    """Every node the hands hold: a hand holds its corner node, and with
-    ``coupling.grip_radius`` a > 0 the nodes of its corner's two edges closer than a to the
-    corner (none past the edge's middle, which would be another hand's), each with the
-    density at its point times the spacing (the trapezoid rule; the corner's on both edges:
-    its density once), shares summing to 1 a hand."""
-    n, L = scene.n, scene.rest_length
-    a = scene["coupling"]["grip_radius"]
-    held = []  # (corner, i, j, weight, offset)
-    for c, (ci, cj) in enumerate(((0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0))):
-        di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
-        held.append((c, ci, cj, 1.0, np.zeros(3)))
-        m = 1
-        while a > 0 and m * L < a and 2 * m <= n - 2:
-            w = grip_density(m * L, a)
-            held.append((c, ci, cj + dj * m, w, np.array([dj * m * L, 0.0, 0.0])))
-            held.append((c, ci + di * m, cj, w, np.array([0.0, 0.0, di * m * L])))
-            m += 1
-    total = [sum(h[3] for h in held if h[0] == c) for c in range(4)]
-    return [Grip(c, i, j, w / total[c], off) for c, i, j, w, off in held]
 
 
 def grip_points(scene: Scene, pos: np.ndarray, vel: np.ndarray | None = None) -> np.ndarray:
@@ -316,16 +294,18 @@ class ReferenceCloth:
             if self.plate_k:
                 f += plate_force(pos, self.plate_k)
         if "gravity" in fx:
-            f += s.node_mass * np.array(s["sim"]["gravity"])
-        if "damping" in fx:
-            f -= self.damping * vel
+            f += s.node_masses * np.array(s["sim"]["gravity"])
+        if "damping" in fx:  # per unit mass: the mass weights (1, 1/2, 1/4), as the masses
+            f -= self.damping * mass_weights(s.n)[..., None] * vel
         contact_sum = np.zeros(3)
         if "ball" in fx:
             ball = s["ball"]
             if ball["contact"] == "edges":
                 contact, contact_sum = edge_contact(pos, self.ball_pos, ball["radius"], self.ball_k)
             else:
-                contact = ball_contact(pos, self.ball_pos, ball["radius"], self.ball_k)
+                # Per area, as the mass: an inner node's k_b times each node's mass weight.
+                kw = self.ball_k * mass_weights(s.n)[..., None]
+                contact = ball_contact(pos, self.ball_pos, ball["radius"], kw)
                 contact_sum = contact.sum(axis=(0, 1))
             f += contact
         if "coupling" in fx:
@@ -347,7 +327,7 @@ class ReferenceCloth:
                 fb = fb + ball["mass"] * np.array(self.scene["sim"]["gravity"])
             self.ball_vel = self.ball_vel + fb / ball["mass"] * dt
             self.ball_pos = self.ball_pos + self.ball_vel * dt
-        self.vel = self.vel + f / self.scene.node_mass * dt
+        self.vel = self.vel + f / self.scene.node_masses * dt
         self.pos = self.pos + self.vel * dt
         if "strain_limit" in self.fx:
             limit = self.scene["strain_limit"]

@@ -41,6 +41,17 @@ class SceneError(ValueError):
     """A scene file or dict is malformed; the message names the offending key."""
 
 
+def mass_weights(n: int) -> Any:
+    """Each node's share of an interior node's area (and mass), an (n, n) array: 1/2 for
+    each edge of the sheet the node lies on, so 1 inside, 1/2 on an edge, 1/4 at a corner;
+    the sum is (n - 1)^2."""
+    import numpy as np
+
+    w = np.ones(n)
+    w[0] = w[-1] = 0.5
+    return np.outer(w, w)
+
+
 @dataclass(frozen=True)
 class Key:
     """One scene key: its default, its kind and its allowed range."""
@@ -347,7 +358,15 @@ class Scene:
 
     @property
     def node_mass(self) -> float:
-        return self._values["cloth"]["mass"] / (self.n * self.n)
+        """An interior node's mass, kg: total / (n - 1)^2, as it stands for L^2 of the sheet;
+        node (i, j) has this times ``mass_weights`` (1/2 on an edge, 1/4 at a corner)."""
+        return self._values["cloth"]["mass"] / ((self.n - 1) * (self.n - 1))
+
+    @property
+    def node_masses(self) -> Any:
+        """Every node's mass, kg, an (n, n, 1) array (broadcasts against (n, n, 3)): lumped
+        by area, summing to the cloth's mass (the engine's mass_weight, params.hpp)."""
+        return (self.node_mass * mass_weights(self.n))[..., None]
 
     @property
     def material_keys(self) -> list[str]:
@@ -382,7 +401,8 @@ GRID_MARKDOWN = (
     "",
     "| key | unit | as a sheet (independent of n?) | per node or spring |",
     "| --- | --- | --- | --- |",
-    "| `cloth.mass` | kg | total mass: yes | node mass m = mass / n^2 |",
+    "| `cloth.mass` | kg | total mass: yes | node mass by area: m = mass / (n - 1)^2 inside, "
+    "half on an edge, a quarter at a corner |",
     "| `cloth.size`, `cloth.height` | m | yes | L = size / (n - 1) |",
     "| `cloth.k_structural` | N/m per spring | stretch modulus (force per width per strain) "
     "k_structural: yes (a spring pulls k e L, one per L of width) | as given |",
@@ -400,8 +420,8 @@ GRID_MARKDOWN = (
     "the mixed one on each cell, squared (the 13-node biharmonic stencil, "
     "native/core/forces.hpp: plate_sum); zero on any plane, so the flat cloth and its rigid "
     "motions feel nothing |",
-    "| `cloth.damping` | N s/m per node | no: total damping n^2 damping, rate n^2 damping / "
-    "mass | beta1 as given |",
+    "| `cloth.damping` | N s/m per node | no: total damping (n - 1)^2 damping (masses by "
+    "area), rate (n - 1)^2 damping / mass | beta1 as given |",
     "| `cloth.damping_rate` | 1/s | yes: every node loses velocity at this rate per unit "
     "mass | beta1 = damping_rate x m |",
     "| `ball.stiffness` | N/m per node (per edge) | no: the ball's total contact stiffness "

@@ -4,10 +4,12 @@ The derivation is in ``docs/stability.md``. In short, linearise each node's equa
 motion to m x'' = -k_eff x - c x'. Semi-implicit Euler is then stable when
 ``omega^2 dt^2 + 2 gamma dt < 4`` with omega^2 = k_eff / m and gamma = c / m, i.e.
 ``dt < (sqrt(gamma^2 + 4 omega^2) - gamma) / omega^2``. Gershgorin's theorem bounds the
-largest k_eff of the coupled system by each node's row sum: twice the stiffness of every
-spring at the node (structural, shear, bending, ball contact; edge contact counts 8 k_b)
-plus the plate bending term's row (64 D / L^2) plus the coupling spring to
-the fixed hand. The ball is bounded the same way from the contacts it can have at once,
+largest k_eff / m of the coupled system by each node's row sum over its mass: twice the
+stiffness of every spring at the node (structural, shear, bending, ball contact; edge
+contact counts 8 k_b) plus the plate bending term's row (64 D / L^2 inside) plus the
+coupling spring to the fixed hand, over the node's mass by area (an interior node's m,
+half on an edge, a quarter at a corner: fewer springs on less mass, so a border node
+bounds it). The ball is bounded the same way from the contacts it can have at once,
 and must not move more than ``BALL_TRAVEL`` of its radius per substep (no tunnelling).
 
 Per integrator (``sim.integrator``): velocity Verlet has the same bound with its damping
@@ -18,6 +20,7 @@ implicit Euler is bounded by the tunnelling limit alone (one substep a frame wit
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from typing import TYPE_CHECKING
@@ -25,12 +28,20 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .config import node_values
+from .grip import grips
 
 if TYPE_CHECKING:
     from .scene import Scene
 
 SAFETY = 0.9  # stay this fraction inside the bound
 BALL_TRAVEL = 0.2  # most of its radius the ball may move in one substep
+# Tension-only structural springs switch off as they cross their rest length, and across
+# such a kink the explicit schemes keep no energy: a net shaken hard, nearly undamped
+# (damping ratio 3.6e-5), resonated at 0.9 of the linear bound and not at 0.85, and with
+# a ratio of 8.6e-5 not at 0.9 (docs/stability.md, "Tension-only springs"). Below
+# SWITCH_ZETA the bound keeps SWITCH_MARGIN of itself instead of SAFETY.
+SWITCH_ZETA = 2e-4
+SWITCH_MARGIN = 0.85
 
 
 def euler_dt_bound(omega2: float, gamma: float) -> float:
@@ -43,26 +54,78 @@ def euler_dt_bound(omega2: float, gamma: float) -> float:
     return (math.sqrt(gamma * gamma + 4.0 * omega2) - gamma) / omega2
 
 
+@functools.lru_cache(maxsize=64)
+def _node_rows(n: int) -> tuple[np.ndarray, ...]:
+    """Per node of an n x n grid, for Gershgorin's bound: its mass weight (1, 1/2, 1/4:
+    masses by area), how many structural, shear and bending springs meet it (one along a
+    free edge counts a half), and the absolute row sum of the plate term's B^T B (64
+    inside, less near the border). A node's row depends only on
+    its distance (up to 2) from each edge, so a grid of at most 9 x 9 has every kind."""
+    m = min(n, 9)
+    w = np.ones(m)
+    w[0] = w[-1] = 0.5
+    weight = np.outer(w, w)
+    idx = np.arange(m)
+    lo, hi = (idx > 0).astype(float), (idx < m - 1).astype(float)
+    two = (idx >= 2).astype(float) + (idx <= m - 3)  # neighbours 2 away along an axis
+    # Springs along a row count at the row's edge weight (1/2 on a border row: the core's
+    # edge_spring_weight), springs along a column at the column's.
+    struct = (lo + hi)[:, None] * w[None, :] + (lo + hi)[None, :] * w[:, None]
+    shear = np.outer(lo, lo) + np.outer(lo, hi) + np.outer(hi, lo) + np.outer(hi, hi)
+    bend = two[:, None] * w[None, :] + two[None, :] * w[:, None]
+    # B: one row per second difference (rows, columns) and per cell's twist (weight 2 in E).
+    rows = []
+    for i in range(m):
+        for j in range(m):
+            for di, dj in ((0, 1), (1, 0)):
+                if i + 2 * di < m and j + 2 * dj < m:
+                    r = np.zeros((m, m))
+                    r[i, j], r[i + di, j + dj], r[i + 2 * di, j + 2 * dj] = 1.0, -2.0, 1.0
+                    rows.append(r.ravel())
+            if i + 1 < m and j + 1 < m:
+                r = np.zeros((m, m))
+                r[i, j], r[i, j + 1], r[i + 1, j], r[i + 1, j + 1] = 1.0, -1.0, -1.0, 1.0
+                rows.append(math.sqrt(2.0) * r.ravel())
+    b = np.array(rows) if rows else np.zeros((0, m * m))
+    plate = np.abs(b.T @ b).sum(axis=1).reshape(m, m)
+    return weight, struct, shear, bend, plate
+
+
 def node_stiffness(scene: Scene) -> float:
-    """Gershgorin bound on the stiffness (N/m) acting on the stiffest node."""
+    """Gershgorin bound on the stiffness (N/m) per interior node mass: the largest row sum
+    of |K| over the node's mass weight (masses by area), so that omega_max^2 <= this / m
+    with m an interior node's mass. A border node has fewer springs but half (a corner a
+    quarter) of the mass, so it, not the interior, can be the stiffest per unit mass."""
     cloth, fx = scene["cloth"], scene.effects
-    k = 0.0
+    weight, struct, shear, bend, plate = _node_rows(scene.n)
+    k = np.zeros_like(weight)
     if "structural" in fx:
-        k += 2 * 4 * cloth["k_structural"]
+        k += 2 * struct * cloth["k_structural"]
     if "shear" in fx:
-        k += 2 * 4 * cloth["k_shear"]
+        k += 2 * shear * cloth["k_shear"]
     if "bend" in fx:
-        k += 2 * 4 * cloth["k_bend"]
+        k += 2 * bend * cloth["k_bend"]
         # The plate term's row of k B^T B: |20| + 4 |-8| + 4 |2| + 4 |1| = 64 k in the interior
         # (less at the border).
-        k += 64 * node_values(scene).plate_k
+        k += plate * node_values(scene).plate_k
     if "ball" in fx:
         # Nodes: the contact's k_b on the diagonal and -k_b in the ball's column. Edges: each
-        # of the 4 structural edges adds at most 2 k_b (docs/stability.md).
-        k += (8 if scene["ball"]["contact"] == "edges" else 2) * node_values(scene).ball_k
+        # of the 4 structural edges adds at most 2 k_b (docs/stability.md). Per area, as the
+        # masses: a border node's k_b (and its edges' along the border) are shares of it.
+        k += (8 if scene["ball"]["contact"] == "edges" else 2) * node_values(scene).ball_k * weight
+    bound = float(np.max(k / weight))
     if "coupling" in fx:
-        k += scene["coupling"]["stiffness"]
-    return k
+        # A held node's row gains its share of K (its grip's density: the corner's share is
+        # the largest, on a quarter of the mass).
+        K, n, m = scene["coupling"]["stiffness"], scene.n, weight.shape[0]
+
+        def rep(i: int) -> int:  # the representative grid's row of the same kind
+            return i if i < 3 else (m - n + i if n - 1 - i < 3 else m // 2)
+
+        for g in grips(scene):
+            a, b = rep(g.i), rep(g.j)
+            bound = max(bound, (k[a, b] + K * g.share) / weight[a, b])
+    return bound
 
 
 def max_ball_contacts(scene: Scene) -> float:
@@ -87,16 +150,22 @@ def stable_dts(scene: Scene, ball_speeds: np.ndarray) -> np.ndarray:
     the same numbers."""
     integrator = scene["sim"]["integrator"]
     explicit_damping = integrator == "semi_implicit_euler"
-    m = scene.node_mass
+    m = scene.node_mass  # an interior node's; node_stiffness is per unit of it
     damped = "damping" in scene.effects and explicit_damping
     gamma = node_values(scene).damping / m if damped else 0.0
     if "wind" in scene.effects:
-        # Drag is a damping force: d|F|/d|v| <= rho Cd A |u| on a node's share A = L^2 of
-        # area, with |u| bounded by the wind's peak speed plus a generous node speed.
+        # Drag is a damping force: d|F|/d|v| <= rho Cd A |u| on a node's share A of area
+        # (a third of each of its triangles': L^2 inside, where the node's mass is m), with
+        # |u| bounded by the wind's peak speed plus a generous node speed. Per unit mass
+        # (masses by area) a corner is the largest: two triangles, L^2 / 3, on m / 4.
         w = scene["wind"]
         peak = math.hypot(*w["velocity"]) * (1.0 + w["gust_amplitude"]) + 10.0
-        gamma += w["air_density"] * w["drag"] * scene.rest_length**2 * peak / m
-    dt = euler_dt_bound(node_stiffness(scene) / m, gamma)
+        area = scene.rest_length**2 * 4.0 / 3.0
+        gamma += w["air_density"] * w["drag"] * area * peak / m
+    omega2 = node_stiffness(scene) / m
+    dt = euler_dt_bound(omega2, gamma)
+    if switch_resonance(scene, omega2):
+        dt *= SWITCH_MARGIN / SAFETY
     if integrator == "implicit_euler":
         dt = math.inf  # no stability limit on the step; tunnelling still bounds it below
     dts = np.full(len(ball_speeds), dt)
@@ -113,6 +182,17 @@ def stable_dts(scene: Scene, ball_speeds: np.ndarray) -> np.ndarray:
             travel = BALL_TRAVEL * ball["radius"] / speed / SAFETY
         dts = np.where(speed > 0.0, np.minimum(dts, travel), dts)
     return SAFETY * dts
+
+
+def switch_resonance(scene: Scene, omega2: float) -> bool:
+    """Whether the scene's tension-only structural springs are so lightly damped that the
+    bound needs SWITCH_MARGIN: the cloth's damping ratio at its fastest mode, rate / (2
+    omega_max), below SWITCH_ZETA (whatever the integrator: the damping is the cloth's)."""
+    fx = scene.effects
+    if "structural" not in fx or scene["cloth"]["structural_two_sided"] or omega2 <= 0.0:
+        return False
+    rate = node_values(scene).damping / scene.node_mass if "damping" in fx else 0.0
+    return rate / (2.0 * math.sqrt(omega2)) < SWITCH_ZETA
 
 
 def auto_substeps(scene: Scene, ball_speed: float = 0.0) -> int:

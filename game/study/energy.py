@@ -8,12 +8,13 @@ import numpy as np
 from ..sim.oracle import (
     BEND_DIRS,
     STRUCTURAL_DIRS,
+    edge_weights,
     grips,
     node_contact_stiffness,
     node_plate_stiffness,
     plate_energy,
 )
-from ..sim.scene import Scene
+from ..sim.scene import Scene, mass_weights
 
 
 def _spring_energy(pos: np.ndarray, dirs, k: float, rest: float, two_sided: bool) -> float:
@@ -26,7 +27,7 @@ def _spring_energy(pos: np.ndarray, dirs, k: float, rest: float, two_sided: bool
         ext = np.linalg.norm(d, axis=-1) - rest
         if not two_sided:
             ext = np.maximum(ext, 0.0)
-        total += 0.5 * k * float(np.sum(ext * ext))
+        total += 0.5 * k * float(np.sum(edge_weights(n, di, dj)[..., 0] * ext * ext))
     return total
 
 
@@ -48,9 +49,9 @@ def total_energy(
     hips: np.ndarray | None = None,
 ) -> float:
     """Kinetic + gravitational + spring + coupling + contact energy, J."""
-    fx, cloth, m = scene.effects, scene["cloth"], scene.node_mass
+    fx, cloth, m = scene.effects, scene["cloth"], scene.node_masses[..., 0]
     g = np.array(scene["sim"]["gravity"]) if "gravity" in fx else np.zeros(3)
-    e = 0.5 * m * float(np.sum(vel * vel)) - m * float(np.sum(pos @ g))
+    e = 0.5 * float(np.sum(m * np.sum(vel * vel, axis=-1))) - float(np.sum(m * (pos @ g)))
     L = scene.rest_length
     if "structural" in fx:
         e += _spring_energy(
@@ -77,10 +78,13 @@ def total_energy(
             # its distance to the centre (the force is its gradient at the nearest point).
             r = np.concatenate([_segment_distances(a, b, ball_pos) for a, b in (
                 (pos[:, :-1], pos[:, 1:]), (pos[:-1, :], pos[1:, :]))])
+            n = pos.shape[0]
+            w = np.concatenate([edge_weights(n, 0, 1).ravel(), edge_weights(n, 1, 0).ravel()])
         else:
             r = np.linalg.norm(pos - ball_pos, axis=-1).ravel()
+            w = mass_weights(pos.shape[0]).ravel()
         pen = np.maximum(ball["radius"] - r, 0.0)
-        e += 0.5 * node_contact_stiffness(scene) * float(np.sum(pen * pen))
+        e += 0.5 * node_contact_stiffness(scene) * float(np.sum(w * pen * pen))
     return e
 
 

@@ -59,6 +59,7 @@ from ..sim.oracle import (
     SHEAR_DIRS,
     STRUCTURAL_DIRS,
     ReferenceCloth,
+    edge_weights,
     grips,
     node_contact_stiffness,
     node_plate_stiffness,
@@ -66,7 +67,7 @@ from ..sim.oracle import (
     plate_energy,
     plate_force,
 )
-from ..sim.scene import SCHEMA, Scene
+from ..sim.scene import SCHEMA, Scene, mass_weights
 
 INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "implicit_euler")
 ORDERS = {"semi_implicit_euler": 1, "velocity_verlet": 2, "implicit_euler": 1}
@@ -147,7 +148,8 @@ class Linearization:
         for dirs, k, rest, compress in spring_sets(scene):
             for di, dj in dirs:
                 here, there = _slices(n, di, dj)
-                terms = pair_terms(pos[there] - pos[here], k, rest, compress, definite)
+                kw = k * edge_weights(n, di, dj)
+                terms = pair_terms(pos[there] - pos[here], kw, rest, compress, definite)
                 self.springs.append((here, there, terms))
         self.inside: np.ndarray | None = None
         if "ball" in scene.effects:
@@ -155,7 +157,8 @@ class Linearization:
             inside = contact_mask(pos, ball_pos, ball["radius"])
             if inside.any():
                 self.inside = inside
-                self.contact = pair_terms(ball_pos - pos[inside], node_contact_stiffness(scene),
+                kw = node_contact_stiffness(scene) * mass_weights(n)[inside][:, None]
+                self.contact = pair_terms(ball_pos - pos[inside], kw,
                                           ball["radius"], 1.0, definite)
         K = scene["coupling"]["stiffness"] if "coupling" in scene.effects else 0.0
         self.coupling = [(g.i, g.j, K * g.share) for g in grips(scene)] if K else []
@@ -225,16 +228,18 @@ def potential_energy(scene: Scene, pos: np.ndarray, ball_pos: np.ndarray,
         for di, dj in dirs:
             here, there = _slices(n, di, dj)
             e = np.linalg.norm(pos[there] - pos[here], axis=-1) - rest
+            kw = k * edge_weights(n, di, dj)[..., 0]
             # Each spring is seen from both ends: half its energy each time.
-            energy += 0.5 * 0.5 * k * float(np.sum(np.where(e > 0, e * e, compress * e * e)))
+            energy += 0.5 * 0.5 * float(np.sum(kw * np.where(e > 0, e * e, compress * e * e)))
     energy += plate_energy(pos, node_plate_stiffness(scene))
     g = np.array(scene["sim"]["gravity"]) if "gravity" in fx else np.zeros(3)
-    energy -= scene.node_mass * float(np.sum(pos @ g))
+    energy -= float(np.sum(scene.node_masses[..., 0] * (pos @ g)))
     if "ball" in fx:
         ball = scene["ball"]
         r = np.linalg.norm(pos - ball_pos, axis=-1)
         pen = np.maximum(ball["radius"] - r, 0.0)
-        energy += 0.5 * node_contact_stiffness(scene) * float(np.sum(pen * pen))
+        kw = node_contact_stiffness(scene) * mass_weights(n)
+        energy += 0.5 * float(np.sum(kw * pen * pen))
         energy -= ball["mass"] * float(ball_pos @ g)
     if "coupling" in fx:
         K = scene["coupling"]["stiffness"]
@@ -245,7 +250,7 @@ def potential_energy(scene: Scene, pos: np.ndarray, ball_pos: np.ndarray,
 
 
 def kinetic_energy(scene: Scene, vel: np.ndarray, ball_vel: np.ndarray) -> float:
-    energy = 0.5 * scene.node_mass * float(np.sum(vel * vel))
+    energy = 0.5 * float(np.sum(scene.node_masses * vel * vel))
     if "ball" in scene.effects:
         energy += 0.5 * scene["ball"]["mass"] * float(ball_vel @ ball_vel)
     return energy
@@ -365,7 +370,7 @@ class IntegratingCloth(ReferenceCloth):
             self.pos, self.vel, self.ball_pos, self.ball_vel, self.hips, self.wind))
 
     def _verlet(self, dt: float) -> None:
-        m = self.scene.node_mass
+        m = self.scene.node_masses
         mb = self.scene["ball"]["mass"]
         gamma, gamma_b = self._gamma()
         has_ball = "ball" in self.fx
@@ -388,10 +393,11 @@ class IntegratingCloth(ReferenceCloth):
 
     def _implicit(self, dt: float) -> None:
         s = self.scene
-        m = s.node_mass
+        m = s.node_masses  # (n, n, 1): M and C are diagonal, by area (c per unit mass)
         has_ball = "ball" in self.fx
         mb = s["ball"]["mass"] if has_ball else 1.0
-        c = self.damping if "damping" in self.fx else 0.0
+        c = self.damping / s.node_mass if "damping" in self.fx else 0.0
+        c = c * m
         cb = s["ball"]["damping"] if has_ball else 0.0
         pos, bpos = self.pos, self.ball_pos
         f, fb = self.all_forces(pos, self.vel, bpos, self.ball_vel)
@@ -405,7 +411,7 @@ class IntegratingCloth(ReferenceCloth):
             wn = w[:N].reshape(pos.shape)
             wb = w[N:] if has_ball else np.zeros(3)
             jn, jb = lin.jvp(wn, wb)
-            nodes = (a_node * wn - dt * dt * jn).ravel()
+            nodes = (a_node * wn - dt * dt * jn).ravel()  # a_node (n, n, 1)
             return np.concatenate([nodes, a_ball * wb - dt * dt * jb])
 
         dn, db = lin.neg_diag()
@@ -455,7 +461,7 @@ def static_equilibrium(
         ref.hips = np.array(hips, dtype=np.float64)
     x = ref.pos.copy() if x0 is None else np.array(x0, dtype=np.float64)
     g = np.linalg.norm(s["sim"]["gravity"]) if "gravity" in fx else 1.0
-    weight = s.node_mass * g
+    weight = s.node_mass * g / 4.0  # the lightest node's (a corner's)
     kscale = max(s["cloth"]["k_structural"], 1e-9)
     zero_b = np.zeros(3)
 

@@ -274,11 +274,13 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
   constexpr bool Sel = !Interior && kSelectsAbsent<G>;
   auto add = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Sel>(f, Interior || has, term); };
   if constexpr ((E & STRUCTURAL) != 0) {
-    const R k = p.k_struct, L = p.L, c = p.struct_compress;
-    add(j > 0, CB_TERM(spring_force(pi, pos.get(q - 1), k, L, c)));
-    add(j < n - 1, CB_TERM(spring_force(pi, pos.get(q + 1), k, L, c)));
-    add(i > 0, CB_TERM(spring_force(pi, pos.get(q - s), k, L, c)));
-    add(i < n - 1, CB_TERM(spring_force(pi, pos.get(q + s), k, L, c)));
+    const R L = p.L, c = p.struct_compress;
+    const R kr = p.k_struct * edge_spring_weight<R, Interior>(n, i);  // along the row
+    const R kc = p.k_struct * edge_spring_weight<R, Interior>(n, j);  // along the column
+    add(j > 0, CB_TERM(spring_force(pi, pos.get(q - 1), kr, L, c)));
+    add(j < n - 1, CB_TERM(spring_force(pi, pos.get(q + 1), kr, L, c)));
+    add(i > 0, CB_TERM(spring_force(pi, pos.get(q - s), kc, L, c)));
+    add(i < n - 1, CB_TERM(spring_force(pi, pos.get(q + s), kc, L, c)));
   }
   if constexpr ((E & SHEAR) != 0) {
     const R k = p.k_shear, L = p.L_diag;
@@ -288,11 +290,13 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
     add(i < n - 1 && j < n - 1, CB_TERM(spring_force(pi, pos.get(q + s + 1), k, L, R(1))));
   }
   if constexpr ((E & BEND) != 0) {
-    const R k = p.k_bend, L = p.L_bend;
-    add(j > 1, CB_TERM(spring_force(pi, pos.get(q - 2), k, L, R(1))));
-    add(j < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2), k, L, R(1))));
-    add(i > 1, CB_TERM(spring_force(pi, pos.get(q - 2 * s), k, L, R(1))));
-    add(i < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2 * s), k, L, R(1))));
+    const R L = p.L_bend;
+    const R kr = p.k_bend * edge_spring_weight<R, Interior>(n, i);
+    const R kc = p.k_bend * edge_spring_weight<R, Interior>(n, j);
+    add(j > 1, CB_TERM(spring_force(pi, pos.get(q - 2), kr, L, R(1))));
+    add(j < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2), kr, L, R(1))));
+    add(i > 1, CB_TERM(spring_force(pi, pos.get(q - 2 * s), kc, L, R(1))));
+    add(i < n - 2, CB_TERM(spring_force(pi, pos.get(q + 2 * s), kc, L, R(1))));
     // The plate term only where the scene has a bending stiffness: the test is the same
     // for every node of a call (hoisted by the compiler, uniform on the GPU), and a scene
     // without one (k_plate 0) pays nothing for it (summed always, it cost 16-30 % a
@@ -303,24 +307,29 @@ CB_HD V3<R> node_force(const Params<R>& p, const G& pos, const G& vel, V3<R> pi,
     }
   }
   // Run-time effects (params.hpp): both terms are zero when the scene lacks them.
-  f += p.gravity_force;
-  f -= vi * p.damping;
+  // Both per unit of the node's mass (mass_weight: 1 inside, 1/2 on an edge, 1/4 at a corner).
+  const R mw = mass_weight<R, Interior>(n, i, j);
+  f += p.gravity_force * mw;
+  f -= vi * (p.damping * mw);
   if constexpr ((E & BALL) != 0) {
     // Uniform over a sweep: a run-time mode (not an effect set), fixed at compile time
     // where E carries BALL_NODES or BALL_EDGES (the CPU sweep).
     constexpr bool fixed_mode = (E & (BALL_NODES | BALL_EDGES)) != 0;
     const bool edges = fixed_mode ? (E & BALL_EDGES) != 0 : p.ball_edges;
     if (edges) {
-      const R rad = p.ball_radius, k = p.ball_k;
+      // Per area, as the springs: an edge along the cloth's border stands for half a strip.
+      const R rad = p.ball_radius;
+      const R kr = p.ball_k * edge_spring_weight<R, Interior>(n, i);
+      const R kc = p.ball_k * edge_spring_weight<R, Interior>(n, j);
       V3<R> c{R(0), R(0), R(0)};
       auto add_c = [&](bool has, auto term) CB_HD_LAMBDA { add_if<Sel>(c, Interior || has, term); };
-      add_c(j > 0, CB_TERM(edge_contact_share(pi, pos.get(q - 1), ball_p, rad, k)));
-      add_c(j < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + 1), ball_p, rad, k)));
-      add_c(i > 0, CB_TERM(edge_contact_share(pi, pos.get(q - s), ball_p, rad, k)));
-      add_c(i < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + s), ball_p, rad, k)));
+      add_c(j > 0, CB_TERM(edge_contact_share(pi, pos.get(q - 1), ball_p, rad, kr)));
+      add_c(j < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + 1), ball_p, rad, kr)));
+      add_c(i > 0, CB_TERM(edge_contact_share(pi, pos.get(q - s), ball_p, rad, kc)));
+      add_c(i < n - 1, CB_TERM(edge_contact_share(pi, pos.get(q + s), ball_p, rad, kc)));
       contact = c;
-    } else {
-      contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k);
+    } else {  // per area, as the mass: k_b of an inner node times the node's mass weight
+      contact = ball_contact(pi - ball_p, p.ball_radius, p.ball_k * mw);
     }
     f += contact;
   }
@@ -394,7 +403,7 @@ CB_HD V3<R> se_node_kick(const Params<R>& p, const G& P, const G& V, const Frame
   v = V.get(q);
   V3<R> contact{R(0), R(0), R(0)};
   const V3<R> f = node_force<R, E, Interior>(p, P, V, x, v, i, j, fin, ball_p, contact);
-  euler_kick(v, f, p.inv_mass, dt);
+  euler_kick(v, f, p.inv_mass * inv_mass_weight<R, Interior>(p.n, i, j), dt);
   return contact;
 }
 

@@ -60,11 +60,13 @@ template <class R, unsigned S, bool Interior, class Fn>
 CB_HD void for_each_spring(const Params<R>& p, int i, int j, Fn&& fn) {
   const int n = p.n, q = i * n + j;
   if constexpr ((S & STRUCTURAL) != 0) {
-    const R k = p.k_struct, L = p.L, c = p.struct_compress;
-    if (Interior || j > 0) fn(q - 1, k, L, c);
-    if (Interior || j < n - 1) fn(q + 1, k, L, c);
-    if (Interior || i > 0) fn(q - n, k, L, c);
-    if (Interior || i < n - 1) fn(q + n, k, L, c);
+    const R L = p.L, c = p.struct_compress;
+    const R kr = p.k_struct * edge_spring_weight<R, Interior>(n, i);
+    const R kc = p.k_struct * edge_spring_weight<R, Interior>(n, j);
+    if (Interior || j > 0) fn(q - 1, kr, L, c);
+    if (Interior || j < n - 1) fn(q + 1, kr, L, c);
+    if (Interior || i > 0) fn(q - n, kc, L, c);
+    if (Interior || i < n - 1) fn(q + n, kc, L, c);
   }
   if constexpr ((S & SHEAR) != 0) {
     const R k = p.k_shear, L = p.L_diag;
@@ -74,20 +76,23 @@ CB_HD void for_each_spring(const Params<R>& p, int i, int j, Fn&& fn) {
     if (Interior || (i < n - 1 && j < n - 1)) fn(q + n + 1, k, L, R(1));
   }
   if constexpr ((S & BEND) != 0) {
-    const R k = p.k_bend, L = p.L_bend;
-    if (Interior || j > 1) fn(q - 2, k, L, R(1));
-    if (Interior || j < n - 2) fn(q + 2, k, L, R(1));
-    if (Interior || i > 1) fn(q - 2 * n, k, L, R(1));
-    if (Interior || i < n - 2) fn(q + 2 * n, k, L, R(1));
+    const R L = p.L_bend;
+    const R kr = p.k_bend * edge_spring_weight<R, Interior>(n, i);
+    const R kc = p.k_bend * edge_spring_weight<R, Interior>(n, j);
+    if (Interior || j > 1) fn(q - 2, kr, L, R(1));
+    if (Interior || j < n - 2) fn(q + 2, kr, L, R(1));
+    if (Interior || i > 1) fn(q - 2 * n, kc, L, R(1));
+    if (Interior || i < n - 2) fn(q + 2 * n, kc, L, R(1));
   }
 }
 
 // Ball contact of node x linearised (partner b, rest length R, always compressed while the
-// node is inside; no term outside or at the very centre, as eq. 4's force).
+// node is inside; no term outside or at the very centre, as eq. 4's force); `weight` is the
+// node's mass weight (contact per area, as node_force's).
 template <class R>
-CB_HD PairTerms<R> contact_terms(const Params<R>& p, V3<R> x, V3<R> ball_p) {
+CB_HD PairTerms<R> contact_terms(const Params<R>& p, V3<R> x, V3<R> ball_p, R weight) {
   const V3<R> d = ball_p - x;
-  PairTerms<R> t = pair_terms(d, p.ball_k, p.ball_radius, R(1));
+  PairTerms<R> t = pair_terms(d, p.ball_k * weight, p.ball_radius, R(1));
   const bool inside = length(d) < p.ball_radius;
   t.s = inside ? t.s : R(0);
   t.axial = inside ? t.axial : R(0);
@@ -107,7 +112,7 @@ CB_HD V3<R> node_jvp(const Params<R>& p, const Planes<R>& pos, const W& w, V3<R>
     if (p.k_plate != R(0))
       out += plate_sum<R, Interior>(p.n, i, j, i * p.n + j, p.n, w, wi) * (-p.k_plate);
   if constexpr ((S & BALL) != 0) {
-    cj = pair_jvp(contact_terms(p, xi, ball_p), wb - wi);
+    cj = pair_jvp(contact_terms(p, xi, ball_p, mass_weight<R, Interior>(p.n, i, j)), wb - wi);
     out += cj;
   }
   if constexpr (!Interior) {
@@ -135,7 +140,7 @@ CB_HD V3<R> node_neg_diag(const Params<R>& p, const Planes<R>& pos, V3<R> xi, in
     }
   }
   if constexpr ((S & BALL) != 0) {
-    cd = pair_diag(contact_terms(p, xi, ball_p));
+    cd = pair_diag(contact_terms(p, xi, ball_p, mass_weight<R, Interior>(p.n, i, j)));
     out += cd;
   }
   if constexpr (!Interior) {
@@ -186,7 +191,7 @@ CB_HD V3<R> vv_force_node(const Params<R>& p, const Planes<R>& P, const Planes<R
   const V3<R> x = P.get(q), vh = V.get(q);
   V3<R> contact{R(0), R(0), R(0)};
   const V3<R> f = node_force<R, E, Interior>(p, P, V, x, vh, i, j, fin, ball_p, contact);
-  const V3<R> v = vv_kick(vh, f, p.inv_mass, gamma, dt);
+  const V3<R> v = vv_kick(vh, f, p.inv_mass * inv_mass_weight<R, Interior>(p.n, i, j), gamma, dt);
   Fb.set(q, f);
   P2.set(q, x);
   V2.set(q, v);
@@ -206,7 +211,8 @@ CB_HD V3<R> vv_ball_force(const Params<R>& p, V3<R> contact_sum) {
 // --- linearised implicit Euler ----------------------------------------------------------
 //   (M + dt C - dt^2 K) dv = dt (F(x, v) + dt K v),   v' = v + dv,   x' = x + dt v'
 // solved by Jacobi-preconditioned CG from dv = 0. The unknowns are the n^2 nodes and the
-// ball (index N = n^2 in every CG vector). `a` is m + dt c (nodes) or M_b + dt beta2 (ball).
+// ball (index N = n^2 in every CG vector). `a` is m + dt c (nodes: an interior node's, times
+// mass_weight at each node, as M and C are) or M_b + dt beta2 (ball).
 template <class R>
 struct CgVectors {
   Planes<R> x, r, z, d, p[2], ap;  // dv, residual, preconditioned residual, diagonal,
@@ -244,8 +250,8 @@ CB_HD void ie_rhs_node(const Params<R>& p, const Planes<R>& P, const Planes<R>& 
   const V3<R> kv = node_jvp<R, S, Interior>(p, P, vel, x, v, i, j, ball_p, ball_v, cj);
   const V3<R> rhs = (f + kv * dt) * dt;
   const V3<R> nd = node_neg_diag<R, S, Interior>(p, P, x, i, j, ball_p, cd);
-  const R dt2 = dt * dt;
-  const V3<R> dg{a_node + dt2 * nd.x, a_node + dt2 * nd.y, a_node + dt2 * nd.z};
+  const R dt2 = dt * dt, an = a_node * mass_weight<R, Interior>(p.n, i, j);
+  const V3<R> dg{an + dt2 * nd.x, an + dt2 * nd.y, an + dt2 * nd.z};
   cg.x.set(q, {R(0), R(0), R(0)});
   cg.d.set(q, dg);
   cg_set_residual(cg, q, rhs, dg, sums.bb, sums.rz);
@@ -290,7 +296,7 @@ CB_HD R ie_apply_node(const Params<R>& p, const Planes<R>& P, const CgVectors<R>
   auto w = [&](int r) { return cg_direction(cg, from, r, first, beta); };
   const V3<R> wi = w(q);
   const V3<R> kw = node_jvp<R, S, Interior>(p, P, w, P.get(q), wi, i, j, ball_p, wb, cj);
-  const V3<R> ap = wi * a_node - kw * (dt * dt);
+  const V3<R> ap = wi * (a_node * mass_weight<R, Interior>(p.n, i, j)) - kw * (dt * dt);
   cg.p[1 - from].set(q, wi);
   cg.ap.set(q, ap);
   return dot(wi, ap);

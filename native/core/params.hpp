@@ -46,7 +46,7 @@ enum Integrator : int { SEMI_IMPLICIT_EULER = 0, VELOCITY_VERLET = 1, IMPLICIT_E
 struct Config {
   int n = 0;
   double rest_len = 0;      // L = size / (n - 1)
-  double node_mass = 0;     // total mass / n^2
+  double node_mass = 0;     // an interior node's: total mass / (n - 1)^2 (mass_weight)
   double k_struct = 0, k_shear = 0, k_bend = 0;
   double k_plate = 0;       // N/m: the plate bending term's k a stencil (BEND), D / L^2; 0: none
   double struct_compress = 0;  // 0: tension-only structural springs (eq. 2); 1: two-sided
@@ -136,17 +136,56 @@ inline int grip_node_count(double u, int n) {
   return m < double(cap) ? int(m) : cap;
 }
 
+// Lumped masses by area: node (i, j) stands for its share of the sheet, L^2 inside, half of
+// it on an edge, a quarter at a corner, so its mass is node_mass (an interior node's,
+// total / (n - 1)^2) times this weight, 1/2 for each edge it lies on, and the weights sum
+// to (n - 1)^2: the total is the cloth's mass. (Uniform masses total / n^2 gave the edges
+// twice their share, an O(L) error in the sag: docs/accuracy.md.) From the indices alone,
+// so no array; an interior node (Interior: no edge) is 1 at compile time. Gravity and
+// damping (node_force) are per unit of it, so damping stays a rate, and every kick divides
+// by node_mass times it; forces that are not per mass (springs, contact, grip, wind) are not.
+template <class R, bool Interior = false>
+CB_HD R mass_weight(int n, int i, int j) {
+  if constexpr (Interior) return R(1);
+  const R wi = (i == 0 || i == n - 1) ? R(0.5) : R(1);
+  const R wj = (j == 0 || j == n - 1) ? R(0.5) : R(1);
+  return wi * wj;
+}
+
+// 1 / mass_weight (1, 2 or 4), so a kick multiplies rather than divides: exact either way,
+// the weights being powers of two.
+template <class R, bool Interior = false>
+CB_HD R inv_mass_weight(int n, int i, int j) {
+  if constexpr (Interior) return R(1);
+  const R wi = (i == 0 || i == n - 1) ? R(2) : R(1);
+  const R wj = (j == 0 || j == n - 1) ? R(2) : R(1);
+  return wi * wj;
+}
+
+// A spring along a free edge (a structural or bending spring between two nodes of the
+// border row or column `line` lies on) stands for half the strip of sheet an inner one
+// does, the other half lying outside the cloth, so it has half the stiffness: the springs'
+// share of each cell, summed, as masses by area are the nodes' (with full-stiffness edge
+// springs the free edges were a hem twice as stiff as the sheet, an O(L) error in the sag:
+// docs/accuracy.md). `line` is the row index for a spring along a row (j to j +- d), the
+// column index for one along a column; a diagonal spring is never along an edge.
+template <class R, bool Interior = false>
+CB_HD R edge_spring_weight(int n, int line) {
+  if constexpr (Interior) return R(1);
+  return (line == 0 || line == n - 1) ? R(0.5) : R(1);
+}
+
 template <class R>
 struct Params {
   int n;
   R L, L_diag, L_bend;
-  R inv_mass;
+  R inv_mass;           // an interior node's; node (i, j)'s is this times inv_mass_weight
   R k_struct, k_shear, k_bend, struct_compress;
   R k_plate;            // the plate bending term's k (BEND); 0: none, and the term adds 0
   unsigned effects;     // Config::effects: the run-time effects are tested here
-  V3<R> gravity_force;  // m g per node; 0 without GRAVITY
+  V3<R> gravity_force;  // m g of an interior node (times mass_weight); 0 without GRAVITY
   V3<R> gravity;
-  R damping;            // 0 without DAMPING
+  R damping;            // an interior node's (times mass_weight); 0 without DAMPING
   R ball_radius, ball_inv_mass, ball_mass, ball_k, ball_damping;
   bool ball_edges;         // Config::ball_edges
   R coupling_k;
@@ -212,5 +251,11 @@ template <class R>
 struct Ball {
   V3<R> p, v;
 };
+
+// The inverse mass of node q = i n + j of an n x n grid, from an interior node's.
+template <class R>
+CB_HD R node_inv_mass(R inv_mass, int n, int q) {
+  return inv_mass * inv_mass_weight<R>(n, q / n, q % n);
+}
 
 }  // namespace cb

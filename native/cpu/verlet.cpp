@@ -61,7 +61,7 @@ class CpuVerlet final : public CpuIntegrator<R> {
 #pragma omp for schedule(static)
           for (int q = 0; q < N; ++q) {
             V3<R> x = P.get(q), u = V.get(q);
-            vv_drift(x, u, F.get(q), p.inv_mass, gamma, dt);
+            vv_drift(x, u, F.get(q), node_inv_mass(p.inv_mass, n, q), gamma, dt);
             P.set(q, x);
             V.set(q, u);
           }

@@ -20,13 +20,13 @@ using R = CB_REAL;
 using ci::kBlock;
 
 __global__ void __launch_bounds__(kBlock)
-    vv_drift_kernel(int N, R inv_mass, R gamma, Planes<R> P, Planes<R> V, Planes<R> F,
+    vv_drift_kernel(int n, int N, R inv_mass, R gamma, Planes<R> P, Planes<R> V, Planes<R> F,
                     Ball<R>* ball, const V3<R>* fb, R ball_inv_mass, R gamma_b, bool has_ball,
                     R dt) {
   const int first = blockIdx.x * blockDim.x + threadIdx.x;
   for (int q = first; q < N; q += gridDim.x * blockDim.x) {
     V3<R> x = P.get(q), u = V.get(q);
-    vv_drift(x, u, F.get(q), inv_mass, gamma, dt);
+    vv_drift(x, u, F.get(q), node_inv_mass(inv_mass, n, q), gamma, dt);
     P.set(q, x);
     V.set(q, u);
   }
@@ -113,7 +113,7 @@ class CudaVerlet final : public CudaIntegrator<R> {
 
   void substep(cudaStream_t s, const CudaView<R>& v, int b, R dt) override {
     const unsigned blocks = ci::grid_blocks(N_, v.max_blocks);
-    vv_drift_kernel<<<blocks, kBlock, 0, s>>>(N_, v.p.inv_mass, args_.gamma, v.pos[b], v.vel[b],
+    vv_drift_kernel<<<blocks, kBlock, 0, s>>>(v.p.n, N_, v.p.inv_mass, args_.gamma, v.pos[b], v.vel[b],
                                               args_.F, v.ball + b, fb_, v.p.ball_inv_mass,
                                               args_.gamma_b, (effects_ & BALL) != 0, dt);
     force(s, v, b, dt);

@@ -94,14 +94,17 @@ def test_the_default_scene_and_classic() -> None:
 
 def test_default_scene_keeps_its_per_node_values_at_n48() -> None:
     """The default scene gives material values derived from the per-node ones it had at
-    n = 48 (damping 0.02 N s/m, contact 5000 N/m): at n = 48 they come back to rounding."""
+    n = 48 (damping 0.02 N s/m on uniform masses M / n^2, contact 5000 N/m): at n = 48 they
+    come back to rounding. The damping is a rate (per unit mass), kept: with masses by
+    area an interior node has M / (n - 1)^2, so its beta1 is 0.02 n^2 / (n - 1)^2 (the
+    cloth's total damping, rate times M, is unchanged)."""
     s = Scene.load("default")
     assert s.n == 48 and s.material_keys == [
         "cloth.damping_rate", "ball.stiffness_per_area", "cloth.bending_stiffness"]
     engine = node_values(s)
     for damping, k in ((engine.damping, engine.ball_k), (node_damping(s),
                                                           node_contact_stiffness(s))):
-        assert damping == pytest.approx(0.02, rel=1e-12)
+        assert damping == pytest.approx(0.02 * 48**2 / 47**2, rel=1e-12)
         assert k == pytest.approx(5000.0, rel=1e-12)
     # Its bending stiffness, beside the bending springs (docs/accuracy.md: the rebound and
     # the game's start converge with it, to n = 193): D = 2 mN m, k = D / L^2 a stencil.
@@ -117,17 +120,20 @@ def test_the_papers_scenes_keep_their_per_node_values_at_their_n(
     """classic (the paper's set-up, at the paper's n = 60), windy, practice and silk give
     material values that derive, at the scene's own n, the paper's per-node values
     (damping 0.002 N s/m, contact 5000 N/m), and at any other n the same material's: the
-    per-node damping scales as the node's mass, the contact as the node's area."""
+    per-node damping scales as the node's mass, the contact as the node's area. The paper's
+    damping was per node of uniform mass M / n^2; the rate derived from it is kept, so with
+    masses by area (an interior node M / (n - 1)^2) the interior beta1 is n^2 / (n - 1)^2
+    times the paper's, and the cloth's total damping is the paper's."""
     s = Scene.load(name)
     assert s.n == n and s["cloth"]["mass"] == mass
     engine = node_values(s)
     has_ball = "ball" in s.effects
     for damping, k in ((engine.damping, engine.ball_k), (node_damping(s),
                                                           node_contact_stiffness(s))):
-        assert damping == pytest.approx(0.002, rel=1e-12)
+        assert damping == pytest.approx(0.002 * n**2 / (n - 1) ** 2, rel=1e-12)
         if has_ball:
             assert k == pytest.approx(5000.0, rel=1e-12)
     finer = s.with_changes({"cloth": {"n": 2 * n - 1}})
-    assert node_damping(finer) == pytest.approx(0.002 * n**2 / (2 * n - 1) ** 2, rel=1e-12)
+    assert node_damping(finer) == pytest.approx(0.002 * n**2 / (2 * n - 2) ** 2, rel=1e-12)
     if has_ball:
         assert node_contact_stiffness(finer) == pytest.approx(5000.0 / 4, rel=1e-12)

@@ -16,7 +16,16 @@ import pytest
 from clothball import _native
 from clothball.game import Cloth, ReferenceCloth, Scene
 
-FRAMES = 40  # x substeps (8-12 here): hundreds of substeps per case
+FRAMES = 40  # x the automatic substeps (2-6 here)
+
+# A free net struck by the ball (or held by strain limiting alone) is sensitive to its
+# start, the more so with the cell-assembled border (lighter border nodes, border springs
+# at half k): two oracles a float32 rounding apart spread so far in 40 frames that the
+# motion is only 22-75 tolerances, where the check below asks for 100. In 30 frames it is
+# 130-766 (`python tools/lab/oracle_spread.py`), so these runs end while the comparison
+# still means something.
+CASE_FRAMES = {"ball": 30, "ball_edges": 30, "ball_lands": 30, "strain_limit": 30,
+               "material_ball": 30, "material_ball_edges": 30}
 
 BASE = {"cloth": {"n": 14, "size": 0.5, "height": 1.0}}
 
@@ -146,10 +155,12 @@ def test_matches_oracle(case: str, backend: str, precision: str) -> None:
 
 
 def check_against_oracle(case: str, scene: Scene, backend: str, precision: str,
-                         frames: int = FRAMES, normals: bool = True) -> Cloth:
-    """``frames`` frames of the scene on the backend against the oracle, with the hands
-    moved (HIPS_MOVE), and the normals (their bound is these small cloths'); returns the
-    cloth."""
+                         frames: int | None = None, normals: bool = True) -> Cloth:
+    """``frames`` frames (default: the case's, CASE_FRAMES or FRAMES) of the scene on the
+    backend against the oracle, with the hands moved (HIPS_MOVE), and the normals (their
+    bound is these small cloths'); returns the cloth."""
+    if frames is None:
+        frames = CASE_FRAMES.get(case, FRAMES)
     cloth = Cloth(scene, backend=backend, precision=precision)
     ref = ReferenceCloth(scene)
     hips = ref.hips + HIPS_MOVE

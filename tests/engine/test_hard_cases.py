@@ -4,11 +4,21 @@ the ball above the cloth it rests on)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from clothball.game import Cloth, Scene, SceneError, SimulationError
 from clothball.game.sim.cloth import UnstableSceneWarning, rest_positions
-from clothball.game.sim.stability import SAFETY, auto_substeps, stable_dt
+from clothball.game.sim.config import node_values
+from clothball.game.sim.stability import (
+    SAFETY,
+    SWITCH_MARGIN,
+    auto_substeps,
+    euler_dt_bound,
+    node_stiffness,
+    stable_dt,
+)
 from clothball.game.study.energy import cloth_energy
 
 
@@ -85,6 +95,38 @@ def test_auto_substeps_follow_stiffness_and_ball_speed() -> None:
     c.set_ball([0.0, 2.0, 0.0], [0.0, -400.0, 0.0])  # a setter the bound depends on
     assert c.substeps > before
     assert c.dt * 400.0 <= 0.2 * soft["ball"]["radius"]  # no more than 1/5 radius a substep
+
+
+def test_a_lightly_damped_tension_only_net_shaken_hard_keeps_its_energy() -> None:
+    """Tension-only springs switch off as they cross their rest length; across that kink
+    semi-implicit Euler conserves no energy. A stiff net of them, damped at the scene
+    default's 2 /s (damping ratio 3.6e-5 at its fastest mode), every node kicked at 3 m/s:
+    at 0.9 of the linear bound (17 substeps) the energy grows past the kick's within 10 s,
+    at the automatic substeps (SWITCH_MARGIN of the bound: 18) it only falls."""
+    s = scene(24, cloth={"k_structural": 1e5},
+              sim={"effects": ["structural", "gravity", "damping", "coupling"]})
+    m = s.node_mass
+    linear = euler_dt_bound(node_stiffness(s) / m, node_values(s).damping / m)
+    frame = s["sim"]["frame_dt"]
+    assert math.ceil(frame / (SAFETY * linear)) == 17  # what the bound took before
+    auto = Cloth(s, backend="cpu", precision="float64")
+    assert auto.substeps == math.ceil(frame / (SWITCH_MARGIN * linear)) == 18
+    gains = {}
+    for substeps in (17, auto.substeps):
+        fixed = s.with_changes({"sim": {"substeps": substeps, "allow_unstable": True}})
+        if substeps < auto.substeps:  # beyond the bound now: accepted with a warning
+            with pytest.warns(UnstableSceneWarning):
+                c = Cloth(fixed, backend="cpu", precision="float64")
+        else:
+            c = Cloth(fixed, backend="cpu", precision="float64")
+        kick = np.random.default_rng(1).normal(size=c.velocities().shape) * 3.0
+        c.set_state(c.positions(), kick)
+        e0 = cloth_energy(c)
+        c.step(1200)
+        assert np.all(np.isfinite(c.positions()))
+        gains[substeps] = cloth_energy(c) - e0
+    assert gains[17] > 0.0, gains
+    assert gains[auto.substeps] < 0.0, gains
 
 
 # --- the hard cases ----------------------------------------------------------------------

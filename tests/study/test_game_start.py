@@ -4,11 +4,10 @@ The start every round has: the flat cloth at rest in the hands, the ball 0.4 m a
 ``game/study/gamestart.py`` samples the ball's and the cloth centre's heights every 50 ms
 for 1.5 s through the public ``Cloth`` (CPU float64, one thread); the distance between two
 grids is the largest difference of any sample. Each scene is checked against its own finer
-grids, nothing hard-coded: the distance between grids whose spacing halves must shrink as
-the spacing does (n - 1 = 24, 48, 96, from where issue 42 asks it; slow: n = 97 in float64
-is about a minute a scene on a 2-core machine), and where the scene is converged well
-enough for play the last distance must be within ``PLAY_MM``. docs/accuracy.md ("The
-game's start") has the measured distances and orders of every scene and quantity.
+grids, nothing hard-coded: on issue 42's grids (n = 24, 48, 96; slow: n = 96 in float64 is
+about a minute a scene on a 2-core machine) d(48, 96) must be within ``PLAY_MM`` and at
+most half of d(24, 48), for every scene with a ball. docs/accuracy.md ("The game's start")
+has the measured distances and orders of every scene and quantity.
 """
 
 from __future__ import annotations
@@ -23,9 +22,10 @@ from clothball.game.study.grid import sized
 
 BALL_SCENES = [s for s in available() if "ball" in Scene.load(s).effects]
 PLAY_MM = 5.0  # issue 42's target for d(48, 96), the game's n and its double
-# The scenes that meet it (docs/accuracy.md, "The game's start": classic and windy, the
-# paper's net of tension-only springs without shear or bending, are 7.1 and 6.3 mm off).
-WITHIN_PLAY = ("default", "silk")
+HALVING = 0.5  # and d(48, 96) at most this of d(24, 48): first order or better
+# On the GPU's longer range, a distance this small counts as converged whether or not the
+# next one shrinks: classic's d(49, 97) 0.2 mm, d(97, 193) 0.5 mm (docs/accuracy.md).
+CONVERGED_MM = 1.0
 
 
 @functools.cache
@@ -53,15 +53,18 @@ def test_every_shipped_scene_with_a_ball_is_checked() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("name", BALL_SCENES)
 def test_the_game_start_converges(name: str, record_property) -> None:
-    d = distances(name, (25, 49, 97), record_property)
-    assert d[1] < d[0], d
-    if name in WITHIN_PLAY:
-        assert d[1] <= PLAY_MM, d
+    """Issue 42's target on its own grids (n - 1 = 23, 47, 95: the game's n and its
+    double), every scene with a ball: d(48, 96) <= PLAY_MM and <= HALVING d(24, 48)."""
+    d = distances(name, (24, 48, 96), record_property)
+    assert d[1] <= PLAY_MM, d
+    assert d[1] <= HALVING * d[0], d
 
 
 @pytest.mark.gpu
 @pytest.mark.parametrize("name", BALL_SCENES)
 def test_the_game_start_converges_on_the_gpu(name: str, cuda: str, record_property) -> None:
-    """The larger range on CUDA (float64): the distance keeps shrinking to n = 193."""
+    """The larger range on CUDA (float64, odd n: a node at the centre): each distance
+    shrinks to n = 193, or is already below CONVERGED_MM."""
     d = distances(name, (25, 49, 97, 193), record_property, backend=cuda)
-    assert d[2] < d[1] < d[0], d
+    for a, b in zip(d, d[1:], strict=False):
+        assert b < a or b < CONVERGED_MM, d

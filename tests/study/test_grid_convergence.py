@@ -5,7 +5,8 @@ ball rebounds and the cloth rings) are measured on grids whose spacing halves (n
 48, 96 on the CPU, ``slow``; to 192 on the GPU; the documentation tests below from 12),
 each quantity against the same quantity on the other grids (no reference values are
 hard-coded). Where
-the physics converges, successive differences must shrink; the observed orders are printed
+the physics converges, successive differences must shrink, or be below what the quantity
+resolves (``RESOLVED``); the observed orders are printed
 (``-s``) and recorded as test properties. The hands hold a grip of fixed length
 (``coupling.grip_radius``); held by single nodes, point supports, the static sag and what
 rides on it drift by a constant few mm per halving instead, the membrane's displacement
@@ -49,15 +50,16 @@ from clothball.game.study.grid import (
 )
 
 CPU_SIZES = (13, 25, 49)  # spacing 1/12, 1/24, 1/48
-# Where the default's grip (10 cm, a smooth density: docs/scenes.md) is resolved: at n = 13
-# (L = 8.3 cm) it is the corner node and a tenth of the next, a point support, and its sag
-# there is pre-asymptotic (92.4, 92.7, 93.8, 94.5 mm at n = 13-97: the first difference the
-# smallest). Issue 42's targets are from n = 25. On the GPU's range to n = 193 the default
-# with its earlier bending stiffness (0.5 mN m) did not converge: its cloth under the
-# resting ball snapped at times that move with n (the rebound -7.11, -0.30, +0.45 mm, the
-# light variant's lowest point -5.04, -1.36, -1.92); with 2 mN m both converge (-6.90,
-# -0.71, +0.07 and -2.10, -0.63, +0.04; CPU float64, which gave CUDA's figures at
-# 0.5 mN m to the digit; docs/accuracy.md, "The larger range").
+# Where the default's grip (10 cm, a smooth density: docs/scenes.md) is resolved: at n =
+# 13 (L = 8.3 cm) it is the corner node and a tenth of the next, a point support, and its
+# sag there is pre-asymptotic (97.6, 95.4, 95.4, 95.5 mm at n = 13-97: the first
+# difference 2.1 mm, the others under 0.1). Issue 42's targets are from n = 25. On the
+# GPU's range to n = 193 the default with its earlier bending stiffness (0.5 mN m) did not
+# converge: its cloth under the resting ball snapped at times that move with n (the
+# rebound -7.11, -0.30, +0.45 mm, the light variant's lowest point -5.04, -1.36, -1.92);
+# with 2 mN m both converge (-6.90, -0.71, +0.07 and -2.10, -0.63, +0.04; CPU float64,
+# which gave CUDA's figures at 0.5 mN m to the digit; docs/accuracy.md, "The larger
+# range").
 CONVERGING_SIZES = (25, 49, 97)
 GPU_SIZES = (25, 49, 97, 193)
 LIGHT_DAMPING = 10.0  # 1/s: what the default's per-node damping was at n = 16
@@ -109,6 +111,18 @@ CONVERGING = {
     "light": ("sag_m", "corner_force_rest_n", "landing_s", "lowest_y_m", "ring_hz",
               "natural_hz"),
 }
+# Below these a difference counts as converged whether or not the next one shrinks. The
+# static sag: with the cloth assembled cell by cell (issue 42) it lies within 0.1 mm from
+# n = 25 to 193 (95.432, 95.404, 95.482, 95.506 mm at n = 25, 49, 97, 193), two error
+# terms of opposite sign meeting there, so its differences turn (-0.03, +0.08, +0.02 mm)
+# where uniform masses moved it 1.8 mm at order 0.47; the landing rides on it (+0.02,
+# +0.05, +0.02 ms). The light variant's ring: its estimate over the 1.2 s after the landing
+# moves by up to 0.036 Hz as the window's ends move by a few frames (n = 49), and its
+# differences from n = 49 are 0.003 and 0.014 Hz (docs/accuracy.md, "Cell-assembled
+# springs").
+RESOLVED = {"sag_m": 1e-4, "landing_s": 1e-4, "ring_hz": 0.03}
+
+
 # What drifts at the rate point supports set (the "point" scene: each hand holds one node):
 # a membrane held at a point stretches without bound near it (the strain falls as 1 / r,
 # the displacement grows as log(1 / L)), so the whole cloth hangs lower by about the same
@@ -133,7 +147,9 @@ def check_converges(name: str, sizes: tuple[int, ...], backend: str, record) -> 
         line = line_of(name, c)
         print(line)
         record(f"{name}.{q}", line)
-        assert c.shrinking(), line
+        d = [abs(v) for v in c.differences]
+        assert all(b < a or b <= RESOLVED.get(q, 0.0) for a, b in zip(d, d[1:],
+                                                                     strict=False)), line
 
 
 @pytest.mark.slow

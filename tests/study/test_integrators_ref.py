@@ -126,7 +126,7 @@ def test_verlet_is_textbook_verlet_without_damping() -> None:
                              "sim": {"effects": ["structural", "gravity", "coupling"]}})
     ic = IntegratingCloth(scene, "velocity_verlet")
     ic.hips = ic.hips + 0.01
-    m, dt = scene.node_mass, 1e-4
+    m, dt = scene.node_masses, 1e-4
     x, v = ic.pos.copy(), ic.vel.copy()
     a = ic.forces(x, v)[0] / m
     ic.substep(dt)
