@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from clothball.game.sim.scene import Scene
 from clothball.game.wire import protocol as P
 from clothball.server.limits import Limits
 from clothball.server.room import RoomSettings
@@ -41,6 +40,7 @@ from tests.server import protocol_doc as D
 from tests.server import workers
 from tests.server.conformance_client import HELLO, Transcript, Wire, raw_ws_close_code
 from tests.server.conftest import FAST, TINY, http_get_url, live_server, run
+from tests.server.unstable import unstable_scene
 
 # The edge server's room is unstable on purpose (its simulation must fail).
 pytestmark = pytest.mark.filterwarnings(
@@ -109,15 +109,6 @@ def decode_mesh_payload(data: bytes) -> np.ndarray:
             q = np.cumsum(q, axis=1, dtype=np.uint16)
     lo, hi = read(data, "mesh", 28), read(data, "mesh", 40)
     return lo + q.astype(np.float64) * (hi - lo) / 65535
-
-
-def unstable_scene() -> Scene:
-    # Past the stability bound on purpose (as test_faults): non-finite after a few seconds.
-    s = Scene.load("classic").with_changes(
-        {"cloth": {"n": 12, "k_structural": 2000.0}, "sim": {"substeps": 1,
-                                                             "allow_unstable": True}})
-    s.name = "unstable"
-    return s
 
 
 # --- the scripted session ----------------------------------------------------------------------

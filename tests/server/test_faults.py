@@ -27,7 +27,6 @@ from typing import Any
 
 import pytest
 from clothball.game.net.client import NetClient
-from clothball.game.sim.scene import Scene
 from clothball.game.wire.replay import read_replay
 from clothball.server.app import GameServer, ServerConfig
 from clothball.server.limits import Limits
@@ -46,6 +45,7 @@ from tests.server.conftest import (
     run,
     until,
 )
+from tests.server.unstable import unstable_scene
 
 HERE = Path(__file__).parent
 
@@ -533,13 +533,7 @@ def test_two_processes_on_an_unusable_data_directory_play_without_recording(tmp_
 
 @pytest.mark.filterwarnings("ignore::clothball.game.sim.cloth.UnstableSceneWarning")
 def test_a_non_finite_room_stops_with_a_clear_error_and_the_others_run_on(tmp_path) -> None:
-    # Past the stability bound on purpose (one substep per frame, springs stiff enough to
-    # need about two): rounding errors grow until the state is non-finite, after ~5 s of
-    # frames, long after the clients below have joined however loaded the machine is.
-    unstable = Scene.load("classic").with_changes(
-        {"cloth": {"n": 12, "k_structural": 2000.0}, "sim": {"substeps": 1,
-                                                             "allow_unstable": True}})
-    unstable.name = "unstable"
+    unstable = unstable_scene()
 
     async def main() -> None:
         async with workers.started(
