@@ -22,6 +22,7 @@ _F64: TypeAlias = npt.NDArray[np.float64]
 EFFECT_BITS: dict[str, int]
 INTEGRATOR_IDS: dict[str, int]  # Config.integrator of each scene integrator name
 TILED_MIN_N: int
+TILED_MIN_N_BEND: int
 
 class Config:
     n: int

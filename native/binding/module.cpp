@@ -161,6 +161,7 @@ PYBIND11_MODULE(_native, m) {
       "multiprocessors and `shared_max` bytes of shared memory a block (None: it cannot run "
       "tiled there), and whether a cloth would take it (core/tiled_plan.hpp).");
   m.attr("TILED_MIN_N") = cb::kTiledMinN;
+  m.attr("TILED_MIN_N_BEND") = cb::kTiledMinNBend;
   m.def("per_node", &cb::per_node, py::arg("config"),
         "The configuration with its material values turned into per-node ones, as the "
         "backends see it (damping from damping_rate, ball_k from ball_k_area, k_plate from "

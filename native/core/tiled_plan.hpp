@@ -23,12 +23,21 @@ namespace cb {
 // update takes (128; float32's: 56).
 constexpr int tiled_threads(size_t real_bytes) { return real_bytes == 4 ? 1024 : 512; }
 
-// The smallest n at which the tiled frame is taken by default. Below it a launch a
-// substep, over a state that stays in L2, is about as fast: on an H100 (µs a substep, a
-// launch a substep against tiled) classic float32 4.67 / 5.50 at n = 384, 5.40 / 5.54 at
-// 512, 10.32 / 9.02 at 768, 22.11 / 14.43 at 1024; classic float64 7.30 / 7.79 at 384,
-// 10.46 / 9.88 at 512; default float32 7.28 / 6.89 at 384, 9.03 / 8.25 at 512.
-constexpr int kTiledMinN = 512;
+// The smallest n at which the tiled frame is taken by default, by the halo's depth. Below
+// it a launch a substep, over a state that stays in L2, is about as fast. On an H100 (µs a
+// substep, a launch a substep against tiled) classic float32 4.67 / 5.50 at n = 384, 5.40
+// / 5.54 at 512, 10.32 / 9.02 at 768, 22.11 / 14.43 at 1024; classic float64 7.30 / 7.79
+// at 384, 10.46 / 9.88 at 512; default float32 7.28 / 6.89 at 384, 9.03 / 8.25 at 512. A
+// node with bending springs (reach 2: the default's 12 springs and plate term) has more
+// to compute for the state it keeps on chip, and gains from n = 320: on an H200 (issue 41,
+// two runs alternated) default float32 5.53 / 5.80 at 256, 7.28 / 6.52 at 320, 9.40 /
+// 8.65 at 384, 9.53 / 9.22 at 448, 12.1 / 9.56 at 480; float64 6.90 / 9.42 at 256, 11.4 /
+// 10.1 at 320, 14.9 / 12.0 at 384, 15.7 / 15.1 at 448, 20.0 / 15.7 at 480; classic there
+// float32 5.33 / 5.96 at 384 and 6.05 / 6.57 at 512, float64 8.17 / 8.42 at 384 and 9.88 /
+// 9.22 at 512 (docs/benchmarks/gpu-h200-2026-11-28-roofline).
+constexpr int kTiledMinN = 512;      // reach 1: structural and shear springs
+constexpr int kTiledMinNBend = 320;  // reach 2: bending springs
+inline int tiled_min_n(int reach) { return reach >= 2 ? kTiledMinNBend : kTiledMinN; }
 
 struct TiledPlan {
   int tiles_y = 0, tiles_x = 0;  // 0: no tiling fits
@@ -118,13 +127,13 @@ inline TiledPlan tiled_plan_for(const Config& c, size_t real_bytes, int blocks,
 
 // Whether to take the tiled frame: it must fit, and then CLOTHBALL_CUDA_TILED decides
 // ("1": wherever it fits, the tests' way to check it on small cloths; "0": never), else
-// n >= kTiledMinN.
+// n >= tiled_min_n(its halo's depth).
 inline bool tiled_wanted(const TiledPlan& plan, int n) {
   if (!plan.ok()) return false;
   const char* env = std::getenv("CLOTHBALL_CUDA_TILED");
   if (env && std::string(env) == "1") return true;
   if (env && std::string(env) == "0") return false;
-  return n >= kTiledMinN;
+  return n >= tiled_min_n(plan.reach);
 }
 
 }  // namespace cb

@@ -74,10 +74,15 @@ def test_configurations_that_cannot_run_tiled(changes: dict) -> None:
 
 
 def test_chosen_from_the_threshold_or_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """From TILED_MIN_N, or TILED_MIN_N_BEND where bending springs reach two nodes (the
+    default scene: more to compute a node for the state it keeps on chip)."""
     monkeypatch.delenv("CLOTHBALL_CUDA_TILED", raising=False)
-    small, large = _native.TILED_MIN_N - 8, _native.TILED_MIN_N
-    assert not plan(config("classic", small))["chosen"]
-    assert plan(config("classic", large))["chosen"]
+    assert _native.TILED_MIN_N_BEND < _native.TILED_MIN_N
+    for scene, least in (("classic", _native.TILED_MIN_N),
+                         ("default", _native.TILED_MIN_N_BEND)):
+        assert not plan(config(scene, least - 8))["chosen"]
+        assert plan(config(scene, least))["chosen"]
+    large = _native.TILED_MIN_N
     monkeypatch.setenv("CLOTHBALL_CUDA_TILED", "1")  # wherever it fits
     assert plan(config("classic", 14))["chosen"]
     monkeypatch.setenv("CLOTHBALL_CUDA_TILED", "0")  # never
