@@ -96,12 +96,15 @@ def measure(base: Scene, backend: str, precision: str, n: int, frames: int,
         **traffic(n, precision, substeps, copy_gbs)}
     if backend == "cuda":
         peaks = rl.Peaks(rl.HOPPER_SXM.name, rl.HOPPER_SXM.sms, rl.HOPPER_SXM.clock_ghz,
-                         copy_gbs)
+                         copy_gbs, rl.HOPPER_SXM.barrier_us)
         kernel_path = path if path in ("tiled", "substeps", "node_a_thread") else "substeps"
         row["roofline"] = rl.roofline(scene, precision, kernel_path, n * n, substeps, p50,
                                       peaks)
         row["roofline_fraction"] = row["roofline"]["roofline_fraction"]
         row["bound"] = row["roofline"]["bound"]
+        if row["roofline"]["barrier_us"]:
+            row["roofline_fraction_with_barrier"] = row["roofline"][
+                "roofline_fraction_with_barrier"]
     return row
 
 
@@ -185,6 +188,9 @@ def print_largest(rows: list[dict[str, Any]], copy_gbs: float | None) -> None:
         roof = ""
         if "roofline_fraction" in r:
             roof = f"; roofline {r['roofline_fraction']:.1%} of its {r['bound']} bound"
+            if "roofline_fraction_with_barrier" in r:
+                roof += (f" ({r['roofline_fraction_with_barrier']:.1%} with the grid "
+                         f"barrier's floor)")
         print(f"  {r['scene']} {r['precision']} ({r['backend']}): n = {r['n']}, p99 "
               f"{r['frame_us_p99']:.0f} us (median of {r.get('repeats', 1)}), {r['path']}"
               f"{roof}; a pass a substep would move "

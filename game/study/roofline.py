@@ -43,6 +43,11 @@ class Peaks:
     sms: int
     clock_ghz: float
     copy_gbs: float | None = None  # measured device-to-device copy, read + write
+    # The tiled frame's floor a substep, measured: the grid barrier with the halo's
+    # exchange and the ball's update, on a cloth so small its nodes cost nothing (H200,
+    # docs/benchmarks/gpu-h200-2026-11-28-roofline: 3.44 us). A substep's nodes cannot
+    # overlap it, so the tiled frame's bound is this plus its nodes' time at peak.
+    barrier_us: float | None = None
 
     @property
     def fp32_flops(self) -> float:  # 128 FP32 lanes a multiprocessor, an FMA a clock
@@ -65,7 +70,8 @@ class Peaks:
         return self.sms * 4 * 32 * self.clock_ghz * 1e9
 
 
-HOPPER_SXM = Peaks("H100/H200 SXM (datasheet)", 132, 1.98)
+HOPPER_SXM = Peaks("H100/H200 SXM (datasheet; the barrier an H200's)", 132, 1.98,
+                   barrier_us=3.44)
 
 # --- Counted from native/core/forces.hpp (see the module's docstring for the rules) ------
 # spring_force on the GPU: d = pj - pi (3), |d|^2 (5), len = d2 r (1), len - rest (1), the
@@ -95,11 +101,16 @@ SFU_F64_FLOPS = 16
 # flops are 40 % (classic) to 45 % (default) of them: the rest is the neighbours' shared
 # loads, the bounds tests of the border code every node runs (node_force<Interior =
 # false>: the grip's, the springs', the plate's coefficient flags), index arithmetic, the
-# two passes of the tiled frame, the finite check and the ball's tracking.
+# two passes of the tiled frame, the finite check and the ball's tracking. The float64
+# counts are of the kernels as at 50bb4ae (2026-11-29, tools/lab/ncu_float64.sh); a
+# float64 instruction issues no faster than a float32 one, so their issue bound is, if
+# anything, low.
 # (path, scene, precision) -> instructions a node-substep.
 INSTRUCTIONS = {
     ("tiled", "classic", "float32"): 342.4,       # n = 768, 100 substeps
     ("tiled", "default", "float32"): 864.7,       # n = 512, 86 substeps
+    ("tiled", "classic", "float64"): 444.4,       # n = 640, 68 substeps (2026-11-29)
+    ("tiled", "default", "float64"): 1061.3,      # n = 384, 73 substeps (2026-11-29)
     ("batch_fused", "classic", "float32"): 310.6,  # n = 60, 264 slots, 8 substeps
     ("batch_fused", "default", "float32"): 769.3,  # n = 48, 264 slots, 9 substeps
 }
@@ -190,12 +201,17 @@ def roofline(scene: Scene, precision: str, path: str, nodes: int, substeps: int,
     if instructions is not None:  # measured, where Nsight Compute counted this kernel
         times["issue"] = instructions * node_substeps / peaks.issue * 1e6
     bound = max(times, key=lambda k: times[k])
+    floor = peaks.barrier_us * substeps if path == "tiled" and peaks.barrier_us else 0.0
     return {"flops_per_node_substep": cost.flops, "sfu_per_node_substep": cost.sfu,
             "instructions_per_node_substep": instructions,
             "shared_bytes_per_node_substep": cost.shared_bytes,
             "dram_bytes_per_node_substep": cost.dram_bytes,
             "bound_us": times, "bound": bound,
             "roofline_fraction": times[bound] / measured_us if measured_us > 0 else 0.0,
+            # the tiled frame's: its barriers' floor, then the bound (0: no such floor)
+            "barrier_us": floor,
+            "roofline_fraction_with_barrier": ((times[bound] + floor) / measured_us
+                                               if measured_us > 0 and floor else 0.0),
             "peaks": peaks.name,
             "achieved_gflops": (cost.flops * node_substeps / (measured_us * 1e-6) / 1e9
                                 if measured_us > 0 else 0.0)}

@@ -47,6 +47,28 @@ def test_where_nsight_counted_the_instructions_issue_is_the_bound() -> None:
     assert roof["bound"] == "issue"
     assert roof["bound_us"]["issue"] == pytest.approx(0.7005 * 862.6, rel=5e-3)
     assert roof["roofline_fraction"] == pytest.approx(0.7005, rel=5e-3)
-    # No count for float64: the bound is then one of the counted resources.
-    f64 = rl.roofline(Scene.load("classic"), "float64", "tiled", 512 * 512, 67, 540.0)
-    assert "issue" not in f64["bound_us"] and f64["instructions_per_node_substep"] is None
+    # No count for the launch-a-substep path: the bound is then one of the counted
+    # resources.
+    lone = rl.roofline(Scene.load("classic"), "float64", "substeps", 256 * 256, 43, 300.0)
+    assert "issue" not in lone["bound_us"] and lone["instructions_per_node_substep"] is None
+    # Float64's count (Nsight Compute, classic n = 640, 68 substeps: 386.8 M warp
+    # instructions), as the record has it.
+    f64 = rl.roofline(Scene.load("classic"), "float64", "tiled", 640 * 640, 68, 815.2)
+    assert f64["instructions_per_node_substep"] == pytest.approx(
+        386_785_308 * 32 / (640 * 640 * 68), rel=1e-3)
+
+
+def test_the_tiled_frame_adds_its_barriers_floor() -> None:
+    """The tiled frame's bound is its barriers' measured floor a substep plus its nodes'
+    time at peak: with the floor at 3.44 us, 100 substeps add 344 us, whatever the size;
+    the paths without a grid barrier have none."""
+    scene = Scene.load("classic")
+    roof = rl.roofline(scene, "float32", "tiled", 768 * 768, 100, 1000.0)
+    assert roof["barrier_us"] == pytest.approx(100 * rl.HOPPER_SXM.barrier_us)
+    assert roof["roofline_fraction_with_barrier"] == pytest.approx(
+        roof["roofline_fraction"] + 0.344, rel=1e-9)
+    alone = rl.roofline(scene, "float32", "substeps", 256 * 256, 100, 1000.0)
+    assert alone["barrier_us"] == 0.0 and alone["roofline_fraction_with_barrier"] == 0.0
+    bare = rl.Peaks("no floor", 132, 1.98)
+    assert rl.roofline(scene, "float32", "tiled", 768 * 768, 100, 1000.0,
+                       bare)["barrier_us"] == 0.0
