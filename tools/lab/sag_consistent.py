@@ -6,7 +6,8 @@ energy of its own (sparse Jacobian; needs SciPy). Flags, one letter each:
     E  springs along a free edge (structural, bending) at half k: each stands for half a strip
     P  the plate's row and column stencils along a free edge at half weight
     B  each line's end segments given the stretch of the bend spring they lack (+2 k_bend)
-    x  none: the engine's uniform discretisation as it ships
+    G  the grip's shares its density integrated against each node's hat function
+    x  none: uniform masses and springs (the engine before issue 42's border: ME ships now)
 
     python tools/lab/sag_consistent.py default 13,25,49 x,M,E,ME     # seconds each
     python tools/lab/sag_consistent.py default 97 ME                 # n = 97: minutes
@@ -129,6 +130,34 @@ def energy(x, S, P, load, hips, held, hessian):
     return e, g, (H + sp.diags(diag)).tocsc()
 
 
+def hat_grips(scene: Scene) -> list:
+    """G: each held node's share the grip's density integrated against the node's hat
+    function along each edge (the trapezoid rule on a fine grid), not sampled at the node:
+    the node past the grip's end takes a share too."""
+    from clothball.game.sim.grip import Grip, grip_density
+    n, L, a = scene.n, scene.rest_length, scene["coupling"]["grip_radius"]
+    s = np.linspace(0.0, a, 4001)
+    rho = np.array([grip_density(v, a) for v in s])
+
+    def w(m: int) -> float:  # one edge's integral of rho times node m's hat
+        hat = np.clip(1.0 - np.abs(s - m * L) / L, 0.0, None)
+        return float(np.trapezoid(rho * hat, s))
+
+    held = []
+    for c, (ci, cj) in enumerate(((0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0))):
+        di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
+        held.append((c, ci, cj, 2.0 * w(0), np.zeros(3)))
+        m = 1
+        while m * L < a + L and 2 * m <= n - 2:
+            wm = w(m)
+            if wm > 0.0:
+                held.append((c, ci, cj + dj * m, wm, np.array([dj * m * L, 0.0, 0.0])))
+                held.append((c, ci + di * m, cj, wm, np.array([0.0, 0.0, di * m * L])))
+            m += 1
+    total = [sum(h[3] for h in held if h[0] == c) for c in range(4)]
+    return [Grip(c, i, j, wt / total[c], off) for c, i, j, wt, off in held]
+
+
 def sag(scene: Scene, flags: str) -> tuple[float, int]:
     """The centre's sag at rest (m) and the Newton iterations it took."""
     n = scene.n
@@ -142,7 +171,8 @@ def sag(scene: Scene, flags: str) -> tuple[float, int]:
     x = rest_positions(scene).reshape(-1, 3).copy()
     hips = corners_of(rest_positions(scene))
     K = scene["coupling"]["stiffness"]
-    held = [(g.corner, g.i * n + g.j, K * g.share, g.offset) for g in grips(scene)]
+    held = [(g.corner, g.i * n + g.j, K * g.share, g.offset) for g in
+            (hat_grips(scene) if "G" in flags else grips(scene))]
     tol = 1e-7 * float(np.abs(load).max())
     mu = 1e-2 * scene["cloth"]["k_structural"]
     e, g, H = energy(x, S, P, load, hips, held, True)
