@@ -11,7 +11,7 @@ import numpy as np
 from ... import _native
 from .cloth import corners_of, rest_positions
 from .grip import grips
-from .scene import Scene, mass_weights
+from .scene import Scene, line_weights, mass_weights
 
 STRUCTURAL_DIRS = ((0, -1), (0, 1), (-1, 0), (1, 0))
 SHEAR_DIRS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
@@ -35,10 +35,10 @@ def edge_weights(n: int, di: int, dj: int) -> np.ndarray:
     the border row or column), which stands for half the strip of sheet an inner one does;
     1 elsewhere."""
     w = np.ones((n - abs(di), n - abs(dj), 1))
-    if di == 0:
-        w[[0, -1]] = 0.5
-    if dj == 0:
-        w[:, [0, -1]] = 0.5
+    if di == 0:  # along a row: the row's weight
+        w = w * line_weights(n)[:, None, None]
+    if dj == 0:  # along a column: the column's
+        w = w * line_weights(n)[None, :, None]
     return w
 
 

@@ -41,14 +41,23 @@ class SceneError(ValueError):
     """A scene file or dict is malformed; the message names the offending key."""
 
 
-def mass_weights(n: int) -> Any:
-    """Each node's share of an interior node's area (and mass), an (n, n) array: 1/2 for
-    each edge of the sheet the node lies on, so 1 inside, 1/2 on an edge, 1/4 at a corner;
-    the sum is (n - 1)^2."""
+def line_weights(n: int) -> Any:
+    """Each row's (or column's) share of an inner one's strip of sheet, an (n,) array: 1/2
+    for the two on the border, 1 elsewhere (the engine's edge_spring_weight, params.hpp)."""
     import numpy as np
 
     w = np.ones(n)
     w[0] = w[-1] = 0.5
+    return w
+
+
+def mass_weights(n: int) -> Any:
+    """Each node's share of an interior node's area (and mass), an (n, n) array: its row's
+    and its column's ``line_weights`` multiplied, so 1 inside, 1/2 on an edge, 1/4 at a
+    corner; the sum is (n - 1)^2."""
+    import numpy as np
+
+    w = line_weights(n)
     return np.outer(w, w)
 
 

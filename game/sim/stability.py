@@ -29,6 +29,7 @@ import numpy as np
 
 from .config import node_values
 from .grip import grips
+from .scene import line_weights, mass_weights
 
 if TYPE_CHECKING:
     from .scene import Scene
@@ -62,9 +63,7 @@ def _node_rows(n: int) -> tuple[np.ndarray, ...]:
     inside, less near the border). A node's row depends only on
     its distance (up to 2) from each edge, so a grid of at most 9 x 9 has every kind."""
     m = min(n, 9)
-    w = np.ones(m)
-    w[0] = w[-1] = 0.5
-    weight = np.outer(w, w)
+    w, weight = line_weights(m), mass_weights(m)
     idx = np.arange(m)
     lo, hi = (idx > 0).astype(float), (idx < m - 1).astype(float)
     two = (idx >= 2).astype(float) + (idx <= m - 3)  # neighbours 2 away along an axis
