@@ -15,6 +15,7 @@ Usage: python3 tools/gpu_roofline.py [--json FILE] [--quick]
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -96,8 +97,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     copy = _native.cuda_copy_bandwidth_gbs(1 << 30)
-    peaks = rl.Peaks(rl.HOPPER_SXM.name, rl.HOPPER_SXM.sms, rl.HOPPER_SXM.clock_ghz, copy,
-                     rl.HOPPER_SXM.barrier_us)
+    peaks = dataclasses.replace(rl.HOPPER_SXM, copy_gbs=copy)
     classic, default = Scene.load("classic"), Scene.load("default")
     flat = default.with_changes({"cloth": {"bending_stiffness": 0.0}})
     rows: list[dict[str, Any]] = []

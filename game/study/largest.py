@@ -16,6 +16,7 @@ fraction of the roofline bound (``game.study.roofline``) its median frame reache
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -95,8 +96,7 @@ def measure(base: Scene, backend: str, precision: str, n: int, frames: int,
         "held": bool(p99 <= FRAME_BUDGET_US and complete),
         **traffic(n, precision, substeps, copy_gbs)}
     if backend == "cuda":
-        peaks = rl.Peaks(rl.HOPPER_SXM.name, rl.HOPPER_SXM.sms, rl.HOPPER_SXM.clock_ghz,
-                         copy_gbs, rl.HOPPER_SXM.barrier_us)
+        peaks = dataclasses.replace(rl.HOPPER_SXM, copy_gbs=copy_gbs)
         kernel_path = path if path in ("tiled", "substeps", "node_a_thread") else "substeps"
         row["roofline"] = rl.roofline(scene, precision, kernel_path, n * n, substeps, p50,
                                       peaks)
