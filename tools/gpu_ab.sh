@@ -12,6 +12,9 @@
 #       --load-max-rooms $MAX --client-procs $PROCS $CPUS` (CPUS: e.g. "--server-cpus 0-9
 #       --client-cpus 10-15", the server and its load on cores of their own; EXTRA: more
 #       bench flags, e.g. "--corner-rate 1000")
+#   BENCH="ARGS;ARGS..." BENCH_LABELS="base head base head"  each label in turn runs
+#       `clothball bench ARGS` once for each ARGS (the engine's own benches: Table 1, --rooms),
+#       output in $OUT/bench_<i>_<j>_<label>.txt (BENCH_S seconds each, 300)
 #   GPU_TESTS / TESTS  as in tools/gpu_host.sh, on head, first
 #   SKIP_BUILD=1  a warm machine that has both builds (a second call within its warm time)
 #   BUILD="head"  build only these (no base: no label may use it)
@@ -82,6 +85,19 @@ for round in "${rounds[@]}"; do
     i=$((i + 1))
   done
   wait
+done
+IFS=';' read -ra benches <<<"${BENCH:-}"
+i=0
+for label in ${BENCH_LABELS:-}; do
+  i=$((i + 1)); j=0
+  for args in "${benches[@]}"; do
+    j=$((j + 1)); name="bench_${i}_${j}_${label%%:*}"
+    echo "== $name ($label): bench $args"
+    # shellcheck disable=SC2086  # the flags are words
+    as "$label" timeout "${BENCH_S:-300}" python3 -m clothball.game.cli bench $args \
+      >"$OUT/$name.txt" 2>&1
+    echo "rc=$? $(grep -c . "$OUT/$name.txt") lines"
+  done
 done
 W=${W:-16}
 i=0
