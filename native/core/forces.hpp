@@ -229,6 +229,44 @@ CB_HD GripNode<R> grip_node(const Params<R>& p, int i, int j) {
   return g;
 }
 
+// Part of the point a hand holds: over the grip's nodes m = first, first + stride, ...
+// (m = 0 the corner node, m >= 1 a node m along each of its two edges), each node's
+// position less its rest offset and its velocity, weighted by its share of K, and the
+// shares' total. The GPU splits a grip over lanes (finish_body); grip_point takes them all.
+template <class R>
+CB_HD void grip_point_part(const Params<R>& p, const Planes<R>& pos, const Planes<R>& vel, int c,
+                           int first, int stride, V3<R>& x, V3<R>& v, R& total) {
+  const int n = p.n, q = corner_node(c, n);
+  x = {R(0), R(0), R(0)};
+  v = {R(0), R(0), R(0)};
+  total = R(0);
+  if (p.grip_nodes == 0) {  // the corner node alone, its own state
+    if (first == 0) {
+      x = pos.get(q);
+      v = vel.get(q);
+      total = R(1);
+    }
+    return;
+  }
+  const int ci = q / n, cj = q - ci * n;
+  const int di = ci == 0 ? 1 : -1, dj = cj == 0 ? 1 : -1;
+  for (int m = first; m <= p.grip_nodes; m += stride) {
+    const R w = grip_weight(m, p.grip_u);
+    if (m == 0) {
+      x += pos.get(q) * w;
+      v += vel.get(q) * w;
+      total += w;
+      continue;
+    }
+    const R off = R(m) * p.L;
+    const int a = ci * n + cj + dj * m, b = (ci + di * m) * n + cj;
+    x += (pos.get(a) - V3<R>{R(dj) * off, R(0), R(0)}) * w;
+    x += (pos.get(b) - V3<R>{R(0), R(0), R(di) * off}) * w;
+    v += (vel.get(a) + vel.get(b)) * w;
+    total += R(2) * w;
+  }
+}
+
 // The point a hand holds (the corner at rest) and its velocity: the grip's nodes' positions
 // less their rest offsets, and their velocities, weighted by their share of K. The force
 // on the hand is then -K (hip - point), the sum of its nodes' couplings. With a single node
@@ -236,24 +274,8 @@ CB_HD GripNode<R> grip_node(const Params<R>& p, int i, int j) {
 template <class R>
 CB_HD void grip_point(const Params<R>& p, const Planes<R>& pos, const Planes<R>& vel, int c,
                       V3<R>& x, V3<R>& v) {
-  const int n = p.n, q = corner_node(c, n);
-  x = pos.get(q);
-  v = vel.get(q);
-  if (p.grip_nodes == 0) return;
-  const int ci = q / n, cj = q - ci * n;
-  const int di = ci == 0 ? 1 : -1, dj = cj == 0 ? 1 : -1;
-  const R w0 = grip_weight(0, p.grip_u);
-  R total = w0;
-  x = x * w0;
-  v = v * w0;
-  for (int m = 1; m <= p.grip_nodes; ++m) {
-    const R w = grip_weight(m, p.grip_u), off = R(m) * p.L;
-    const int a = ci * n + cj + dj * m, b = (ci + di * m) * n + cj;
-    x += (pos.get(a) - V3<R>{R(dj) * off, R(0), R(0)}) * w;
-    x += (pos.get(b) - V3<R>{R(0), R(0), R(di) * off}) * w;
-    v += (vel.get(a) + vel.get(b)) * w;
-    total += R(2) * w;
-  }
+  R total;
+  grip_point_part(p, pos, vel, c, 0, 1, x, v, total);
   x = x * (R(1) / total);
   v = v * (R(1) / total);
 }

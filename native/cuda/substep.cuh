@@ -268,7 +268,8 @@ __device__ __forceinline__ void se_substep_body(Params<R> p, DevBuf<R> in,
   substep_ball_end<R, E>(p, sb, contact, near2, first == 0);
 }
 
-// The end of a frame for one cloth, thread t of a block of 32: the last substep's deferred
+// The end of a frame for one cloth, thread t of a block of 32 (a whole warp: every lane
+// must arrive, as the grips' sums are shuffled): the last substep's deferred
 // ball update (when `sb.prev` is set), then the corners, the ball and the non-finite flag to
 // the mapped read-back. With no read-back (`out` null) it is the ball's own launch before
 // a substep (large n).
@@ -276,12 +277,24 @@ template <class R, unsigned E>
 __device__ __forceinline__ void finish_body(const Params<R>& p, const DevBuf<R>& s,
                                             const SubstepBall<R>& sb, const int* nonfinite, R dt,
                                             R* out, int t) {
-  if (t < 4 && out != nullptr) {
+  if (out != nullptr) {
+    // The point each hand holds (grip_point), hand t / 8 by 8 lanes striding over its grip's
+    // nodes: a grip of M nodes an edge (M ~ n / 10 for the shipped 10 cm) costs the frame's
+    // end M / 8 loads' latency in turn, not M.
+    const int c = t >> 3, lane = t & 7;
     V3<R> x, v;
-    grip_point(p, s.pos, s.vel, t, x, v);  // the point hand t holds
-    R* o = out + 6 * t;
-    o[0] = x.x; o[1] = x.y; o[2] = x.z; o[3] = v.x; o[4] = v.y; o[5] = v.z;
-  } else if (t == 4) {
+    R total;
+    grip_point_part(p, s.pos, s.vel, c, lane, 8, x, v, total);
+    R sums[7] = {x.x, x.y, x.z, v.x, v.y, v.z, total};
+    for (int o = 4; o > 0; o >>= 1)
+      for (int k = 0; k < 7; ++k) sums[k] += __shfl_xor_sync(0xffffffffu, sums[k], o);
+    if (lane == 0) {
+      R* o = out + 6 * c;
+      const R inv = R(1) / sums[6];
+      for (int k = 0; k < 6; ++k) o[k] = sums[k] * inv;
+    }
+  }
+  if (t == 0) {
     Ball<R> b = *sb.cur;
     if constexpr ((E & BALL) != 0) {
       if (sb.prev != nullptr) {
