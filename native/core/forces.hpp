@@ -205,6 +205,8 @@ struct GripNode {
 template <class R>
 CB_HD GripNode<R> grip_node(const Params<R>& p, int i, int j) {
   const int n = p.n, last = n - 1, M = p.grip_nodes;
+  // Inside the cloth no hand holds a node: one test for the (on the GPU, every) node there.
+  if (i != 0 && i != last && j != 0 && j != last) return {-1, R(0), {R(0), R(0), R(0)}};
   GripNode<R> g{corner_slot(i, j, n), p.coupling_k, {R(0), R(0), R(0)}};
   if (M == 0) return g;  // the paper's: the corner node alone, with K
   if (g.corner >= 0) {
