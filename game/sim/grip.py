@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from numpy.polynomial import Polynomial
 
 from .scene import Scene
 
@@ -30,23 +31,47 @@ def grip_density(s: float, a: float) -> float:
     return (1.0 - x * x) ** 2 if x < 1.0 else 0.0
 
 
+def hat_share(m: int, L: float, a: float) -> float:
+    """The grip's density integrated against the hat function of the node m spacings from
+    the corner (1 - |s - m L| / L), over the edge within a, in metres; the corner's (m = 0)
+    over both edges. Exact: the density is a polynomial within a, integrated piece by
+    piece (numpy's Polynomial), not the engine's Gauss rule."""
+    rho = Polynomial([1.0, 0.0, -2.0 / a**2, 0.0, 1.0 / a**4])  # (1 - (s / a)^2)^2
+    s_m = m * L
+    pieces = [(s_m - L, s_m, Polynomial([1.0 - s_m / L, 1.0 / L])),  # rising side
+              (s_m, s_m + L, Polynomial([1.0 + s_m / L, -1.0 / L]))]  # falling side
+    total = 0.0
+    for lo, hi, hat in pieces:
+        lo, hi = max(lo, 0.0), min(hi, a)
+        if hi > lo:
+            f = (rho * hat).integ()
+            total += f(hi) - f(lo)
+    return 2.0 * total if m == 0 else total
+
+
 def grips(scene: Scene) -> list[Grip]:
     """Every node the hands hold: a hand holds its corner node, and with
-    ``coupling.grip_radius`` a > 0 the nodes of its corner's two edges closer than a to the
-    corner (none past the edge's middle, which would be another hand's), each with the
-    density at its point times the spacing (the trapezoid rule; the corner's on both edges:
-    its density once), shares summing to 1 a hand."""
+    ``coupling.grip_radius`` a > L (a spacing) the nodes of its corner's two edges whose hat
+    function meets the density, (m - 1) L < a (none past the edge's middle, which would be
+    another hand's), each with its ``hat_share``; the shares sum to 1 a hand."""
     n, L = scene.n, scene.rest_length
     a = scene["coupling"]["grip_radius"]
-    held = []  # (corner, i, j, weight, offset)
-    for c, (ci, cj) in enumerate(((0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0))):
-        di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
-        held.append((c, ci, cj, 1.0, np.zeros(3)))
-        m = 1
-        while a > 0 and m * L < a and 2 * m <= n - 2:
-            w = grip_density(m * L, a)
-            held.append((c, ci, cj + dj * m, w, np.array([dj * m * L, 0.0, 0.0])))
-            held.append((c, ci + di * m, cj, w, np.array([0.0, 0.0, di * m * L])))
-            m += 1
+    held = [(c, ci, cj, 1.0, np.zeros(3)) for c, (ci, cj) in enumerate(corner_nodes(n))]
+    if a > L:
+        held = []
+        for c, (ci, cj) in enumerate(corner_nodes(n)):
+            di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
+            held.append((c, ci, cj, hat_share(0, L, a), np.zeros(3)))
+            m = 1
+            while (m - 1) * L < a and 2 * m <= n - 2:
+                w = hat_share(m, L, a)
+                held.append((c, ci, cj + dj * m, w, np.array([dj * m * L, 0.0, 0.0])))
+                held.append((c, ci + di * m, cj, w, np.array([0.0, 0.0, di * m * L])))
+                m += 1
     total = [sum(h[3] for h in held if h[0] == c) for c in range(4)]
     return [Grip(c, i, j, w / total[c], off) for c, i, j, w, off in held]
+
+
+def corner_nodes(n: int) -> tuple[tuple[int, int], ...]:
+    """The corner nodes (i, j) in the hands' slot order (native/core/forces.hpp)."""
+    return ((0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0))

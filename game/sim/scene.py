@@ -149,9 +149,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
             0.0, "float", 0.0, 100.0, effect="coupling",
             doc="m: a hand holds each of its corner's two edges over this length, K spread "
             "along them with a smooth density falling to zero at this distance, (1 - (s / "
-            "a)^2)^2 (sampled at the nodes, normalised to K; a fixed length in metres, so the "
-            "sag converges as n grows); 0, or a length within one spacing: the corner node "
-            "alone (the paper's point support, whose sag grows as log n)",
+            "a)^2)^2 (integrated against each node's hat function, normalised to K; a fixed "
+            "length in metres, so the sag converges as n grows); 0, or a length within one "
+            "spacing: the corner node alone (the paper's point support, whose sag grows as "
+            "log n)",
         ),
     },
     "wind": {
@@ -450,13 +451,14 @@ GRID_MARKDOWN = (
     "at the corner and flat where it ends. A single node is a point support, under which a "
     "membrane's displacement grows as log(1 / L): the sag grows by ~3 mm each time the "
     "spacing halves and never converges (a segment of fixed length holds a finite "
-    "displacement) | node m (m L from the corner along an edge, m L < a) takes K w_m / sum "
-    "w, w_m = (1 - (m L / a)^2)^2 (the trapezoid rule's samples of the density; the corner "
-    "w_0 = 1, once for both edges), so the total is K at every n and the sampled grip "
-    "converges to the continuous one at the trapezoid rule's order; a <= L: the corner node "
-    "alone. The hand's point (what `corners()` reads and the Falcon is pulled to) is the "
-    "grip's nodes less their rest offsets, weighted alike: the corner at rest, and the "
-    "force on the hand is -K (hip - point) |",
+    "displacement) | node m (m L from the corner along an edge, (m - 1) L < a) takes K w_m "
+    "/ sum w, w_m the density integrated against the node's hat function (1 - |s - m L| / "
+    "L: the share linear elements give it; the corner its half hat on each edge), so the "
+    "total is K at every n (the hats sum to one); sampled at the nodes instead, a 10 cm grip "
+    "two spacings long at n = 25 kept the sag and rebound from converging monotonically "
+    "(docs/accuracy.md); a <= L: the corner node alone. The hand's point (what `corners()` "
+    "reads and the Falcon is pulled to) is the grip's nodes less their rest offsets, "
+    "weighted alike: the corner at rest, and the force on the hand is -K (hip - point) |",
     "| `[wind]` | m/s, kg/m^3, 1 | on each triangle's area: yes | - |",
     "| `strain_limit.max_strain` | 1 | a strain: yes | (1 + max_strain) L |",
     "| `sim.*` | s, m/s^2 | - | - |",

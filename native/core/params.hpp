@@ -112,26 +112,50 @@ inline unsigned compiled_effect_set(const Config& c) {
 // each of its corner's two edges with a stiffness density that falls smoothly from the
 // corner to zero at a: rho(s) = (1 - (s / a)^2)^2 per unit length (the biweight kernel,
 // even in s, so the corner is a smooth point of it, and flat where it ends). Node m (m
-// spacings L from the corner along an edge) takes rho(m L) L, the trapezoid rule's share;
-// the corner node, on both edges, rho(0) L. The shares are normalised to K, so the total is
-// K whatever n, and since rho is smooth at both ends the sampled grip converges to the
-// continuous one at the trapezoid rule's high order (the earlier hat-function shares of a
-// uniform density were kinked at a and converged at first order). A single node is a point
-// support (its membrane displacement grows as log(1 / L) without bound); a = 0 is the
-// paper's single corner node, and so is any a <= L (the kernel is zero at the next node).
-// In units of L: u = a / L, and the weight of node m is grip_weight(m, u).
+// spacings L from the corner along an edge) takes the density integrated against its hat
+// function (1 - |s - m L| / L over two spacings), the share of the grip that linear
+// elements give it; the corner node, on both edges, the half hat of each. The shares are
+// normalised to K, so the total is K whatever n. Sampled at the nodes instead (the
+// trapezoid rule, until 2026-11-29), the grip of a = 10 cm was about two spacings long at
+// n = 25 and the sag and rebound did not converge monotonically from there
+// (docs/accuracy.md, "The grip's shares"). A single node is a point support (its membrane
+// displacement grows as log(1 / L) without bound); a = 0 is the paper's single corner node,
+// and so is any a <= L. In units of L: u = a / L, and node m's weight is grip_weight(m, u).
 template <class R>
-CB_HD R grip_weight(int m, R u) {
-  const R x = R(m) / u, t = R(1) - x * x;
-  return x < R(1) ? t * t : R(0);
+CB_HD R grip_density(R x, R u) {  // rho at x spacings from the corner
+  const R y = x / u, t = R(1) - y * y;
+  return y < R(1) ? t * t : R(0);
 }
 
-// Nodes a grip holds along each edge beyond the corner: those with a weight (m < u), at
-// most (n - 2) / 2 so that no node belongs to two corners (the weights are then normalised
-// over the nodes held, and the total is still K).
+// The integral over [t0, t1] (within [-1, 0] or [0, 1]) of node m's hat (1 - |t|) times
+// rho(m + t): a polynomial of degree 5 there (t1 at most the density's end), so the
+// 3-point Gauss-Legendre rule is exact.
+template <class R>
+CB_HD R grip_hat_piece(int m, R u, R t0, R t1) {
+  if (!(t1 > t0)) return R(0);
+  const R c = (t0 + t1) / 2, h = (t1 - t0) / 2, g = R(0.77459666924148337704);  // sqrt(3/5)
+  R sum = R(0);
+  for (int k = -1; k <= 1; ++k) {
+    const R t = c + R(k) * g * h, hat = R(1) - (t < R(0) ? -t : t);
+    sum += (k == 0 ? R(8) / R(9) : R(5) / R(9)) * hat * grip_density(R(m) + t, u);
+  }
+  return sum * h;
+}
+
+template <class R>
+CB_HD R grip_weight(int m, R u) {
+  const R end = u - R(m);  // where the density ends, in the hat's t
+  const R left = end < R(0) ? end : R(0), right = end < R(1) ? end : R(1);
+  if (m == 0) return R(2) * grip_hat_piece(0, u, R(0), right);  // a half hat on each edge
+  return grip_hat_piece(m, u, R(-1), left) + grip_hat_piece(m, u, R(0), right);
+}
+
+// Nodes a grip holds along each edge beyond the corner: those whose hat meets the density
+// (m - 1 < u), at most (n - 2) / 2 so that no node belongs to two corners (the weights are
+// then normalised over the nodes held, and the total is still K).
 inline int grip_node_count(double u, int n) {
   if (!(u > 1.0)) return 0;
-  const double m = std::ceil(u) - 1.0;
+  const double m = std::ceil(u);
   const int cap = std::max(0, (n - 2) / 2);
   return m < double(cap) ? int(m) : cap;
 }

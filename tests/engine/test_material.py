@@ -124,10 +124,11 @@ def grip_scene(n: int, grip: float, **sim: object) -> Scene:
                                           (25, 0.0417), (33, 0.0)])
 def test_a_grip_moves_as_the_oracle(backend: str, n: int, grip: float) -> None:
     """The hands pulled off their rest points: the engine (grip derived in native/core)
-    against the oracle (its own derivation: each node's share the grip's density at its
-    point), positions, the points the hands hold and their forces; n = 4 caps the grip at
-    the corner node, at n = 16 a = 0.05 is within a spacing (the corner node alone), at
-    25 the grip ends just past the first node."""
+    against the oracle (its own derivation: each node's share the grip's density integrated
+    against its hat function, exactly), positions, the points the hands hold and their
+    forces; n = 4 caps the grip at the corner node, at n = 16 a = 0.05 is within a spacing
+    (the corner node alone), at 25 the grip ends just past the first node (the second's hat
+    meets it over 0.1 % of a spacing)."""
     s = grip_scene(n, grip)
     cloth, ref = Cloth(s, backend=backend), ReferenceCloth(s)
     hips = cloth.hips() + np.array([[0.03, 0.02, -0.01], [-0.02, 0.04, 0.0],
@@ -166,16 +167,21 @@ def test_a_grip_holds_with_its_stiffness_whatever_n(n: int) -> None:
     held = {(g.i, g.j) for g in grips(s)}
     moved = {(int(i), int(j)) for i, j in zip(*np.nonzero(np.abs(cloth.velocities()).sum(-1)),
                                                strict=True)}
-    per_edge = min(max(0, math.ceil(0.06 / s.rest_length) - 1), (n - 2) // 2)  # m L < a
+    u = 0.06 / s.rest_length  # nodes m whose hat meets the grip: (m - 1) L < a, if a > L
+    per_edge = min(math.ceil(u), (n - 2) // 2) if u > 1 else 0
     assert moved == held and len(held) == 4 * (1 + 2 * per_edge)
 
 
 def test_a_grip_shares_its_stiffness_as_its_density() -> None:
-    """The shares (oracle) are the grip's density (1 - (s / a)^2)^2 at each node times the
-    spacing (the trapezoid rule), the corner's once: with a = 3 L, the corner 1, node 1
-    (8/9)^2 = 64/81 and node 2 (5/9)^2 = 25/81 on each edge, of 259/81 in all; node 3, at
-    s = a, has none and is not held."""
+    """The shares (oracle) are the grip's density rho(x) = (1 - (x / 3)^2)^2 (a = 3 L, x in
+    spacings) integrated against each node's hat function, the corner's half hat on both
+    edges, derived by hand: where a hat lies within the density, node m's integral is
+    1 - 2 (m^2 + 1/6) / 9 + (m^4 + m^2 + 1/15) / 81 (the hat's moments 1, 1/6, 1/15): node 1
+    931/1215, node 2 391/1215; node 3's hat meets the density on [2, 3] only, the integral
+    of (x - 2) rho, 73/2430; the corner 2 x 1171/2430. The total is the density's, 16/5 =
+    3888/1215 (the hats sum to one), so the shares are 1171, 931, 391 and 36.5 over 3888."""
     s = grip_scene(11, 0.3)  # L = 0.1
     shares = {(g.i, g.j): g.share for g in grips(s) if g.corner == 0}
-    assert shares == pytest.approx({(0, 0): 81 / 259, (0, 1): 64 / 259, (1, 0): 64 / 259,
-                                    (0, 2): 25 / 259, (2, 0): 25 / 259}, rel=1e-12)
+    assert shares == pytest.approx({(0, 0): 1171 / 3888, (0, 1): 931 / 3888,
+                                    (1, 0): 931 / 3888, (0, 2): 391 / 3888, (2, 0): 391 / 3888,
+                                    (0, 3): 73 / 7776, (3, 0): 73 / 7776}, rel=1e-12)
