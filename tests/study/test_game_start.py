@@ -18,7 +18,7 @@ import pytest
 from clothball.game import Scene
 from clothball.game.sim.scene import available
 from clothball.game.study.gamestart import StartRun, distance, trajectory
-from clothball.game.study.grid import sized
+from clothball.game.study.grid import observed_order, sized
 
 BALL_SCENES = [s for s in available() if "ball" in Scene.load(s).effects]
 PLAY_MM = 5.0  # issue 42's target for d(48, 96), the game's n and its double
@@ -68,3 +68,49 @@ def test_the_game_start_converges_on_the_gpu(name: str, cuda: str, record_proper
     d = distances(name, (25, 49, 97, 193), record_property, backend=cuda)
     for a, b in zip(d, d[1:], strict=False):
         assert b < a or b < CONVERGED_MM, d
+
+
+# Issue 42's other targets, from n = 25 (n - 1 = 24, 48, 96): the static sag (scenes that
+# come to rest: not in a steady wind) and the first rebound converge monotonically at
+# observed order >= 1. Measured (docs/accuracy.md, "The grip's shares"): the sag at orders
+# 1.47-1.76, the rebound at 3.40 (default) and 1.59 (windy); two rebounds converge
+# monotonically but more slowly, which the issue does not accept yet.
+ODD = (25, 49, 97)
+REST_SCENES = [s for s in BALL_SCENES if "wind" not in Scene.load(s).effects]
+# Measured over n = 25-49-97: classic 0.539, silk 0.9997 (then 1.69 and below 1 to n = 193).
+REBOUND_BELOW_FIRST_ORDER = frozenset({"classic", "silk"})
+
+
+@functools.cache
+def rest_and_start(name: str, n: int) -> StartRun:
+    return trajectory(sized(Scene.load(name), n), backend="cpu", precision="float64",
+                      threads=1, sag=True)
+
+
+def monotone_order(name: str, quantity: str, record_property) -> float:
+    """The quantity on ODD; asserts its differences have one sign; returns their order."""
+    v = [rest_and_start(name, n).quantities[quantity] for n in ODD]
+    order = observed_order(*v)
+    line = f"{name} {quantity}: " + ", ".join(f"{1e3 * x:.3f}" for x in v) + f" mm, {order:.2f}"
+    print(line)
+    record_property(f"{name}_{quantity}", line)
+    assert (v[1] - v[0]) * (v[2] - v[1]) > 0, line
+    return order
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", REST_SCENES)
+def test_the_static_sag_converges_at_first_order(name: str, record_property) -> None:
+    assert monotone_order(name, "sag_m", record_property) >= 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", BALL_SCENES)
+def test_the_first_rebound_converges_monotonically(name: str, record_property) -> None:
+    """Every scene's first rebound converges monotonically from n = 25; at order >= 1 in
+    all but REBOUND_BELOW_FIRST_ORDER's (issue 42 open for them)."""
+    order = monotone_order(name, "rebound_m", record_property)
+    if name in REBOUND_BELOW_FIRST_ORDER:
+        pytest.xfail(f"issue 42: {name}'s first rebound converges at order {order:.3f} over "
+                     f"n = 25-97 (below 1)")
+    assert order >= 1.0

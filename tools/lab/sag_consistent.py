@@ -133,7 +133,8 @@ def energy(x, S, P, load, hips, held, hessian):
 def hat_grips(scene: Scene) -> list:
     """G: each held node's share the grip's density integrated against the node's hat
     function along each edge (the trapezoid rule on a fine grid), not sampled at the node:
-    the node past the grip's end takes a share too."""
+    the node past the grip's end takes a share too. What the engine does since 2026-11-29
+    (game/sim/grip.py hat_share, exactly), so G now repeats the shipped grip."""
     from clothball.game.sim.grip import Grip, grip_density
     n, L, a = scene.n, scene.rest_length, scene["coupling"]["grip_radius"]
     s = np.linspace(0.0, a, 4001)
