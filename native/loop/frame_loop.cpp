@@ -468,7 +468,10 @@ void FrameLoop::run() {
     batch_.get_corners_all(corners_.data(), balls_.data());
     const double t_end = now();
     const double server_time = t_end - cfg_.epoch;
-    const double late = t_end - (t0 + double(done) * dt);
+    // How late the pass's last frame ended against when it was due; none when early (a
+    // frame may start up to timer_slack before it is due, and a small room's can end
+    // before then too: a negative p50 on a quiet machine, CI at 257aaaf).
+    const double late = std::max(0.0, t_end - (t0 + double(done) * dt));
     bool any = false;
     std::vector<int> due;
     for (int s : live) {
