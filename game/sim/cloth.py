@@ -15,6 +15,7 @@ import numpy as np
 
 from ... import _native
 from .config import effect_names, native_config
+from .grip import CORNER_INDEX
 from .scene import Scene, SceneError
 from .stability import auto_substeps, stable_dt, substeps_for_speeds
 from .threads import choose as choose_threads
@@ -51,9 +52,6 @@ def rest_positions(scene: Scene) -> np.ndarray:
     pos[..., 1] = scene["cloth"]["height"]
     pos[..., 2] = -size / 2 + i * L
     return pos
-
-
-CORNER_INDEX = ((0, 0), (0, -1), (-1, -1), (-1, 0))  # (0,0), (0,n-1), (n-1,n-1), (n-1,0)
 
 
 def corners_of(mesh: np.ndarray) -> np.ndarray:

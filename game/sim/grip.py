@@ -11,6 +11,10 @@ from numpy.polynomial import Polynomial
 
 from .scene import Scene
 
+# The hands' corners (i, j) in their slot order (native/core/forces.hpp corner_slot):
+# (0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0).
+CORNER_INDEX = ((0, 0), (0, -1), (-1, -1), (-1, 0))
+
 
 class Grip(NamedTuple):
     """One node a hand holds: its hand (corner slot), the node, its share of the hand's
@@ -56,22 +60,16 @@ def grips(scene: Scene) -> list[Grip]:
     another hand's), each with its ``hat_share``; the shares sum to 1 a hand."""
     n, L = scene.n, scene.rest_length
     a = scene["coupling"]["grip_radius"]
-    held = [(c, ci, cj, 1.0, np.zeros(3)) for c, (ci, cj) in enumerate(corner_nodes(n))]
-    if a > L:
-        held = []
-        for c, (ci, cj) in enumerate(corner_nodes(n)):
-            di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
-            held.append((c, ci, cj, hat_share(0, L, a), np.zeros(3)))
-            m = 1
-            while (m - 1) * L < a and 2 * m <= n - 2:
-                w = hat_share(m, L, a)
-                held.append((c, ci, cj + dj * m, w, np.array([dj * m * L, 0.0, 0.0])))
-                held.append((c, ci + di * m, cj, w, np.array([0.0, 0.0, di * m * L])))
-                m += 1
+    spread = a > L  # else the corner node alone
+    held = []  # (corner, i, j, weight, offset)
+    for c, (ci, cj) in enumerate((i % n, j % n) for i, j in CORNER_INDEX):
+        di, dj = (1 if ci == 0 else -1), (1 if cj == 0 else -1)
+        held.append((c, ci, cj, hat_share(0, L, a) if spread else 1.0, np.zeros(3)))
+        m = 1
+        while spread and (m - 1) * L < a and 2 * m <= n - 2:
+            w = hat_share(m, L, a)
+            held.append((c, ci, cj + dj * m, w, np.array([dj * m * L, 0.0, 0.0])))
+            held.append((c, ci + di * m, cj, w, np.array([0.0, 0.0, di * m * L])))
+            m += 1
     total = [sum(h[3] for h in held if h[0] == c) for c in range(4)]
     return [Grip(c, i, j, w / total[c], off) for c, i, j, w, off in held]
-
-
-def corner_nodes(n: int) -> tuple[tuple[int, int], ...]:
-    """The corner nodes (i, j) in the hands' slot order (native/core/forces.hpp)."""
-    return ((0, 0), (0, n - 1), (n - 1, n - 1), (n - 1, 0))

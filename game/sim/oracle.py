@@ -16,7 +16,6 @@ from .scene import Scene, line_weights, mass_weights
 STRUCTURAL_DIRS = ((0, -1), (0, 1), (-1, 0), (1, 0))
 SHEAR_DIRS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
 BEND_DIRS = ((0, -2), (0, 2), (-2, 0), (2, 0))
-CORNERS = ((0, 0), (0, -1), (-1, -1), (-1, 0))
 
 
 def spring(pi: np.ndarray, pj: np.ndarray, k: float, rest: float, compress: float) -> np.ndarray:
